@@ -1,0 +1,325 @@
+"""The odometry configuration: the node's parameter schema and the ROS 2 parameters file.
+
+One schema (``parameter_schema``) lists every parameter the node declares, with type, default,
+description and range. The node declares exactly these; the calibrator writes a parameters file
+(``/**: ros__parameters:``) with the same names; ``OdometryConfig.from_flat`` validates either.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import datetime
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+from skidkin_ros import __version__
+from skidkin_ros.atomic import atomic_write_text
+from skidkin_ros.core.models import get_model, MODELS
+from skidkin_ros.core.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
+                                    NOISE_SPECS, NoiseModel)
+from skidkin_ros.core.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
+from skidkin_ros.errors import ConfigError, ParameterError
+import yaml
+
+__all__ = [
+    'SCHEMA_VERSION',
+    'INPUT_MODES',
+    'SchemaEntry',
+    'parameter_schema',
+    'OdometryConfig',
+    'flatten',
+    'nest',
+    'read_params_file',
+    'write_params_file',
+    'params_document',
+]
+
+SCHEMA_VERSION = 1
+INPUT_MODES = ('joint_state', 'wheel_topics')
+DEFAULT_LEFT_JOINTS = ['front_left_wheel_joint', 'rear_left_wheel_joint']
+DEFAULT_RIGHT_JOINTS = ['front_right_wheel_joint', 'rear_right_wheel_joint']
+
+
+@dataclass(frozen=True)
+class SchemaEntry:
+    """One node parameter: name, type, default, description and range.
+
+    ``kind`` is one of 'double', 'int', 'bool', 'string', 'string_array', 'double_array';
+    ``spec`` gives numeric ranges, ``choices`` the allowed strings.
+    """
+
+    name: str
+    kind: str
+    default: Any
+    description: str
+    spec: ParamSpec | None = None
+    choices: tuple[str, ...] = ()
+    length: int = 0
+
+
+def _spec(name: str, unit: str, default: float, lower: float, upper: float, text: str,
+          lower_open: bool = False) -> ParamSpec:
+    return ParamSpec(name, unit, default, lower, upper, text, lower_open=lower_open)
+
+
+NODE_SPECS: tuple[ParamSpec, ...] = (
+    _spec('max_dt', 's', 0.5, 0.0, 3600.0,
+          'longest step integrated; a longer gap is not integrated across', lower_open=True),
+    _spec('max_wheel_speed', 'rad/s', 100.0, 0.0, 1e4,
+          'wheel speeds beyond this magnitude are rejected as implausible', lower_open=True),
+    _spec('input_timeout', 's', 0.5, 0.0, 3600.0,
+          'no accepted sample for this long: input reported stale', lower_open=True),
+    _spec('pair_tolerance', 's', 0.05, 0.0, 10.0,
+          'wheel_topics input: left and right samples are paired within this time',
+          lower_open=True),
+    _spec('future_tolerance', 's', 0.5, 0.0, 3600.0,
+          'stamps further than this ahead of the node clock are rejected', lower_open=True),
+    _spec('max_rate', 'Hz', 0.0, 0.0, 1e5, 'cap on the odometry publish rate (0: every sample)'),
+)
+
+
+def _model_entries(geometry: Geometry) -> list[SchemaEntry]:
+    entries = []
+    for model in MODELS.values():
+        for spec in model.params:
+            entries.append(SchemaEntry(
+                f'models.{model.name}.{spec.name}', 'double', spec.default_for(geometry),
+                f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec))
+        entries.append(SchemaEntry(
+            f'models.{model.name}.noise.calibrated', 'bool', False,
+            'true when the noise rates below come from a calibration'))
+        for spec in NOISE_SPECS:
+            entries.append(SchemaEntry(
+                f'models.{model.name}.noise.{spec.name}', 'double', spec.default_for(geometry),
+                f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec))
+    return entries
+
+
+def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
+    """Every parameter the node declares, geometry first (model defaults depend on it)."""
+    geometry = geometry or Geometry(GEOMETRY_SPECS[0].default_for(None),
+                                    GEOMETRY_SPECS[1].default_for(None))
+    entries = [
+        SchemaEntry('schema_version', 'int', SCHEMA_VERSION,
+                    f'parameters file schema; this node reads version {SCHEMA_VERSION}'),
+        SchemaEntry('robot', 'string', '', 'robot the parameters were calibrated for'),
+        SchemaEntry('expected_robot', 'string', '',
+                    'if set, refuse a parameters file whose robot differs'),
+    ]
+    entries += [SchemaEntry(spec.name, 'double', geometry.as_dict()[spec.name],
+                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
+                for spec in GEOMETRY_SPECS]
+    entries += [
+        SchemaEntry('model', 'string', 'ideal_dd', 'kinematic model to run',
+                    choices=tuple(MODELS)),
+        SchemaEntry('input', 'string', 'joint_state',
+                    'joint_state (sensor_msgs/JointState) or wheel_topics (two std_msgs/Float64)',
+                    choices=INPUT_MODES),
+        SchemaEntry('left_wheel_joints', 'string_array', list(DEFAULT_LEFT_JOINTS),
+                    'JointState names of the left wheels (speed = mean of their velocities)'),
+        SchemaEntry('right_wheel_joints', 'string_array', list(DEFAULT_RIGHT_JOINTS),
+                    'JointState names of the right wheels (speed = mean of their velocities)'),
+        SchemaEntry('odom_frame_id', 'string', 'odom', 'frame_id of the published odometry'),
+        SchemaEntry('base_frame_id', 'string', 'base_link',
+                    'child_frame_id of the published odometry'),
+        SchemaEntry('publish_tf', 'bool', False,
+                    'broadcast odom -> base_link (needs tf2_ros)'),
+        SchemaEntry('zero_stamp_uses_receive_time', 'bool', False,
+                    'accept JointState with a zero stamp, using the receive time instead'),
+        SchemaEntry('pose_covariance_diagonal', 'double_array', list(FALLBACK_POSE_DIAGONAL),
+                    'fallback pose covariance growth per second of motion when no calibration '
+                    'is loaded (x, y, z, roll, pitch, yaw)', length=6),
+        SchemaEntry('twist_covariance_diagonal', 'double_array', list(FALLBACK_TWIST_DIAGONAL),
+                    'fallback twist covariance when no calibration is loaded '
+                    '(vx, vy, vz, wx, wy, wz)', length=6),
+    ]
+    entries += [SchemaEntry(spec.name, 'double', spec.default_for(geometry),
+                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
+                for spec in NODE_SPECS]
+    entries += _model_entries(geometry)
+    return entries
+
+
+def _check_entry(entry: SchemaEntry, value: Any) -> Any:
+    if entry.spec is not None:
+        if entry.kind == 'int':
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ParameterError(f'parameter {entry.name!r} must be an integer, got {value!r}')
+            return value
+        return check_value(entry.spec, value)
+    if entry.kind == 'bool' and not isinstance(value, bool):
+        raise ParameterError(f'parameter {entry.name!r} must be true or false, got {value!r}')
+    if entry.kind == 'int' and (isinstance(value, bool) or not isinstance(value, int)):
+        raise ParameterError(f'parameter {entry.name!r} must be an integer, got {value!r}')
+    if entry.kind == 'string':
+        if not isinstance(value, str):
+            raise ParameterError(f'parameter {entry.name!r} must be a string, got {value!r}')
+        if entry.choices and value not in entry.choices:
+            raise ParameterError(
+                f'parameter {entry.name!r} = {value!r} is not one of: {", ".join(entry.choices)}')
+    if entry.kind == 'string_array':
+        if (not isinstance(value, (list, tuple)) or not value
+                or not all(isinstance(v, str) and v for v in value)):
+            raise ParameterError(
+                f'parameter {entry.name!r} must be a non-empty list of joint names, got {value!r}')
+        return list(value)
+    if entry.kind == 'double_array':
+        if (not isinstance(value, (list, tuple)) or len(value) != entry.length
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                           for v in value)):
+            raise ParameterError(
+                f'parameter {entry.name!r} must be a list of {entry.length} numbers, '
+                f'got {value!r}')
+        values = [float(v) for v in value]
+        if not all(math.isfinite(v) and v > 0.0 for v in values):
+            raise ParameterError(
+                f'parameter {entry.name!r} must hold {entry.length} finite variances > 0 '
+                f'(a zero variance makes a filter trust the value blindly), got {values}')
+        return values
+    return value
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """Validated node configuration (everything the node needs, nothing ROS-specific)."""
+
+    model: str
+    geometry: Geometry
+    model_values: Mapping[str, Mapping[str, float]]
+    noise: Mapping[str, NoiseModel | None]
+    values: Mapping[str, Any] = field(repr=False, default_factory=dict)
+
+    def __getitem__(self, name: str) -> Any:
+        return self.values[name]
+
+    def bound_model(self, name: str | None = None):
+        name = name or self.model
+        return get_model(name).bind(self.model_values[name], self.geometry)
+
+    @property
+    def active_noise(self) -> NoiseModel | None:
+        return self.noise.get(self.model)
+
+    @classmethod
+    def from_flat(cls, flat: Mapping[str, Any]) -> 'OdometryConfig':
+        """Validate a flat {dotted name: value} mapping (node parameters or a loaded file).
+
+        Missing names take the schema default; an unknown name is an error.
+        """
+        geometry_values = {}
+        for spec in GEOMETRY_SPECS:
+            geometry_values[spec.name] = check_value(spec, flat.get(
+                spec.name, spec.default_for(None)))
+        geometry = Geometry(**geometry_values)
+        schema = {entry.name: entry for entry in parameter_schema(geometry)}
+        unknown = sorted(set(flat) - set(schema) - {'use_sim_time'}
+                         - {n for n in flat if n.startswith(('provenance.', 'qos_overrides.'))})
+        if unknown:
+            raise ParameterError(f'unknown parameter(s) {unknown}; see the README for the '
+                                 'parameters the node accepts')
+        values = {}
+        for name, entry in schema.items():
+            values[name] = _check_entry(entry, flat.get(name, entry.default))
+        if values['schema_version'] != SCHEMA_VERSION:
+            raise ConfigError(
+                f'parameters file schema_version is {values["schema_version"]}, this version of '
+                f'skidkin_ros reads {SCHEMA_VERSION}; recalibrate with this version')
+        if values['expected_robot'] and values['robot'] != values['expected_robot']:
+            raise ConfigError(
+                f'parameters are for robot {values["robot"]!r} but expected_robot is '
+                f'{values["expected_robot"]!r}; load the file calibrated for this robot')
+        model_values = {}
+        noise = {}
+        for model in MODELS.values():
+            prefix = f'models.{model.name}.'
+            raw = {spec.name: values[prefix + spec.name] for spec in model.params}
+            model.vector(raw, geometry)  # cross-parameter constraints (e.g. y_l > y_r)
+            model_values[model.name] = raw
+            if values[prefix + 'noise.calibrated']:
+                noise[model.name] = NoiseModel.from_mapping(
+                    {spec.name: values[prefix + 'noise.' + spec.name] for spec in NOISE_SPECS},
+                    prefix + 'noise.')
+            else:
+                noise[model.name] = None
+        get_model(values['model'])
+        return cls(values['model'], geometry, model_values, noise, values)
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    """Turn nested YAML into ROS parameter names: {'a': {'b': 1}} -> {'a.b': 1}."""
+    flat = {}
+    for key, value in tree.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            flat.update(flatten(value, name + '.'))
+        else:
+            flat[name] = value
+    return flat
+
+
+def nest(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """Inverse of :func:`flatten`."""
+    tree: dict[str, Any] = {}
+    for name, value in flat.items():
+        node = tree
+        *parents, leaf = name.split('.')
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return tree
+
+
+def read_params_file(path: str | Path) -> dict[str, Any]:
+    """Read a ROS 2 parameters file and return the flat parameters of its first node entry."""
+    source = Path(path)
+    if not source.is_file():
+        raise ConfigError(f'parameters file {source} does not exist or is not a file')
+    try:
+        document = yaml.safe_load(source.read_text(encoding='utf-8'))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        raise ConfigError(f'parameters file {source} cannot be read as YAML: {err}') from err
+    if not isinstance(document, Mapping) or not document:
+        raise ConfigError(f'parameters file {source} is empty or not a mapping; expected '
+                          '"/**: ros__parameters: ..."')
+    for node_name, body in document.items():
+        if isinstance(body, Mapping) and isinstance(body.get('ros__parameters'), Mapping):
+            return flatten(body['ros__parameters'])
+        raise ConfigError(f'parameters file {source}: entry {node_name!r} has no '
+                          '"ros__parameters" mapping')
+    raise ConfigError(f'parameters file {source} has no node entry')
+
+
+def _yaml_float(value: float) -> float:
+    return float(value)
+
+
+def params_document(config_values: Mapping[str, Any],
+                    provenance: Mapping[str, Any] | None = None) -> str:
+    """Render flat parameters as a ROS 2 parameters file (floats always written as floats)."""
+    flat = {}
+    schema = {entry.name: entry for entry in parameter_schema()}
+    for name, value in config_values.items():
+        entry = schema.get(name)
+        if entry is not None and entry.kind == 'double':
+            value = _yaml_float(value)
+        elif entry is not None and entry.kind == 'double_array':
+            value = [float(v) for v in value]
+        flat[name] = value
+    prov = dict(provenance or {})
+    prov.setdefault('tool', f'skidkin_ros {__version__}')
+    prov.setdefault('date', datetime.datetime.now(datetime.timezone.utc).isoformat(
+        timespec='seconds'))
+    flat.update({f'provenance.{k}': v for k, v in flatten(prov).items()})
+    body = {'/**': {'ros__parameters': nest(flat)}}
+    header = ('# skidkin_ros parameters file (ROS 2). Load with:\n'
+              '#   ros2 run skidkin_ros odom_node --ros-args --params-file THIS_FILE\n')
+    return header + yaml.safe_dump(body, sort_keys=False, default_flow_style=None, width=99)
+
+
+def write_params_file(path: str | Path, config_values: Mapping[str, Any],
+                      provenance: Mapping[str, Any] | None = None,
+                      force: bool = False) -> Path:
+    """Validate, then write atomically; an existing file needs ``force``."""
+    OdometryConfig.from_flat(dict(config_values))
+    return atomic_write_text(path, params_document(config_values, provenance), force=force)

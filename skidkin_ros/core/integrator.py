@@ -1,0 +1,221 @@
+"""The one integrator shared by the live node and every offline tool.
+
+Wheel speeds are held constant between samples (zero-order hold): the speeds of sample i drive
+the robot over [t_i, t_{i+1}). Over each interval the body twist is constant and the pose is
+advanced by the exact SE(2) exponential, with a series branch for small rotations that is
+continuous with the closed form. The batch rollout (vectorized over many segments, used for
+fitting) and the streaming integrator (used by the node and ``skidkin predict``) perform the same
+additions in the same order, so they agree to the last bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import enum
+import math
+from typing import Protocol
+
+import numpy as np
+
+__all__ = [
+    'SMALL_ANGLE_RAD',
+    'body_increment',
+    'compose',
+    'rollout',
+    'rollout_segments',
+    'wrap_angle',
+    'TwistSource',
+    'SampleStatus',
+    'StepResult',
+    'IntegratorLimits',
+    'StreamingIntegrator',
+]
+
+# Below this rotation per step the closed form loses digits; the series is exact to ~1e-22 there.
+SMALL_ANGLE_RAD = 1e-3
+
+
+def _sinc_terms(dtheta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return sin(a)/a and (1 - cos a)/a, continuous through a = 0."""
+    a = np.asarray(dtheta, dtype=float)
+    small = np.abs(a) < SMALL_ANGLE_RAD
+    safe = np.where(small, 1.0, a)
+    a2 = a * a
+    sin_a = np.where(small, 1.0 - a2 / 6.0 + a2 * a2 / 120.0, np.sin(safe) / safe)
+    cos_a = np.where(small, a / 2.0 - a * a2 / 24.0 + a * a2 * a2 / 720.0,
+                     (1.0 - np.cos(safe)) / safe)
+    return sin_a, cos_a
+
+
+def body_increment(v_x, v_y, omega, dt_s):
+    """Pose change (dx, dy, dtheta) in the start frame for a constant twist held for dt_s."""
+    dtheta = np.asarray(omega, dtype=float) * dt_s
+    sin_a, cos_a = _sinc_terms(dtheta)
+    s = sin_a * dt_s
+    c = cos_a * dt_s
+    dx = v_x * s - v_y * c
+    dy = v_x * c + v_y * s
+    return dx, dy, dtheta
+
+
+def compose(x, y, theta, dx, dy, dtheta):
+    """Apply a body-frame increment to a world pose (vectorized)."""
+    cos_t = np.cos(theta)
+    sin_t = np.sin(theta)
+    return (x + (cos_t * dx - sin_t * dy),
+            y + (sin_t * dx + cos_t * dy),
+            theta + dtheta)
+
+
+def wrap_angle(angle):
+    """Wrap to [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
+
+
+def rollout_segments(twist: np.ndarray, dt_s: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Integrate many segments at once.
+
+    twist: (N, L, 3) body twists held over each step; dt_s: (N, L) step durations (0 for
+    padding); start: (N, 3) start poses (x, y, yaw). Returns poses (N, L + 1, 3): the start and
+    the pose after each step. The heading of every step is known before any position, so the
+    whole rollout is three cumulative sums; no Python loop over time.
+    """
+    twist = np.asarray(twist, dtype=float)
+    dt_s = np.asarray(dt_s, dtype=float)
+    start = np.asarray(start, dtype=float)
+    dx, dy, dtheta = body_increment(twist[..., 0], twist[..., 1], twist[..., 2], dt_s)
+    theta = np.cumsum(np.concatenate([start[:, 2:3], dtheta], axis=1), axis=1)
+    cos_t = np.cos(theta[:, :-1])
+    sin_t = np.sin(theta[:, :-1])
+    step_x = cos_t * dx - sin_t * dy
+    step_y = sin_t * dx + cos_t * dy
+    x = np.cumsum(np.concatenate([start[:, 0:1], step_x], axis=1), axis=1)
+    y = np.cumsum(np.concatenate([start[:, 1:2], step_y], axis=1), axis=1)
+    return np.stack([x, y, theta], axis=-1)
+
+
+def rollout(twist: np.ndarray, dt_s: np.ndarray, start=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Integrate one sequence: twist (L, 3), dt_s (L,) -> poses (L + 1, 3)."""
+    return rollout_segments(np.asarray(twist)[None], np.asarray(dt_s)[None],
+                            np.asarray(start, dtype=float)[None])[0]
+
+
+class TwistSource(Protocol):
+    """What the streaming integrator runs: a bound model (or an augmented one)."""
+
+    def twist(self, omega_l, omega_r) -> np.ndarray:
+        ...
+
+
+class SampleStatus(enum.Enum):
+    """What the integrator did with a wheel sample."""
+
+    INTEGRATED = 'integrated'        # the held speeds were integrated up to this sample
+    FIRST = 'first'                  # first sample (or first after a reset/gap): held only
+    DUPLICATE_STAMP = 'duplicate'    # dt = 0: speeds updated, nothing integrated
+    OLDER_STAMP = 'older'            # older than the previous one: rejected
+    GAP = 'gap'                      # dt > max_dt: not integrated across, restarted here
+    NON_FINITE_SPEED = 'non_finite'  # NaN or inf wheel speed: rejected
+    IMPLAUSIBLE_SPEED = 'implausible'  # |speed| > max_wheel_speed: rejected
+    NON_FINITE_STATE = 'non_finite_state'  # integration produced NaN/inf: rolled back
+
+    @property
+    def accepted(self) -> bool:
+        return self in (SampleStatus.INTEGRATED, SampleStatus.FIRST,
+                        SampleStatus.DUPLICATE_STAMP, SampleStatus.GAP)
+
+
+@dataclass(frozen=True)
+class IntegratorLimits:
+    """Plausibility limits: max_dt_s bounds the integration step, max_wheel_speed the input."""
+
+    max_dt_s: float = 0.5
+    max_wheel_speed_rad_s: float = 100.0
+
+
+@dataclass
+class StepResult:
+    status: SampleStatus
+    pose: np.ndarray           # (x, y, yaw) after this sample, yaw unwrapped
+    twist: np.ndarray          # body twist now held (from this sample's speeds)
+    dt_s: float = 0.0
+    detail: str = ''
+
+
+@dataclass
+class StreamingIntegrator:
+    """Sample-by-sample form of :func:`rollout`, with the plausibility checks of the node.
+
+    ``step(t_ns, omega_l, omega_r)`` integrates the previously held speeds from the previous
+    stamp to ``t_ns`` and then holds the new speeds. Stamps are integer nanoseconds.
+    """
+
+    source: TwistSource
+    limits: IntegratorLimits = field(default_factory=IntegratorLimits)
+    pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    last_t_ns: int | None = None
+    held_twist: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    held_speeds: tuple[float, float] = (0.0, 0.0)
+
+    def reset(self, pose=(0.0, 0.0, 0.0)) -> None:
+        """Zero (or set) the pose and forget the held speeds and the last stamp."""
+        self.pose = np.array(pose, dtype=float)
+        self.last_t_ns = None
+        self.held_twist = np.zeros(3)
+        self.held_speeds = (0.0, 0.0)
+
+    def set_source(self, source: TwistSource) -> None:
+        """Switch model (parameters changed at runtime); the held twist is recomputed."""
+        self.source = source
+        self.held_twist = np.asarray(source.twist(*self.held_speeds), dtype=float)
+
+    def _reject(self, status: SampleStatus, detail: str) -> StepResult:
+        return StepResult(status, self.pose.copy(), self.held_twist.copy(), 0.0, detail)
+
+    def _hold(self, t_ns: int, omega_l: float, omega_r: float) -> None:
+        self.last_t_ns = t_ns
+        self.held_speeds = (omega_l, omega_r)
+        self.held_twist = np.asarray(self.source.twist(omega_l, omega_r), dtype=float)
+
+    def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
+        omega_l = float(omega_l)
+        omega_r = float(omega_r)
+        for side, value in (('left', omega_l), ('right', omega_r)):
+            if not math.isfinite(value):
+                return self._reject(SampleStatus.NON_FINITE_SPEED,
+                                    f'{side} wheel speed is {value} (expected a finite rad/s)')
+            if abs(value) > self.limits.max_wheel_speed_rad_s:
+                return self._reject(
+                    SampleStatus.IMPLAUSIBLE_SPEED,
+                    f'{side} wheel speed {value:.3g} rad/s exceeds max_wheel_speed '
+                    f'{self.limits.max_wheel_speed_rad_s:g} rad/s')
+        if self.last_t_ns is None:
+            self._hold(t_ns, omega_l, omega_r)
+            return StepResult(SampleStatus.FIRST, self.pose.copy(), self.held_twist.copy())
+        dt_ns = t_ns - self.last_t_ns
+        if dt_ns < 0:
+            return self._reject(SampleStatus.OLDER_STAMP,
+                                f'stamp older than previous by {-dt_ns / 1e9:.6f} s')
+        if dt_ns == 0:
+            self._hold(t_ns, omega_l, omega_r)
+            return StepResult(SampleStatus.DUPLICATE_STAMP, self.pose.copy(),
+                              self.held_twist.copy(), 0.0, 'duplicate stamp (dt = 0)')
+        dt_s = dt_ns * 1e-9
+        if dt_s > self.limits.max_dt_s:
+            self._hold(t_ns, omega_l, omega_r)
+            return StepResult(SampleStatus.GAP, self.pose.copy(), self.held_twist.copy(), dt_s,
+                              f'gap of {dt_s:.3f} s > max_dt {self.limits.max_dt_s:g} s: '
+                              'not integrated across')
+        vx, vy, w = self.held_twist
+        dx, dy, dth = body_increment(vx, vy, w, dt_s)
+        new_pose = np.array(compose(self.pose[0], self.pose[1], self.pose[2], dx, dy, dth),
+                            dtype=float)
+        if not np.all(np.isfinite(new_pose)):
+            self._hold(t_ns, omega_l, omega_r)
+            return StepResult(SampleStatus.NON_FINITE_STATE, self.pose.copy(),
+                              self.held_twist.copy(), dt_s,
+                              'integration produced a non-finite pose; kept the last finite one')
+        self.pose = new_pose
+        self._hold(t_ns, omega_l, omega_r)
+        return StepResult(SampleStatus.INTEGRATED, self.pose.copy(), self.held_twist.copy(),
+                          dt_s)
