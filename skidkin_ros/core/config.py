@@ -128,8 +128,8 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
         SchemaEntry('zero_stamp_uses_receive_time', 'bool', False,
                     'accept JointState with a zero stamp, using the receive time instead'),
         SchemaEntry('pose_covariance_diagonal', 'double_array', list(FALLBACK_POSE_DIAGONAL),
-                    'fallback pose covariance growth per second of motion when no calibration '
-                    'is loaded (x, y, z, roll, pitch, yaw)', length=6),
+                    'fixed pose covariance published when no calibration is loaded '
+                    '(x, y, z, roll, pitch, yaw)', length=6),
         SchemaEntry('twist_covariance_diagonal', 'double_array', list(FALLBACK_TWIST_DIAGONAL),
                     'fallback twist covariance when no calibration is loaded '
                     '(vx, vy, vz, wx, wy, wz)', length=6),
@@ -147,7 +147,7 @@ def _check_entry(entry: SchemaEntry, value: Any) -> Any:
             if isinstance(value, bool) or not isinstance(value, int):
                 raise ParameterError(f'parameter {entry.name!r} must be an integer, got {value!r}')
             return value
-        return check_value(entry.spec, value)
+        return check_value(entry.spec, value, prefix=entry.name[:-len(entry.spec.name)])
     if entry.kind == 'bool' and not isinstance(value, bool):
         raise ParameterError(f'parameter {entry.name!r} must be true or false, got {value!r}')
     if entry.kind == 'int' and (isinstance(value, bool) or not isinstance(value, int)):

@@ -207,9 +207,10 @@ class StreamingIntegrator:
                               f'gap of {dt_s:.3f} s > max_dt {self.limits.max_dt_s:g} s: '
                               'not integrated across')
         vx, vy, w = self.held_twist
-        dx, dy, dth = body_increment(vx, vy, w, dt_s)
-        new_pose = np.array(compose(self.pose[0], self.pose[1], self.pose[2], dx, dy, dth),
-                            dtype=float)
+        with np.errstate(all='ignore'):  # a non-finite result is caught just below
+            dx, dy, dth = body_increment(vx, vy, w, dt_s)
+            new_pose = np.array(compose(self.pose[0], self.pose[1], self.pose[2], dx, dy, dth),
+                                dtype=float)
         if not np.all(np.isfinite(new_pose)):
             self._hold(t_ns, omega_l, omega_r)
             return StepResult(SampleStatus.NON_FINITE_STATE, self.pose.copy(),

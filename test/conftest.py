@@ -1,0 +1,11 @@
+"""Test-wide settings: isolate DDS traffic of each test run from any other on the machine."""
+
+import os
+import random
+
+# Set before rclpy is imported anywhere: a private domain and localhost-only discovery, so two test
+# runs (or a developer's robot) on one machine never see each other's topics.
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(1, 100)))
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+os.environ.setdefault('MPLBACKEND', 'Agg')

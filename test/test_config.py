@@ -1,0 +1,106 @@
+"""The parameter schema, validation, and the ROS 2 parameters file round trip."""
+
+import numpy as np
+import pytest
+from skidkin_ros.core.config import (OdometryConfig, parameter_schema, read_params_file,
+                                     SCHEMA_VERSION, write_params_file)
+from skidkin_ros.core.models import MODELS
+from skidkin_ros.core.specs import Geometry
+from skidkin_ros.errors import ConfigError, OutputError, ParameterError
+import yaml
+
+
+def test_schema_declares_every_model_parameter_once_with_unit_and_range():
+    schema = parameter_schema()
+    names = [entry.name for entry in schema]
+    assert len(names) == len(set(names))
+    for model in MODELS.values():
+        for spec in model.params:
+            entry = next(e for e in schema if e.name == f'models.{model.name}.{spec.name}')
+            assert spec.unit in entry.description and spec.range_text() in entry.description
+
+
+def test_model_defaults_follow_the_geometry():
+    schema = {e.name: e for e in parameter_schema(Geometry(0.2, 0.8))}
+    assert schema['models.edd_symmetric.b_hat'].default == pytest.approx(0.8)
+    assert schema['models.full_linear.gamma_32'].default == pytest.approx(0.25)
+
+
+def test_empty_configuration_is_the_ideal_husky():
+    config = OdometryConfig.from_flat({})
+    assert config.model == 'ideal_dd' and config.active_noise is None
+    assert config.geometry == Geometry(0.1651, 0.555)
+
+
+@pytest.mark.parametrize('flat,needle', [
+    ({'wheel_radius': 0.0}, 'wheel_radius'),
+    ({'wheel_radius': float('nan')}, 'wheel_radius'),
+    ({'track_width': 'wide'}, 'track_width'),
+    ({'models.edd_symmetric.alpha': 2.0}, 'models.edd_symmetric.alpha'),
+    ({'model': 'tank'}, 'model'),
+    ({'input': 'can_bus'}, 'input'),
+    ({'max_dt': -1.0}, 'max_dt'),
+    ({'left_wheel_joints': []}, 'left_wheel_joints'),
+    ({'twist_covariance_diagonal': [0.0] * 6}, 'twist_covariance_diagonal'),
+    ({'publish_tf': 'yes'}, 'publish_tf'),
+    ({'made_up': 1.0}, 'made_up'),
+])
+def test_invalid_values_name_the_parameter(flat, needle):
+    with pytest.raises(ParameterError) as err:
+        OdometryConfig.from_flat(flat)
+    assert needle in str(err.value)
+
+
+def test_schema_version_and_robot_mismatch_are_refused():
+    with pytest.raises(ConfigError, match='schema_version'):
+        OdometryConfig.from_flat({'schema_version': SCHEMA_VERSION + 1})
+    with pytest.raises(ConfigError, match="'warthog'.*'husky'"):
+        OdometryConfig.from_flat({'robot': 'warthog', 'expected_robot': 'husky'})
+
+
+def test_params_file_round_trip_is_a_ros2_parameters_file(tmp_path):
+    values = {'model': 'roc', 'robot': 'husky', 'wheel_radius': 0.17, 'track_width': 0.6,
+              'models.roc.alpha': 0.9, 'models.roc.beta_1': 1, 'models.roc.beta_2': 0.5,
+              'models.roc.noise.calibrated': True, 'models.roc.noise.var_x_per_m': 1e-4,
+              'models.roc.noise.var_y_per_m': 2e-4, 'models.roc.noise.var_yaw_per_m': 3e-4,
+              'models.roc.noise.var_yaw_per_rad': 4e-4}
+    path = write_params_file(tmp_path / 'p.yaml', values, {'source': 'unit test'})
+    document = yaml.safe_load(path.read_text())
+    body = document['/**']['ros__parameters']
+    assert body['models']['roc']['beta_1'] == 1.0 and isinstance(body['models']['roc']['beta_1'],
+                                                                 float)
+    assert body['provenance']['source'] == 'unit test'
+    config = OdometryConfig.from_flat(read_params_file(path))
+    assert config.model == 'roc' and config.geometry.track_width == 0.6
+    assert config.active_noise.var_yaw_per_rad == 4e-4
+    bound = config.bound_model()
+    np.testing.assert_allclose(bound.k, [0.9, 1.0, 0.5])
+
+
+def test_existing_file_is_not_overwritten_without_force(tmp_path):
+    path = tmp_path / 'p.yaml'
+    path.write_text('keep me')
+    with pytest.raises(OutputError, match='--force'):
+        write_params_file(path, {'model': 'ideal_dd'})
+    assert path.read_text() == 'keep me'
+    write_params_file(path, {'model': 'ideal_dd'}, force=True)
+    assert 'ros__parameters' in path.read_text()
+
+
+def test_invalid_values_are_never_written(tmp_path):
+    with pytest.raises(ParameterError):
+        write_params_file(tmp_path / 'p.yaml', {'models.roc.alpha': 3.0})
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize('text,needle', [
+    ('', 'empty'), ('[1, 2]', 'mapping'), ('/**: {foo: 1}', 'ros__parameters'),
+    (': : :', 'YAML')])
+def test_unreadable_params_files_name_the_path(tmp_path, text, needle):
+    path = tmp_path / 'bad.yaml'
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        read_params_file(path)
+    assert str(path) in str(err.value) and needle in str(err.value)
+    with pytest.raises(ConfigError, match='does not exist'):
+        read_params_file(tmp_path / 'missing.yaml')

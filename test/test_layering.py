@@ -1,0 +1,47 @@
+"""Keep the layers apart: a ROS-free core, rclpy only in the node, printing only in the CLI."""
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / 'skidkin_ros'
+ROS_MODULES = ('rclpy', 'sensor_msgs', 'nav_msgs', 'std_msgs', 'geometry_msgs', 'std_srvs',
+               'diagnostic_msgs', 'rosgraph_msgs', 'tf2_ros', 'builtin_interfaces')
+IO_MODULES = ('rosbags', 'kiss_icp')
+
+
+def _imports(path):
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name.split('.')[0]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            yield node.module.split('.')[0]
+
+
+def _files(sub):
+    return sorted((PACKAGE / sub).rglob('*.py')) if sub else sorted(PACKAGE.rglob('*.py'))
+
+
+def test_core_never_imports_ros_or_io_libraries():
+    offenders = [(f.name, m) for f in _files('core') for m in _imports(f)
+                 if m in ROS_MODULES + IO_MODULES + ('matplotlib',)]
+    assert offenders == []
+
+
+def test_only_the_node_imports_ros():
+    offenders = [(str(f.relative_to(PACKAGE)), m) for f in _files('') for m in _imports(f)
+                 if m in ROS_MODULES and f.parent.name != 'node']
+    assert offenders == []
+
+
+def test_library_code_does_not_print():
+    offenders = []
+    for f in _files(''):
+        if f.parent.name in ('cli',):
+            continue
+        for node in ast.walk(ast.parse(f.read_text())):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                    and node.func.id == 'print'):
+                offenders.append(f'{f.relative_to(PACKAGE)}:{node.lineno}')
+    assert offenders == []
