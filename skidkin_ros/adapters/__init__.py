@@ -1,0 +1,1 @@
+"""Adapters that turn recordings (rosbag2 via rosbags) and lidar (kiss-icp) into core types."""

@@ -1,0 +1,1 @@
+"""The ``skidkin`` command line (the only place that prints for users)."""

@@ -1,0 +1,205 @@
+"""Run the real odometry node in-process on recorded wheel samples and collect its output.
+
+The node is the same :class:`~skidkin_ros.node.odom_node.OdomNode` that ``ros2 run`` starts, with
+real rclpy and real DDS, in a private rclpy context and a unique namespace. Samples go in as
+sensor_msgs/JointState; the node's input and output QoS are switched to reliable with deep
+queues through the standard ``qos_overrides`` parameters and the harness sends samples in
+windows, waiting until the node has taken each window, so no message is dropped.
+
+Example::
+
+    from skidkin_ros.node.replay import replay_through_node
+    result = replay_through_node(drive.wheels, params_file=Path('calibrated.yaml'))
+    print(result.x[-1], result.y[-1], result.yaw[-1])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import itertools
+import os
+from pathlib import Path
+import time
+from typing import Any, Mapping, Sequence
+
+from nav_msgs.msg import Odometry
+import numpy as np
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.errors import SkidkinError
+from skidkin_ros.node.conversions import ns_to_stamp, quaternion_to_yaw, stamp_to_ns
+from skidkin_ros.node.odom_node import OdomNode
+
+__all__ = ['ReplayResult', 'ReplayError', 'replay_through_node']
+
+NS_PER_S = 1_000_000_000
+WINDOW = 64            # samples in flight at once; well below the queue depths set below
+QUEUE_DEPTH = 1024
+_instance = itertools.count()
+
+
+class ReplayError(SkidkinError):
+    """The node did not take or answer the replayed samples in time."""
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    """Odometry published by the node, one row per message (in publication order).
+
+    ``t_ns`` is the odometry stamp in the time base of the input samples; ``yaw`` is unwrapped
+    (continuous) from the published quaternions; ``pose_cov`` and ``twist_cov`` are (N, 6, 6).
+    ``counters`` is the node's per-cause sample counters at the end (see /diagnostics).
+    """
+
+    t_ns: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    vx: np.ndarray
+    vy: np.ndarray
+    wz: np.ndarray
+    pose_cov: np.ndarray
+    twist_cov: np.ndarray
+    counters: Mapping[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.t_ns.size)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """Return the poses as an (N, 3) array of x, y and unwrapped yaw."""
+        return np.stack([self.x, self.y, self.yaw], axis=-1)
+
+
+def _result(messages: Sequence[Odometry], offset_ns: int,
+            counters: Mapping[str, int]) -> ReplayResult:
+    n = len(messages)
+    t_ns = np.array([stamp_to_ns(m.header.stamp) - offset_ns for m in messages], dtype=np.int64)
+    x = np.array([m.pose.pose.position.x for m in messages], dtype=float)
+    y = np.array([m.pose.pose.position.y for m in messages], dtype=float)
+    yaw = np.array([quaternion_to_yaw(m.pose.pose.orientation.x, m.pose.pose.orientation.y,
+                                      m.pose.pose.orientation.z, m.pose.pose.orientation.w)
+                    for m in messages], dtype=float)
+    yaw = np.unwrap(yaw) if n else yaw
+    vx = np.array([m.twist.twist.linear.x for m in messages], dtype=float)
+    vy = np.array([m.twist.twist.linear.y for m in messages], dtype=float)
+    wz = np.array([m.twist.twist.angular.z for m in messages], dtype=float)
+    pose_cov = np.array([np.asarray(m.pose.covariance).reshape(6, 6) for m in messages],
+                        dtype=float).reshape(n, 6, 6)
+    twist_cov = np.array([np.asarray(m.twist.covariance).reshape(6, 6) for m in messages],
+                         dtype=float).reshape(n, 6, 6)
+    return ReplayResult(t_ns, x, y, yaw, vx, vy, wz, pose_cov, twist_cov, dict(counters))
+
+
+def _stamp_offset(samples: WheelSamples, stamp_offset_ns: int | None) -> int:
+    """Shift stamps so none is zero or negative (a zero stamp is rejected by the node)."""
+    if stamp_offset_ns is not None:
+        return int(stamp_offset_ns)
+    if len(samples) and int(samples.t_ns[0]) <= 0:
+        return NS_PER_S - int(samples.t_ns[0])
+    return 0
+
+
+class _Harness:
+    """The node under test, a driver node and one executor in a private context."""
+
+    def __init__(self, context: Context, namespace: str, params_file: Path | None,
+                 overrides: Mapping[str, Any]) -> None:
+        cli_args = ['--ros-args', '--params-file', str(params_file)] if params_file else None
+        self.odom = OdomNode(context=context, namespace=namespace, cli_args=cli_args,
+                             use_global_arguments=False, enable_rosout=False,
+                             parameter_overrides=[Parameter(k, value=v)
+                                                  for k, v in overrides.items()])
+        self.driver = rclpy.create_node('skidkin_replay_driver', namespace=namespace,
+                                        context=context, use_global_arguments=False,
+                                        enable_rosout=False, start_parameter_services=False)
+        qos = QoSProfile(depth=QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        self.publisher = self.driver.create_publisher(JointState, 'joint_states', qos)
+        self.received: list[Odometry] = []
+        self.driver.create_subscription(Odometry, 'odom', self.received.append, qos)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.odom)
+        self.executor.add_node(self.driver)
+
+    def spin_until(self, done, timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if time.monotonic() > deadline:
+                raise ReplayError(f'replay: timed out after {timeout_s:g} s waiting for {what}')
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def connected(self) -> bool:
+        return (self.publisher.get_subscription_count() > 0
+                and self.odom._odom_pub.get_subscription_count() > 0)
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.odom.destroy_node()
+        self.driver.destroy_node()
+
+
+def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
+                        overrides: Mapping[str, Any] | None = None,
+                        left_joints: Sequence[str] | None = None,
+                        right_joints: Sequence[str] | None = None,
+                        timeout_s: float = 60.0,
+                        stamp_offset_ns: int | None = None) -> ReplayResult:
+    """Feed ``samples`` to a real OdomNode as JointState messages and return its odometry.
+
+    ``params_file`` and ``overrides`` (flat parameter names, e.g. ``{'model': 'roc'}``) configure
+    the node as ``--params-file`` and ``-p`` would; the input is forced to ``joint_state``.
+    Joint names default to the node's ``left_wheel_joints`` / ``right_wheel_joints``. Stamps are
+    shifted by ``stamp_offset_ns`` (default: only when the first stamp is <= 0, which the node
+    would reject as unset) and shifted back in the result. ``timeout_s`` bounds the whole run.
+    Raises ConfigError if the node refuses the configuration, ReplayError on a timeout.
+    """
+    params = dict(overrides or {})
+    params['input'] = 'joint_state'
+    if left_joints is not None:
+        params['left_wheel_joints'] = list(left_joints)
+    if right_joints is not None:
+        params['right_wheel_joints'] = list(right_joints)
+    namespace = f'/skidkin_replay_{os.getpid()}_{next(_instance)}'
+    for topic, role in (('joint_states', 'subscription'), ('odom', 'publisher')):
+        params[f'qos_overrides.{namespace}/{topic}.{role}.reliability'] = 'reliable'
+        params[f'qos_overrides.{namespace}/{topic}.{role}.depth'] = QUEUE_DEPTH
+    offset_ns = _stamp_offset(samples, stamp_offset_ns)
+    deadline = time.monotonic() + timeout_s
+    context = Context()
+    rclpy.init(args=[], context=context)
+    harness = None
+    try:
+        harness = _Harness(context, namespace, params_file, params)
+        harness.spin_until(harness.connected, timeout_s, 'the node to connect')
+        left = list(harness.odom.config['left_wheel_joints'])
+        right = list(harness.odom.config['right_wheel_joints'])
+        names = left + right
+        sent = 0
+        n = len(samples)
+        while sent < n:
+            stop = min(sent + WINDOW, n)
+            for i in range(sent, stop):
+                msg = JointState()
+                msg.header.stamp = ns_to_stamp(int(samples.t_ns[i]) + offset_ns)
+                msg.name = names
+                msg.velocity = ([float(samples.omega_l[i])] * len(left)
+                                + [float(samples.omega_r[i])] * len(right))
+                harness.publisher.publish(msg)
+            sent = stop
+            target = sent
+            harness.spin_until(lambda: harness.odom.counters['received'] >= target,
+                               max(deadline - time.monotonic(), 0.0),
+                               f'the node to take sample {target} of {n}')
+        harness.spin_until(
+            lambda: len(harness.received) >= harness.odom.counters['published'],
+            max(deadline - time.monotonic(), 0.0), 'the last odometry messages')
+        return _result(harness.received, offset_ns, harness.odom.counters)
+    finally:
+        if harness is not None:
+            harness.close()
+        context.try_shutdown()

@@ -1,0 +1,292 @@
+"""Fault rows N1-N22 of docs/fault-matrix.md against the real node (N16-N19: test_node.py)."""
+
+import math
+import time
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from node_harness import best_effort_publisher, NodeRig, NS_PER_S, wall_ns
+import numpy as np
+import pytest
+from rclpy.clock import ClockType
+from std_msgs.msg import Float64
+
+pytestmark = pytest.mark.ros
+
+R = 0.1651
+DT = 20_000_000
+
+
+@pytest.fixture
+def make_rig():
+    rigs = []
+
+    def factory(overrides=None, params_file=None):
+        rig = NodeRig(overrides, params_file)
+        rigs.append(rig)
+        return rig
+
+    yield factory
+    for rig in rigs:
+        rig.close()
+
+
+def start_ns():
+    return wall_ns() - 5 * NS_PER_S
+
+
+def all_finite(rig):
+    for msg in rig.odom:
+        values = [msg.pose.pose.position.x, msg.pose.pose.position.y,
+                  msg.pose.pose.orientation.z, msg.pose.pose.orientation.w,
+                  msg.twist.twist.linear.x, msg.twist.twist.linear.y, msg.twist.twist.angular.z,
+                  *msg.pose.covariance, *msg.twist.covariance]
+        if not all(math.isfinite(v) for v in values):
+            return False
+    return True
+
+
+@pytest.mark.parametrize('bad, side', [(math.nan, 'left'), (math.inf, 'right'),
+                                       (-math.inf, 'left')])
+def test_n1_n2_non_finite_speed_rejected(make_rig, bad, side):
+    rig = make_rig()
+    t0 = start_ns()
+    rig.send_joint(t0, 2.0, 2.0)
+    rig.send_joint(t0 + DT, *((bad, 2.0) if side == 'left' else (2.0, bad)))
+    rig.send_joint(t0 + 2 * DT, 2.0, 2.0)
+    rig.drain()
+    assert rig.node.counters['non_finite'] == 1
+    assert len(rig.odom) == 2 and all_finite(rig)
+    # The bad sample is skipped: the held 2 rad/s carry the pose over both intervals.
+    assert rig.odom[-1].pose.pose.position.x == pytest.approx(R * 2.0 * 0.04, abs=1e-12)
+    assert side in rig.node.last_warnings['non_finite']
+
+
+def test_n3_implausible_speed_rejected(make_rig):
+    rig = make_rig({'max_wheel_speed': 10.0})
+    t0 = start_ns()
+    rig.send_joint(t0, 1.0, 1.0)
+    rig.send_joint(t0 + DT, 1.0, 50.0)
+    rig.send_joint(t0 + 2 * DT, 1.0, 1.0)
+    rig.drain()
+    assert rig.node.counters['implausible'] == 1 and len(rig.odom) == 2
+    assert rig.odom[-1].pose.pose.position.x == pytest.approx(R * 0.04, abs=1e-12)
+    assert 'max_wheel_speed' in rig.node.last_warnings['implausible']
+
+
+def test_n4_duplicate_stamp_updates_speeds_without_integrating(make_rig):
+    rig = make_rig()
+    t0 = start_ns()
+    rig.send_joint(t0, 1.0, 1.0)
+    rig.send_joint(t0 + DT, 1.0, 1.0)
+    rig.send_joint(t0 + DT, 3.0, 3.0)   # same stamp, new speeds
+    rig.send_joint(t0 + 2 * DT, 3.0, 3.0)
+    rig.drain()
+    assert rig.node.counters['duplicate'] == 1
+    assert len(rig.odom) == 3  # no second message with the same stamp
+    assert rig.odom[-1].pose.pose.position.x == pytest.approx(R * (1.0 + 3.0) * 0.02, abs=1e-12)
+
+
+def test_n5_older_stamp_rejected(make_rig):
+    rig = make_rig()
+    t0 = start_ns()
+    rig.send_joint(t0 + 5 * DT, 1.0, 1.0)
+    rig.send_joint(t0, 1.0, 1.0)
+    rig.drain()
+    assert rig.node.counters['older'] == 1 and len(rig.odom) == 1
+    assert 'older than previous' in rig.node.last_warnings['older']
+
+
+def test_n6_gap_not_integrated_across(make_rig):
+    rig = make_rig({'max_dt': 0.5})
+    t0 = start_ns()
+    rig.send_joint(t0, 2.0, 2.0)
+    rig.send_joint(t0 + DT, 2.0, 2.0)
+    rig.send_joint(t0 + DT + 2 * NS_PER_S, 2.0, 2.0)   # 2 s link drop
+    rig.send_joint(t0 + 2 * DT + 2 * NS_PER_S, 2.0, 2.0)
+    rig.drain()
+    assert rig.node.counters['gap'] == 1 and len(rig.odom) == 4
+    assert rig.odom[2].pose.pose.position.x == pytest.approx(R * 2.0 * 0.02, abs=1e-12)
+    assert rig.odom[3].pose.pose.position.x == pytest.approx(R * 2.0 * 0.04, abs=1e-12)
+    assert 'max_dt' in rig.node.last_warnings['gap']
+
+
+def test_n7_zero_stamp_rejected_unless_told(make_rig):
+    rig = make_rig()
+    rig.send_joint(0, 1.0, 1.0)
+    rig.drain()
+    assert rig.node.counters['zero_stamp'] == 1 and not rig.odom
+    rig2 = make_rig({'zero_stamp_uses_receive_time': True})
+    before = wall_ns()
+    rig2.send_joint(0, 1.0, 1.0)
+    rig2.drain()
+    stamp = rig2.odom[0].header.stamp
+    assert stamp.sec * NS_PER_S + stamp.nanosec >= before
+
+
+def test_n8_future_stamp_rejected(make_rig):
+    rig = make_rig({'future_tolerance': 0.5})
+    rig.send_joint(wall_ns() + 10 * NS_PER_S, 1.0, 1.0)
+    rig.send_joint(wall_ns(), 1.0, 1.0)
+    rig.drain()
+    assert rig.node.counters['future_stamp'] == 1 and len(rig.odom) == 1
+    assert 'ahead of the node clock' in rig.node.last_warnings['future_stamp']
+
+
+def send_wheel(rig, left=None, right=None):
+    for value, publisher in ((left, rig.left_pub), (right, rig.right_pub)):
+        if value is not None:
+            rig.send(Float64(data=value), publisher)
+
+
+def test_n9_wheel_topics_paired_and_stale_side_stops_integration(make_rig):
+    rig = make_rig({'input': 'wheel_topics', 'pair_tolerance': 0.05})
+    for _ in range(4):
+        send_wheel(rig, 2.0, 2.0)
+        rig.spin_for(0.01)
+    rig.drain()
+    assert rig.node.counters['integrated'] == 3 and len(rig.odom) == 4
+    assert rig.odom[-1].twist.twist.linear.x == pytest.approx(R * 2.0)
+    published = len(rig.odom)
+    pose = rig.node.pose
+    for _ in range(5):  # the right side goes silent
+        send_wheel(rig, left=2.0)
+        rig.spin_for(0.06)
+    assert rig.node.counters['unpaired'] >= 4
+    assert len(rig.odom) == published and np.array_equal(rig.node.pose, pose)
+    assert 'right wheel speed is stale' in rig.node.last_warnings['unpaired']
+    values = {kv.key: kv.value for kv in rig.node.diagnostic_status().values}
+    assert float(values['right_age_s']) > 0.2 > float(values['left_age_s'])
+    send_wheel(rig, 2.0, 2.0)   # both sides again: integration resumes
+    rig.drain()
+    assert len(rig.odom) == published + 1
+
+
+def test_n10_input_timeout_reports_stale_and_keeps_pose(make_rig):
+    rig = make_rig({'input_timeout': 0.2})
+    assert rig.node.diagnostic_status().level == DiagnosticStatus.STALE  # nothing received yet
+    t0 = start_ns()
+    for i in range(3):
+        rig.send_joint(t0 + i * DT, 1.0, 1.0)
+    assert rig.node.diagnostic_status().level == DiagnosticStatus.OK
+    rig.drain()
+    published = len(rig.odom)
+    pose = rig.node.pose
+    rig.spin_for(0.4)
+    assert rig.node._stale
+    assert rig.node.diagnostic_status().level == DiagnosticStatus.STALE
+    assert len(rig.odom) == published and np.array_equal(rig.node.pose, pose)
+    rig.send_joint(t0 + 3 * DT, 1.0, 1.0)
+    assert rig.node.diagnostic_status().level == DiagnosticStatus.OK
+    # /diagnostics is published about once a second with the counters.
+    rig.spin_until(lambda: rig.diagnostics, timeout_s=3.0, what='/diagnostics')
+    keys = {kv.key for kv in rig.diagnostics[-1].status[0].values}
+    assert {'model', 'rate_hz', 'last_sample_age_s', 'count.integrated'} <= keys
+
+
+def test_n11_burst_is_bounded(make_rig):
+    rig = make_rig()
+    rig.wait_matched(rig.joint_pub)
+    t0 = start_ns()
+    started = time.monotonic()
+    for i in range(1000):  # 10x a 100 Hz driver for 1 s, sent with no pause
+        rig.joint_pub.publish(rig.joint_state(t0 + i * 1_000_000, 1.0, 1.0))
+    rig.spin_for(0.5)
+    assert rig.node.counters['received'] < 1000  # bounded queue: the excess is dropped
+    rig.send_joint(t0 + 1000 * 1_000_000, 1.0, 1.0)
+    rig.drain()
+    assert time.monotonic() - started < 5.0
+    assert all_finite(rig) and rig.node.counters['older'] == 0
+    stamps = [m.header.stamp.sec * NS_PER_S + m.header.stamp.nanosec for m in rig.odom]
+    assert stamps == sorted(stamps)
+    # Dropped samples only shorten what is integrated (gaps > max_dt are not bridged).
+    assert 0.0 < rig.odom[-1].pose.pose.position.x <= R * 1.0 + 1e-12
+
+
+def test_n12_clock_jump_back_resets(make_rig):
+    rig = make_rig({'use_sim_time': True})
+    rig.publish_clock(100 * NS_PER_S)
+    for i in range(3):
+        rig.send_joint(100 * NS_PER_S + i * DT, 3.0, 3.0)
+    assert rig.node.pose[0] > 0
+    rig.publish_clock(50 * NS_PER_S)   # the bag starts over
+    assert rig.node.counters['clock_jump'] == 1
+    assert np.all(rig.node.pose == 0.0)
+    rig.send_joint(50 * NS_PER_S, 3.0, 3.0)
+    rig.send_joint(50 * NS_PER_S + DT, 3.0, 3.0)
+    assert rig.node.counters['older'] == 0
+    assert rig.node.pose[0] == pytest.approx(R * 3.0 * 0.02, abs=1e-12)
+
+
+def test_n13_sim_time_waits_for_clock(make_rig):
+    rig = make_rig({'use_sim_time': True})
+    rig.send_joint(10 * NS_PER_S, 1.0, 1.0)
+    rig.send_joint(10 * NS_PER_S + DT, 1.0, 1.0)
+    assert rig.node.counters['waiting_for_clock'] == 2
+    assert rig.node.counters['integrated'] == 0 and rig.node.counters['first'] == 0
+    rig.publish_clock(10 * NS_PER_S)
+    rig.send_joint(10 * NS_PER_S + 2 * DT, 1.0, 1.0)
+    rig.send_joint(10 * NS_PER_S + 3 * DT, 1.0, 1.0)
+    assert rig.node.counters['integrated'] == 1
+
+
+def test_n14_watchdogs_run_on_a_steady_clock(make_rig):
+    # Sim time frozen at 0 (no /clock): a ROS-time timer would never fire; ours does.
+    rig = make_rig({'use_sim_time': True})
+    for timer in (rig.node.watchdog_timer, rig.node.diagnostics_timer):
+        assert timer.clock.clock_type == ClockType.STEADY_TIME
+    rig.spin_until(lambda: rig.diagnostics, timeout_s=3.0, what='/diagnostics')
+    assert rig.diagnostics[0].status[0].level == DiagnosticStatus.STALE
+
+
+def test_n15_exception_in_callback_is_caught(make_rig):
+    rig = make_rig()
+    t0 = start_ns()
+    bad = rig.joint_state(t0, 1.0, 1.0, velocity=[1.0, 1.0])  # 4 names, 2 velocities
+    rig.send(bad)
+    rig.send(bad)
+    assert rig.node.counters['callback_error'] == 2
+    rig.send_joint(t0 + DT, 1.0, 1.0)
+    rig.drain()
+    assert len(rig.odom) == 1   # still alive and integrating
+
+
+def test_n20_missing_joint_rejected(make_rig):
+    rig = make_rig()
+    t0 = start_ns()
+    names = ['front_left_wheel_joint', 'rear_left_wheel_joint', 'front_right_wheel_joint']
+    rig.send_joint(t0, 1.0, 1.0, names=names, velocity=[1.0, 1.0, 1.0])
+    rig.drain()
+    assert rig.node.counters['missing_joint'] == 1 and not rig.odom
+    assert 'rear_right_wheel_joint' in rig.node.last_warnings['missing_joint']
+
+
+def test_n21_non_finite_state_never_published(make_rig):
+    rig = make_rig({'model': 'full_linear', 'models.full_linear.gamma_11': 1e308,
+                    'models.full_linear.gamma_12': 1e308})
+    t0 = start_ns()
+    for i in range(3):
+        rig.send_joint(t0 + i * DT, 10.0, 10.0)
+    rig.spin_for(0.05)
+    assert not rig.odom
+    assert rig.node.counters['non_finite_output'] + rig.node.counters['non_finite_state'] == 3
+    assert np.all(np.isfinite(rig.node.pose))
+    assert rig.node.diagnostic_status().level == DiagnosticStatus.ERROR
+
+
+def test_n22_best_effort_and_reliable_publishers_both_connect(make_rig):
+    rig = make_rig()
+    best_effort = best_effort_publisher(rig)
+    t0 = start_ns()
+    rig.send(rig.joint_state(t0, 1.0, 1.0), best_effort)
+    rig.send(rig.joint_state(t0 + DT, 1.0, 1.0), rig.joint_pub)
+    rig.drain()
+    assert rig.node.counters['received'] == 2 and len(rig.odom) == 2
+
+
+def test_max_rate_caps_publication(make_rig):
+    rig = make_rig({'max_rate': 10.0})
+    t0 = start_ns()
+    for i in range(11):  # 50 Hz for 0.2 s
+        rig.send_joint(t0 + i * DT, 1.0, 1.0)
+    rig.drain()
+    assert len(rig.odom) == 3 and rig.node.counters['integrated'] == 10
