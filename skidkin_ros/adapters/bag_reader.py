@@ -238,6 +238,9 @@ class BagRecording:
         self.max_corrupt = int(max_corrupt)
         self.notes: list[str] = []
         self.counts: Counter[tuple[str, str]] = Counter()
+        # The wheel input actually used by the last read_wheels(), as node parameters (input,
+        # left/right_wheel_joints) plus the topics: what a parameters file records.
+        self.wheel_input: dict[str, Any] = {}
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self._readers: list[Reader] = []
         self.files: list[Path] = []
@@ -577,6 +580,8 @@ class BagRecording:
         keep = keep_monotonic(t)
         self._drop(topic, 'stamp out of order or repeated', int(np.count_nonzero(~keep)))
         self._note_drops(topic, int(np.count_nonzero(keep)))
+        self.wheel_input = {'input': 'joint_state', 'topic': topic,
+                            'left_wheel_joints': list(left), 'right_wheel_joints': list(right)}
         return WheelSamples(t[keep], np.array(omega_l)[keep], np.array(omega_r)[keep])
 
     def _reasons(self, topic: str) -> str:
@@ -652,6 +657,8 @@ class BagRecording:
         wr = v_r[np.searchsorted(t_r, t, side='right') - 1]
         self.notes.append(f'wheel speeds: {left_topic} and {right_topic} merged on bag receive '
                           f'time ({t.size} samples, zero-order hold)')
+        self.wheel_input = {'input': 'wheel_topics', 'left_topic': left_topic,
+                            'right_topic': right_topic}
         return WheelSamples(t, wl, wr)
 
     # -- lidar -----------------------------------------------------------------------------------

@@ -1,5 +1,5 @@
 """The registry of ``skidkin`` subcommands, in the order ``--help`` lists them."""
 
-from skidkin_ros.cli import cmd_models
+from skidkin_ros.cli import cmd_groundtruth, cmd_models, cmd_simulate
 
-ALL = [cmd_models]
+ALL = [cmd_simulate, cmd_groundtruth, cmd_models]

@@ -5,10 +5,11 @@ first-order propagation of that same step:
 
     P' = F P F^T + G (Q_motion + Q_input) G^T
 
-F is the Jacobian of the step with respect to the pose, G the rotation of the body-frame increment
-into the world, Q_motion the calibrated process noise (``NoiseModel``: variance growing with distance
-and rotation) and Q_input the wheel-speed measurement noise mapped through the model's Jacobian with
-respect to the inputs. Without a calibration the node publishes fixed diagonals instead (never zeros).
+F is the Jacobian of the step with respect to the pose, G the rotation of the body-frame
+increment into the world, Q_motion the calibrated process noise (``NoiseModel``: variance growing
+with distance and rotation) and Q_input the wheel-speed measurement noise mapped through the
+model's Jacobian with respect to the inputs. Without a calibration the node publishes fixed
+diagonals instead (never zeros).
 
 Example, for a filter author (one prediction over a batch of wheel samples)::
 
@@ -133,7 +134,8 @@ class PoseCovariancePropagator:
     """Streaming covariance for the node: call :meth:`step` for every integrated sample.
 
     With a calibrated ``noise`` the pose covariance grows with the motion as propagated and the
-    twist covariance follows the rate model; without one, the fixed fallback diagonals are published.
+    twist covariance follows the rate model; without one, the fixed fallback diagonals are
+    published.
     """
 
     def __init__(self, noise: NoiseModel | None, fallback_pose_diag: Sequence[float],

@@ -1,0 +1,170 @@
+"""Turn a SOURCE (a rosbag2 recording or a CSV trajectory table) into core ``Drive`` objects.
+
+A bag gives its wheel speeds (JointState or two Float64 topics), its IMU when present, and ground
+truth from the lidar through kiss-icp (``ground_truth='icp'``), from a pose topic
+(nav_msgs/Odometry or geometry_msgs/PoseStamped), or none (``'none'``: prediction only). A table
+gives one Drive per ``segment``. Decisions taken on the user's behalf (auto-selected topics and
+joints, skipped messages, cache hits) are collected in ``notes`` for the CLI to print.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import logging
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from skidkin_ros.adapters.bag_reader import check_overlap, open_recording
+from skidkin_ros.adapters.lidar_gt import bag_identity, IcpConfig, lidar_ground_truth
+from skidkin_ros.adapters.table import read_table
+from skidkin_ros.core.drive import Drive, PoseTrack
+from skidkin_ros.core.integrator import IntegratorLimits
+from skidkin_ros.core.models import get_model
+from skidkin_ros.core.prediction import predict_wheels
+from skidkin_ros.core.specs import Geometry
+from skidkin_ros.errors import DataError, RecordingError
+
+__all__ = ['SourceOptions', 'LoadedSource', 'load_source', 'load_sources', 'is_table',
+           'extrinsic_from_xyz_rpy']
+
+_LOG = logging.getLogger(__name__)
+TABLE_SUFFIXES = ('.csv', '.tsv', '.txt')
+IMU = 'sensor_msgs/msg/Imu'
+
+
+def is_table(path: Path) -> bool:
+    return path.suffix.lower() in TABLE_SUFFIXES
+
+
+def extrinsic_from_xyz_rpy(values: Sequence[float]) -> np.ndarray:
+    """T_base_lidar (4x4) from x, y, z (m) and roll, pitch, yaw (rad), ZYX convention."""
+    if len(values) != 6 or not all(np.isfinite(values)):
+        raise DataError('the extrinsic needs 6 finite numbers: x y z (m) roll pitch yaw (rad) '
+                        'of the lidar in base_link')
+    x, y, z, roll, pitch, yaw = (float(v) for v in values)
+    cr, sr, cp, sp, cy, sy = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch),
+                              np.cos(yaw), np.sin(yaw))
+    rot = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                    [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                    [-sp, cp * sr, cp * cr]])
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = [x, y, z]
+    return out
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    """How to read a source: topics, joints, ground truth, extrinsic and the ICP settings."""
+
+    wheel_topic: str | None = None
+    left_topic: str | None = None
+    right_topic: str | None = None
+    left_joints: tuple[str, ...] | None = None
+    right_joints: tuple[str, ...] | None = None
+    lidar_topic: str | None = None
+    imu_topic: str | None = None
+    ground_truth: str = 'icp'
+    base_frame: str = 'base_link'
+    extrinsic: np.ndarray | None = None
+    cache_dir: Path | None = None
+    progress: bool = False
+    icp: IcpConfig = field(default_factory=IcpConfig)
+    max_wheel_speed_rad_s: float = 100.0
+    min_overlap_s: float = 10.0
+    geometry: Geometry | None = None
+
+
+@dataclass
+class LoadedSource:
+    """What a source gave: its drives, the wheel input used, and the notes for the user."""
+
+    path: Path
+    kind: str
+    drives: list[Drive]
+    notes: list[str] = field(default_factory=list)
+    wheel_input: dict[str, Any] = field(default_factory=dict)
+    truth_info: dict[str, Any] = field(default_factory=dict)
+
+
+def load_sources(paths: Sequence[str | Path], options: SourceOptions,
+                 need_truth: bool = True) -> list[LoadedSource]:
+    return [load_source(path, options, need_truth) for path in paths]
+
+
+def load_source(path: str | Path, options: SourceOptions,
+                need_truth: bool = True) -> LoadedSource:
+    source = Path(path)
+    if is_table(source):
+        drives = read_table(source)
+        rows = sum(len(d.wheels) for d in drives)
+        return LoadedSource(source, 'table', drives,
+                            [f'{source}: trajectory table, {len(drives)} segment(s), {rows} rows'])
+    return _load_bag(source, options, need_truth)
+
+
+def _load_bag(path: Path, options: SourceOptions, need_truth: bool) -> LoadedSource:
+    with open_recording(path) as rec:
+        wheels = rec.read_wheels(options.wheel_topic, left_joints=options.left_joints,
+                                 right_joints=options.right_joints,
+                                 left_topic=options.left_topic, right_topic=options.right_topic,
+                                 max_wheel_speed_rad_s=options.max_wheel_speed_rad_s)
+        if len(wheels) < 2:
+            raise DataError(f'{path}: fewer than 2 wheel samples; nothing to integrate')
+        imu = None
+        imu_topics = [t for t, m in rec.topics().items() if m == IMU]
+        if options.imu_topic or len(imu_topics) == 1:
+            imu = rec.read_imu(options.imu_topic)
+        truth = None
+        truth_info: dict[str, Any] = {'ground_truth': 'none'}
+        if need_truth and options.ground_truth == 'icp':
+            truth, truth_info = _icp_truth(rec, path, wheels, options)
+        elif need_truth and options.ground_truth != 'none':
+            truth = rec.read_pose_track(options.ground_truth)
+            truth_info = {'ground_truth': f'pose topic {options.ground_truth}'}
+        if truth is not None:
+            check_overlap((int(wheels.t_ns[0]), int(wheels.t_ns[-1])),
+                          (int(truth.t_ns[0]), int(truth.t_ns[-1])),
+                          names=('wheel speeds', 'ground truth'),
+                          min_seconds=options.min_overlap_s)
+        drive = Drive(path.name, wheels, truth, imu, {'source': str(path)})
+        return LoadedSource(path, 'bag', [drive], list(rec.notes), dict(rec.wheel_input),
+                            truth_info)
+
+
+def _icp_truth(rec, path: Path, wheels, options: SourceOptions) -> tuple[PoseTrack, dict]:
+    lidar_topic = rec.select(['sensor_msgs/msg/PointCloud2'], options.lidar_topic, 'lidar')
+    first = next(iter(rec.iter_lidar(lidar_topic)), None)
+    if first is None:
+        raise RecordingError(f'{path}: lidar topic {lidar_topic} holds no usable cloud')
+    extrinsic = options.extrinsic
+    if extrinsic is None:
+        extrinsic = rec.read_extrinsic(options.base_frame, first.frame_id)
+        if extrinsic is None:
+            raise DataError(
+                f'{path}: no /tf_static transform from {options.base_frame} to the lidar frame '
+                f'{first.frame_id!r}; give it with --extrinsic X Y Z ROLL PITCH YAW (m, rad). '
+                'Without it the lidar offset would be confounded with the model (x_v).')
+    counts = {s.topic: s.count for s in rec.summary(time_ranges=False)}
+    wheel_track = None
+    if options.geometry is not None:
+        ideal = get_model('ideal_dd').bind({}, options.geometry)
+        pred = predict_wheels(wheels, ideal, IntegratorLimits(
+            max_dt_s=1.0, max_wheel_speed_rad_s=options.max_wheel_speed_rad_s))
+        wheel_track = PoseTrack(pred.t_ns, pred.poses[:, 0], pred.poses[:, 1], pred.poses[:, 2])
+    result = lidar_ground_truth(
+        lambda: rec.iter_lidar(lidar_topic), extrinsic, options.icp,
+        wheel_odometry=wheel_track, progress=options.progress,
+        total=counts.get(lidar_topic), cache_dir=options.cache_dir,
+        source_id={'bag': bag_identity(path), 'topic': lidar_topic})
+    rec.notes.extend(result.notes)
+    flagged = {k: v for k, v in result.counts.items() if k not in ('ok',) and v}
+    if flagged:
+        rec.notes.append('lidar frames: ' + ', '.join(f'{v} {k}' for k, v in
+                                                      sorted(flagged.items())))
+    info = {'ground_truth': f'kiss-icp on {lidar_topic}', 'frames': dict(result.counts),
+            'from_cache': bool(result.from_cache)}
+    _LOG.debug('ICP frame counts: %s', result.counts)
+    return result.track, info

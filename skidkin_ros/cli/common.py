@@ -1,0 +1,95 @@
+"""Arguments and output helpers shared by the ``skidkin`` subcommands."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+import sys
+from typing import Iterable
+
+from skidkin_ros.adapters.lidar_gt import IcpConfig
+from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, LoadedSource, SourceOptions
+from skidkin_ros.core.specs import Geometry
+
+__all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
+           'say', 'print_notes', 'default_cache_dir']
+
+
+def say(*parts: object) -> None:
+    """Print a line for the user (stdout)."""
+    print(*parts, flush=True)
+
+
+def print_notes(sources: Iterable[LoadedSource]) -> None:
+    for source in sources:
+        for note in source.notes:
+            print(f'  note: {note}', file=sys.stderr, flush=True)
+
+
+def default_cache_dir() -> Path:
+    base = os.environ.get('XDG_CACHE_HOME') or str(Path.home() / '.cache')
+    return Path(base) / 'skidkin_ros'
+
+
+def add_geometry_args(parser: argparse.ArgumentParser, required: bool = False) -> None:
+    group = parser.add_argument_group('robot geometry (measured)')
+    group.add_argument('--wheel-radius', type=float, required=required, metavar='M',
+                       help='wheel radius r in m (default: from --params, else 0.1651)')
+    group.add_argument('--track-width', type=float, required=required, metavar='M',
+                       help='track width b in m (default: from --params, else 0.555)')
+
+
+def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) -> None:
+    group = parser.add_argument_group(
+        'reading recordings (topics are auto-detected when there is exactly one candidate)')
+    group.add_argument('--wheel-topic', help='sensor_msgs/JointState topic of the wheel speeds')
+    group.add_argument('--left-joints', nargs='+', metavar='JOINT',
+                       help='JointState names of the left wheels (default: names with "left")')
+    group.add_argument('--right-joints', nargs='+', metavar='JOINT',
+                       help='JointState names of the right wheels (default: names with "right")')
+    group.add_argument('--left-topic', help='std_msgs/Float64 left wheel speed topic (rad/s)')
+    group.add_argument('--right-topic', help='std_msgs/Float64 right wheel speed topic (rad/s)')
+    group.add_argument('--imu-topic', help='sensor_msgs/Imu topic (optional)')
+    if not ground_truth:
+        return
+    group.add_argument('--ground-truth', default='icp', metavar='icp|TOPIC|none',
+                       help='ground truth of a bag: kiss-icp on the lidar (default), or a '
+                       'nav_msgs/Odometry or geometry_msgs/PoseStamped topic')
+    group.add_argument('--lidar-topic', help='sensor_msgs/PointCloud2 topic')
+    group.add_argument('--base-frame', default='base_link', help='robot body frame')
+    group.add_argument('--extrinsic', nargs=6, type=float,
+                       metavar=('X', 'Y', 'Z', 'ROLL', 'PITCH', 'YAW'),
+                       help='lidar pose in the base frame (m, rad) when /tf_static lacks it')
+    group.add_argument('--max-range', type=float, default=60.0, metavar='M',
+                       help='kiss-icp maximum range (m)')
+    group.add_argument('--voxel-size', type=float, metavar='M',
+                       help='kiss-icp voxel size (m, default max-range/100)')
+    group.add_argument('--cache-dir', type=Path, default=None,
+                       help=f'ICP trajectory cache (default {default_cache_dir()})')
+    group.add_argument('--no-cache', action='store_true', help='always run ICP')
+    group.add_argument('--no-progress', action='store_true', help='no progress bar')
+
+
+def geometry_from_args(args: argparse.Namespace, fallback: Geometry | None = None) -> Geometry:
+    fallback = fallback or Geometry(0.1651, 0.555)
+    return Geometry(args.wheel_radius if args.wheel_radius is not None
+                    else fallback.wheel_radius,
+                    args.track_width if args.track_width is not None else fallback.track_width)
+
+
+def source_options(args: argparse.Namespace, geometry: Geometry | None = None) -> SourceOptions:
+    get = vars(args).get
+    icp = IcpConfig(max_range_m=get('max_range') or 60.0, voxel_size_m=get('voxel_size'))
+    cache = None if get('no_cache') else (get('cache_dir') or default_cache_dir())
+    extrinsic = get('extrinsic')
+    return SourceOptions(
+        wheel_topic=get('wheel_topic'), left_topic=get('left_topic'),
+        right_topic=get('right_topic'),
+        left_joints=tuple(get('left_joints')) if get('left_joints') else None,
+        right_joints=tuple(get('right_joints')) if get('right_joints') else None,
+        lidar_topic=get('lidar_topic'), imu_topic=get('imu_topic'),
+        ground_truth=get('ground_truth') or 'icp', base_frame=get('base_frame') or 'base_link',
+        extrinsic=extrinsic_from_xyz_rpy(extrinsic) if extrinsic else None,
+        cache_dir=cache, progress=not get('no_progress') and sys.stderr.isatty(), icp=icp,
+        geometry=geometry)

@@ -1,0 +1,211 @@
+"""An analytic 3D scene for the simulated lidar: ground, room walls, boxes and pillars.
+
+Every primitive has a vectorized ray intersection (numpy only): rays are origins (N, 3) and unit
+directions (N, 3); each primitive returns the distance along each ray to its first hit (inf when
+missed). The scene is the minimum over its primitives. Coordinates are the world frame of the
+simulator (z up, the ground at z = 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ['Box', 'Cylinder', 'Room', 'Scene', 'default_scene']
+
+# Rays closer than this to parallel with a face are treated as missing it.
+_PARALLEL_EPS = 1e-12
+# A hit closer than this to the origin is ignored (the sensor's own housing).
+_MIN_HIT_M = 1e-6
+
+
+def _plane_distance(target, start: np.ndarray, d: np.ndarray, facing: np.ndarray) -> np.ndarray:
+    """Return (target - start) / d where the ray faces the plane and hits ahead, else inf."""
+    safe_d = np.where(facing, d, 1.0)
+    t = (target - start) / safe_d
+    return np.where(facing & (t > _MIN_HIT_M), t, np.inf)
+
+
+def _safe_inverse(d: np.ndarray) -> np.ndarray:
+    with np.errstate(divide='ignore'):
+        return np.where(np.abs(d) < _PARALLEL_EPS, np.copysign(np.inf, d) * 1.0, 1.0 / d)
+
+
+@dataclass(frozen=True)
+class Box:
+    """Axis-aligned solid box [lo, hi] (m), hit from the outside."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    def circle(self) -> tuple[float, float, float]:
+        """Return the centre and radius of a circle around the footprint (m)."""
+        return ((self.lo[0] + self.hi[0]) / 2, (self.lo[1] + self.hi[1]) / 2,
+                float(np.hypot(self.hi[0] - self.lo[0], self.hi[1] - self.lo[1]) / 2))
+
+    def intersect(self, origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Return the distance (m) to the box along each ray, inf when missed (slab method)."""
+        inv = _safe_inverse(direction)
+        lo = np.asarray(self.lo, dtype=float)
+        hi = np.asarray(self.hi, dtype=float)
+        with np.errstate(invalid='ignore'):
+            t1 = (lo - origin) * inv
+            t2 = (hi - origin) * inv
+        t1 = np.nan_to_num(t1, nan=-np.inf)
+        t2 = np.nan_to_num(t2, nan=np.inf)
+        t_near = np.max(np.minimum(t1, t2), axis=-1)
+        t_far = np.min(np.maximum(t1, t2), axis=-1)
+        hit = (t_near <= t_far) & (t_near > _MIN_HIT_M)
+        return np.where(hit, t_near, np.inf)
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """Vertical solid cylinder (pillar, drum): centre (x, y), radius, z from z_lo to z_hi (m)."""
+
+    x: float
+    y: float
+    radius: float
+    z_lo: float
+    z_hi: float
+
+    def circle(self) -> tuple[float, float, float]:
+        """Return the centre and radius of a circle around the footprint (m)."""
+        return (self.x, self.y, self.radius)
+
+    def intersect(self, origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Return the distance (m) to the mantle or the top/bottom caps, inf when missed."""
+        ox = origin[:, 0] - self.x
+        oy = origin[:, 1] - self.y
+        dx, dy, dz = direction[:, 0], direction[:, 1], direction[:, 2]
+        a = dx * dx + dy * dy
+        b = 2.0 * (ox * dx + oy * dy)
+        c = ox * ox + oy * oy - self.radius ** 2
+        disc = b * b - 4.0 * a * c
+        ok = (disc >= 0.0) & (a > _PARALLEL_EPS)
+        root = np.sqrt(np.where(ok, disc, 0.0))
+        safe_a = np.where(ok, a, 1.0)
+        t_side = (-b - root) / (2.0 * safe_a)
+        z_side = origin[:, 2] + t_side * dz
+        side_hit = ok & (t_side > _MIN_HIT_M) & (z_side >= self.z_lo) & (z_side <= self.z_hi)
+        best = np.where(side_hit, t_side, np.inf)
+        vertical = np.abs(dz) > _PARALLEL_EPS
+        for z_cap in (self.z_lo, self.z_hi):
+            t_cap = _plane_distance(z_cap, origin[:, 2], dz, vertical)
+            t_fin = np.where(np.isfinite(t_cap), t_cap, 0.0)
+            px = ox + t_fin * dx
+            py = oy + t_fin * dy
+            cap_hit = np.isfinite(t_cap) & (px * px + py * py <= self.radius ** 2)
+            best = np.minimum(best, np.where(cap_hit, t_cap, np.inf))
+        return best
+
+
+@dataclass(frozen=True)
+class Room:
+    """Ground plane z = 0 and the four walls of a rectangular room seen from inside (m).
+
+    Walls are ``height`` tall; rays above them leave the room (open courtyard, no return).
+    """
+
+    x_lo: float
+    x_hi: float
+    y_lo: float
+    y_hi: float
+    height: float
+
+    def intersect(self, origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Return the distance (m) to the ground or a wall, inf when the ray leaves the room."""
+        dx, dy, dz = direction[:, 0], direction[:, 1], direction[:, 2]
+        t_ground = _plane_distance(np.zeros_like(dz), origin[:, 2], dz, dz < -_PARALLEL_EPS)
+        t_x = np.minimum(_plane_distance(self.x_hi, origin[:, 0], dx, dx > _PARALLEL_EPS),
+                         _plane_distance(self.x_lo, origin[:, 0], dx, dx < -_PARALLEL_EPS))
+        t_y = np.minimum(_plane_distance(self.y_hi, origin[:, 1], dy, dy > _PARALLEL_EPS),
+                         _plane_distance(self.y_lo, origin[:, 1], dy, dy < -_PARALLEL_EPS))
+        t_wall = np.minimum(t_x, t_y)
+        with np.errstate(invalid='ignore'):
+            z_wall = origin[:, 2] + t_wall * dz
+        t_wall = np.where(z_wall <= self.height, t_wall, np.inf)
+        return np.minimum(t_ground, t_wall)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A room plus obstacles; ``cast`` returns the range (m) of the first hit of each ray."""
+
+    room: Room
+    boxes: tuple[Box, ...] = ()
+    cylinders: tuple[Cylinder, ...] = ()
+
+    def cast(self, origin: np.ndarray, direction: np.ndarray, group: int = 1) -> np.ndarray:
+        """Return the distance (m) to the first surface along each ray (inf: no return).
+
+        ``group``: rays come in runs of this length sharing origin and horizontal azimuth (the
+        rings of one lidar column); obstacles are then tested only against the runs whose
+        azimuth points at their bounding circle, which keeps a sweep fast.
+        """
+        origin = np.asarray(origin, dtype=float)
+        direction = np.asarray(direction, dtype=float)
+        best = self.room.intersect(origin, direction)
+        if group < 1 or direction.shape[0] % group:
+            raise ValueError(f'{direction.shape[0]} rays do not come in groups of {group}')
+        head_origin = origin[::group]
+        azimuth = np.arctan2(direction[::group, 1], direction[::group, 0])
+        for primitive in self.boxes + self.cylinders:
+            cx, cy, radius = primitive.circle()
+            dx = cx - head_origin[:, 0]
+            dy = cy - head_origin[:, 1]
+            dist = np.hypot(dx, dy)
+            half = np.arcsin(np.minimum(1.0, radius / np.maximum(dist, 1e-9)))
+            offset = np.abs((azimuth - np.arctan2(dy, dx) + np.pi) % (2 * np.pi) - np.pi)
+            heads = np.flatnonzero((offset <= half + 1e-3) | (dist <= radius))
+            if heads.size == 0:
+                continue
+            rays = (heads[:, None] * group + np.arange(group)[None, :]).ravel()
+            hit = primitive.intersect(origin[rays], direction[rays])
+            best[rays] = np.minimum(best[rays], hit)
+        return best
+
+    def inside(self, x: float, y: float, margin_m: float = 0.0) -> bool:
+        """Tell whether (x, y) is in the room and clear of every obstacle by ``margin_m``."""
+        room = self.room
+        if not (room.x_lo + margin_m < x < room.x_hi - margin_m
+                and room.y_lo + margin_m < y < room.y_hi - margin_m):
+            return False
+        for box in self.boxes:
+            if box.lo[2] < 1.0 and (box.lo[0] - margin_m < x < box.hi[0] + margin_m
+                                    and box.lo[1] - margin_m < y < box.hi[1] + margin_m):
+                return False
+        for cyl in self.cylinders:
+            if cyl.z_lo < 1.0 and np.hypot(x - cyl.x, y - cyl.y) < cyl.radius + margin_m:
+                return False
+        return True
+
+
+def default_scene(half_size_m: float = 14.0, seed: int = 7) -> Scene:
+    """Return a courtyard of 2 half_size_m square with pillars and boxes of varied sizes.
+
+    Obstacles stand outside the central disc of radius half_size_m / 2 where the simulated robot
+    drives, so the robot never drives through them; some boxes float (shelves, beams) to give
+    the lidar structure at several heights. Deterministic for a given seed.
+    """
+    rng = np.random.default_rng(seed)
+    h = float(half_size_m)
+    room = Room(-h, h, -0.8 * h, 0.8 * h, 4.0)
+    keep_out = 0.55 * h
+    boxes = []
+    cylinders = []
+    while len(boxes) + len(cylinders) < 22:
+        x, y = rng.uniform(-0.9 * h, 0.9 * h), rng.uniform(-0.72 * h, 0.72 * h)
+        if np.hypot(x, y) < keep_out:
+            continue
+        if rng.random() < 0.45:
+            cylinders.append(Cylinder(float(x), float(y), float(rng.uniform(0.15, 0.6)),
+                                      0.0, float(rng.uniform(0.4, 3.5))))
+        else:
+            sx, sy = rng.uniform(0.3, 2.0, size=2)
+            z_lo = 0.0 if rng.random() < 0.7 else float(rng.uniform(0.6, 1.5))
+            z_hi = z_lo + float(rng.uniform(0.3, 2.5))
+            boxes.append(Box((float(x - sx / 2), float(y - sy / 2), z_lo),
+                             (float(x + sx / 2), float(y + sy / 2), z_hi)))
+    return Scene(room, tuple(boxes), tuple(cylinders))
