@@ -1,0 +1,158 @@
+"""Read a trajectory table (CSV) into drives: wheel speeds plus ground-truth poses.
+
+Columns (header row required, any order, extra columns ignored):
+
+- ``t`` (s), ``wheel_left``, ``wheel_right`` (rad/s), ``x``, ``y`` (m), ``yaw`` (rad): required;
+- ``segment``: optional; rows of one segment are one continuous trajectory in its own frame,
+  different segments are independent (each becomes one :class:`Drive`);
+- ``calib_step``, ``cmd_left``, ``cmd_right`` are kept in ``Drive.meta``; ``imu_yaw_rate``
+  becomes :class:`ImuSamples`.
+
+Sample-and-held ground truth. Lidar/ICP poses often come slower than the wheel samples and are
+held onto the table's time grid (the DRIVE Husky table: ICP at ~10 Hz held onto 20 Hz rows), so
+consecutive rows repeat the same pose. A held pose is stale: using it as a segment end would
+compare the model at time t with where the robot was up to one ICP period earlier. With
+``dedupe_held_truth=True`` (default) the ground truth keeps only the rows where the pose was
+refreshed (the first row of each run of identical (x, y, yaw)); segments then start and end on
+fresh poses only. We do not interpolate between fresh poses: their true stamps are unknown within
+one grid period anyway, and interpolation would invent poses the ICP never produced. Wheel speeds
+keep every row.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.errors import RecordingError
+
+__all__ = ['REQUIRED_COLUMNS', 'META_COLUMNS', 'read_table', 'fresh_pose_mask']
+
+LOG = logging.getLogger(__name__)
+
+REQUIRED_COLUMNS: tuple[str, ...] = ('t', 'wheel_left', 'wheel_right', 'x', 'y', 'yaw')
+META_COLUMNS: tuple[str, ...] = ('calib_step', 'cmd_left', 'cmd_right')
+OPTIONAL_COLUMNS: tuple[str, ...] = ('segment', 'imu_yaw_rate') + META_COLUMNS
+
+
+def fresh_pose_mask(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Return True for rows whose pose differs from the previous row (first row always True)."""
+    same = (np.diff(x) == 0.0) & (np.diff(y) == 0.0) & (np.diff(yaw) == 0.0)
+    return np.concatenate([[True], ~same])
+
+
+def _read_rows(path: Path) -> tuple[list[str], list[list[str]]]:
+    if not path.exists():
+        raise RecordingError(f'trajectory table {path} does not exist; give the path of a CSV '
+                             f'file with columns {", ".join(REQUIRED_COLUMNS)}')
+    if not path.is_file():
+        raise RecordingError(f'trajectory table {path} is not a file')
+    try:
+        with path.open(newline='', encoding='utf-8') as handle:
+            reader = csv.reader(handle)
+            header = next(reader, None)
+            rows = list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise RecordingError(f'trajectory table {path} cannot be read as CSV: {err}') from err
+    if header is None:
+        raise RecordingError(f'trajectory table {path} is empty; expected a header row with '
+                             f'{", ".join(REQUIRED_COLUMNS)}')
+    return [name.strip() for name in header], rows
+
+
+def _numeric_columns(path: Path, header: list[str], rows: list[list[str]],
+                     wanted: Sequence[str]) -> dict[str, np.ndarray]:
+    index = {name: header.index(name) for name in wanted}
+    values = {name: np.empty(len(rows)) for name in wanted}
+    for row_no, row in enumerate(rows):
+        line = row_no + 2  # 1-based, after the header
+        if len(row) < len(header):
+            raise RecordingError(f'{path}: line {line} has {len(row)} fields, the header has '
+                                 f'{len(header)}; fix or remove the truncated row')
+        for name, col in index.items():
+            text = row[col].strip()
+            try:
+                number = float(text)
+            except ValueError:
+                raise RecordingError(f'{path}: line {line}, column {name!r}: {text!r} is not a '
+                                     'number') from None
+            if not math.isfinite(number):
+                raise RecordingError(f'{path}: line {line}, column {name!r}: value {text!r} is '
+                                     'not finite; remove or repair the row')
+            values[name][row_no] = number
+    return values
+
+
+def _segment_order(segment: np.ndarray) -> list[float]:
+    """Segment ids in order of first appearance (a stable, deterministic order)."""
+    _, first = np.unique(segment, return_index=True)
+    return [float(segment[i]) for i in sorted(first)]
+
+
+def _check_time(path: Path, t_ns: np.ndarray, rows: np.ndarray, label: str) -> None:
+    bad = np.nonzero(np.diff(t_ns) <= 0)[0]
+    if bad.size:
+        line = int(rows[bad[0] + 1]) + 2
+        raise RecordingError(
+            f'{path}: time t must increase within {label}; line {line} has t = '
+            f'{t_ns[bad[0] + 1] * 1e-9:.9g} s after {t_ns[bad[0]] * 1e-9:.9g} s. Sort the rows '
+            'or give each continuous stretch its own "segment" id')
+
+
+def _meta_value(values: np.ndarray):
+    if values.size and np.all(values == values[0]):
+        number = float(values[0])
+        return int(number) if number.is_integer() else number
+    return values.copy()
+
+
+def read_table(path: str | Path, dedupe_held_truth: bool = True) -> list[Drive]:
+    """Read a CSV trajectory table into one :class:`Drive` per segment (see module docstring).
+
+    Raises RecordingError for a missing file, missing columns (listing those present),
+    non-numeric or non-finite values (naming line and column) and time not increasing within a
+    segment.
+    """
+    source = Path(path)
+    header, rows = _read_rows(source)
+    missing = [name for name in REQUIRED_COLUMNS if name not in header]
+    if missing:
+        raise RecordingError(
+            f'trajectory table {source} lacks column(s) {", ".join(missing)}; it has '
+            f'{", ".join(header) or "no columns"}. Required: {", ".join(REQUIRED_COLUMNS)} '
+            '(t in s, wheel speeds in rad/s, x/y in m, yaw in rad)')
+    if not rows:
+        raise RecordingError(f'trajectory table {source} has a header but no data rows')
+    wanted = list(REQUIRED_COLUMNS) + [name for name in OPTIONAL_COLUMNS if name in header]
+    cols = _numeric_columns(source, header, rows, wanted)
+    segment = cols.get('segment', np.zeros(len(rows)))
+    drives = []
+    for seg_id in _segment_order(segment):
+        rows_idx = np.nonzero(segment == seg_id)[0]
+        label = f'segment {seg_id:g}' if 'segment' in cols else 'the table'
+        t_ns = np.round(cols['t'][rows_idx] * 1e9).astype(np.int64)
+        _check_time(source, t_ns, rows_idx, label)
+        x, y, yaw = (cols[name][rows_idx] for name in ('x', 'y', 'yaw'))
+        keep = fresh_pose_mask(x, y, yaw) if dedupe_held_truth else np.ones(x.shape, bool)
+        wheels = WheelSamples(t_ns, cols['wheel_left'][rows_idx], cols['wheel_right'][rows_idx])
+        truth = PoseTrack(t_ns[keep], x[keep], y[keep], yaw[keep])
+        imu = None
+        if 'imu_yaw_rate' in cols:
+            imu = ImuSamples(t_ns, cols['imu_yaw_rate'][rows_idx])
+        meta = {'source': str(source), 'rows': (int(rows_idx[0]) + 2, int(rows_idx[-1]) + 2),
+                'held_truth_rows_dropped': int((~keep).sum())}
+        if 'segment' in cols:
+            meta['segment'] = _meta_value(np.array([seg_id]))
+        for name in META_COLUMNS:
+            if name in cols:
+                meta[name] = _meta_value(cols[name][rows_idx])
+        name = f'{source.stem}#{seg_id:g}' if 'segment' in cols else source.stem
+        drives.append(Drive(name, wheels, truth, imu, meta))
+    LOG.info('read %d drive(s) from %s (%d rows)', len(drives), source, len(rows))
+    return drives

@@ -1,0 +1,275 @@
+"""The calibration pipeline, as a recipe: segment, fit, evaluate, calibrate noise, pick the best.
+
+``calibrate(train, evaluate, geometry, options)``:
+
+1. cut the training drives into segments of h_t (plus a heading horizon so spins in place still
+   make segments), dropping stationary and invalid ones (counted);
+2. fit the requested models on them (skidkin_ros.core.fitting);
+3. cut the evaluation drives (a deterministic hold-out of the training drives when none are given)
+   into segments of h_e and score every model on the same segments (eps_t, eps_theta);
+4. calibrate each model's noise rates on its evaluation residuals, with a consistency figure;
+5. pick the best model by the rule below.
+
+Best-model rule: among the valid fits (ideal_dd always counts as valid), score each model by
+median eps_t / (best median eps_t) + median eps_theta / (best median eps_theta), both over the
+valid models; the lowest score wins, and when two scores are within 2 % the model with fewer
+parameters wins (the paper's argument for the symmetric EDD).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+import logging
+import math
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from skidkin_ros import __version__
+from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.evaluation import evaluate_models, ModelEvaluation, split_holdout
+from skidkin_ros.core.fitting import fit_models, FitOptions, FitResult
+from skidkin_ros.core.models import get_model, MODEL_NAMES
+from skidkin_ros.core.noise import NOISE_SPECS
+from skidkin_ros.core.segments import cut_segments, SegmentOptions, SegmentSet
+from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.uncertainty import calibrate_noise, NoiseFit
+from skidkin_ros.errors import DataError, FitError, ParameterError
+
+__all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best',
+           'result_to_parameters', 'horizon_study', 'HorizonStudy']
+
+LOG = logging.getLogger(__name__)
+TIE_TOLERANCE = 0.02
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Everything that shapes a calibration (saved with the results as provenance)."""
+
+    h_t: float = 2.0
+    h_e: float = 2.0
+    h_t_rad: float | None = 1.0
+    short_drive: str = 'whole'
+    min_motion_m: float = 0.05
+    min_rotation_rad: float = 0.05
+    max_gap_s: float = 0.5
+    min_eval_path_m: float = 0.1
+    sigma_diag: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    loss: str = 'linear'
+    f_scale: float = 1.0
+    trim: bool = True
+    n_starts: int = 8
+    seed: int = 0
+    models: tuple[str, ...] = MODEL_NAMES
+    holdout_every: int = 3
+    holdout_mode: str = 'auto'
+    holdout_block_s: float = 60.0
+    holdout_key: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in self.models:
+            get_model(name)
+        if not self.models:
+            raise ParameterError('models must name at least one model')
+        for name in ('h_t', 'h_e'):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ParameterError(f'{name} must be a distance > 0 m, got {value!r}')
+        self.fit_options()
+
+    def train_segments(self) -> SegmentOptions:
+        return SegmentOptions(horizon_m=self.h_t, horizon_rad=self.h_t_rad,
+                              short_drive=self.short_drive, min_motion_m=self.min_motion_m,
+                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
+
+    def eval_segments(self) -> SegmentOptions:
+        return SegmentOptions(horizon_m=self.h_e, short_drive=self.short_drive,
+                              min_motion_m=self.min_motion_m,
+                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
+
+    def fit_options(self) -> FitOptions:
+        return FitOptions(sigma_diag=tuple(self.sigma_diag), loss=self.loss,
+                          f_scale=self.f_scale, trim=self.trim, n_starts=self.n_starts,
+                          seed=self.seed)
+
+    def as_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out['models'] = list(self.models)
+        out['sigma_diag'] = list(self.sigma_diag)
+        return out
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """What :func:`calibrate` found (the report and the parameters file are made from it)."""
+
+    geometry: Geometry
+    options: CalibrationOptions
+    fits: dict[str, FitResult]
+    evaluation: dict[str, ModelEvaluation]
+    noise: dict[str, NoiseFit]
+    best: str
+    scores: dict[str, float]
+    warnings: tuple[str, ...]
+    train_segments: SegmentSet = field(repr=False)
+    eval_segments: SegmentSet = field(repr=False)
+    holdout: str = 'given'
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def counts(self) -> dict[str, Any]:
+        """Return how many segments were kept or dropped (and why), and trimmed per model."""
+        return {'train': self.train_segments.counts.as_dict(),
+                'evaluate': self.eval_segments.counts.as_dict(),
+                'trimmed': {m: f.segments_trimmed for m, f in self.fits.items()}}
+
+    def fitted_values(self) -> dict[str, dict[str, float]]:
+        return {name: dict(fit.values) for name, fit in self.fits.items()}
+
+
+def choose_best(fits: Mapping[str, FitResult],
+                evaluation: Mapping[str, ModelEvaluation]) -> tuple[str, dict[str, float]]:
+    """Apply the best-model rule of the module docstring; return (best, scores)."""
+    valid = [m for m in evaluation if fits[m].valid
+             and math.isfinite(evaluation[m].stats_t.median)]
+    if not valid:
+        raise FitError('no model produced a valid fit with finite evaluation errors; see the '
+                       'warnings')
+    best_t = min(evaluation[m].stats_t.median for m in valid)
+    best_th = min(evaluation[m].stats_theta.median for m in valid)
+    scores = {}
+    for m in valid:
+        scores[m] = (evaluation[m].stats_t.median / max(best_t, 1e-12)
+                     + evaluation[m].stats_theta.median / max(best_th, 1e-12))
+    lowest = min(scores.values())
+    tied = [m for m in valid if scores[m] <= lowest * (1.0 + TIE_TOLERANCE)]
+    best = min(tied, key=lambda m: (len(get_model(m).params), scores[m]))
+    return best, scores
+
+
+def _segments(drives: Sequence[Drive], options: SegmentOptions, what: str) -> SegmentSet:
+    if not drives:
+        raise DataError(f'no {what} drive given')
+    segments = cut_segments(drives, options)
+    if len(segments) == 0:
+        raise DataError(f'no usable {what} segment out of {len(drives)} drive(s) '
+                        f'({segments.counts.as_dict()}); drive further than the horizon '
+                        f'{options.horizon_m:g} m with ground truth')
+    return segments
+
+
+def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry: Geometry,
+              options: CalibrationOptions | None = None) -> CalibrationResult:
+    """Run the whole calibration recipe (module docstring) and return its result."""
+    options = options or CalibrationOptions()
+    holdout = 'given'
+    if evaluate is None:
+        train, evaluate = split_holdout(train, options.holdout_every, options.holdout_mode,
+                                        options.holdout_block_s, options.holdout_key)
+        holdout = (f'held out 1 in {options.holdout_every} '
+                   f'({options.holdout_key or options.holdout_mode})')
+    train_seg = _segments(train, options.train_segments(), 'training')
+    eval_seg = _segments(evaluate, options.eval_segments(), 'evaluation')
+    models = tuple(dict.fromkeys(('ideal_dd',) + tuple(options.models)))
+    fits = fit_models(geometry, train_seg, options.fit_options(), models)
+    evaluation = evaluate_models({m: f.values for m, f in fits.items()}, geometry, eval_seg,
+                                 options.min_eval_path_m)
+    noise = {}
+    warnings = [w for fit in fits.values() for w in fit.warnings]
+    for name, fit in fits.items():
+        try:
+            noise[name] = calibrate_noise(name, fit.values, geometry, eval_seg)
+        except DataError as err:
+            warnings.append(f'{name}: noise model not calibrated: {err}')
+    counts = train_seg.counts
+    if counts.stationary:
+        warnings.append(f'{counts.stationary} training segment(s) without motion were excluded')
+    best, scores = choose_best(fits, evaluation)
+    provenance = {
+        'tool': f'skidkin_ros {__version__}',
+        'train_drives': len(train), 'evaluate_drives': len(evaluate),
+        'train_segments': len(train_seg), 'evaluate_segments': len(eval_seg),
+        'holdout': holdout, 'options': options.as_dict(),
+    }
+    return CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
+                             tuple(warnings), train_seg, eval_seg, holdout, provenance)
+
+
+def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | None = None,
+                         allow_invalid: bool = False) -> dict[str, Any]:
+    """Flat parameters for ``write_params_file``: base values, then the calibration on top.
+
+    model = the best model; every valid fitted model's parameters as models.<m>.<p>; its noise
+    rates with models.<m>.noise.calibrated = True. Invalid fits (not converged, on a bound, or
+    not observable: C14/C16) are not written; with ``allow_invalid`` they are written anyway.
+    Raises FitError when no model besides ideal_dd could be calibrated (unless allowed).
+    """
+    flat = dict(base or {})
+    flat['wheel_radius'] = float(result.geometry.wheel_radius)
+    flat['track_width'] = float(result.geometry.track_width)
+    written = []
+    for name, fit in result.fits.items():
+        if not (fit.valid or allow_invalid):
+            continue
+        for param, value in fit.values.items():
+            flat[f'models.{name}.{param}'] = float(value)
+        noise = result.noise.get(name)
+        if noise is not None:
+            flat[f'models.{name}.noise.calibrated'] = True
+            for spec in NOISE_SPECS:
+                flat[f'models.{name}.noise.{spec.name}'] = float(getattr(noise.noise, spec.name))
+        written.append(name)
+    trained = [m for m in written if get_model(m).params]
+    if not trained and not allow_invalid:
+        problems = '; '.join(w for w in result.warnings) or 'see the fit status'
+        raise FitError(f'no kinematic model could be calibrated from this data: {problems}')
+    flat['model'] = result.best
+    return flat
+
+
+@dataclass(frozen=True)
+class HorizonStudy:
+    """Median and interquartile range of eps_t for each (model, h_t, h_e)."""
+
+    h_t: tuple[float, ...]
+    h_e: tuple[float, ...]
+    median: dict[str, np.ndarray]   # model -> (len(h_t), len(h_e))
+    iqr: dict[str, np.ndarray]
+
+
+def horizon_study(train: Sequence[Drive], evaluate: Sequence[Drive], geometry: Geometry,
+                  options: CalibrationOptions, h_t_values: Sequence[float],
+                  h_e_values: Sequence[float]) -> HorizonStudy:
+    """Train at several h_t and evaluate at several h_e (the paper's horizon figure)."""
+    models = tuple(m for m in options.models if get_model(m).params) or ('ideal_dd',)
+    shape = (len(h_t_values), len(h_e_values))
+    median = {m: np.full(shape, np.nan) for m in models}
+    iqr = {m: np.full(shape, np.nan) for m in models}
+    eval_sets = []
+    for h_e in h_e_values:
+        seg_opts = SegmentOptions(horizon_m=h_e, short_drive=options.short_drive,
+                                  min_motion_m=options.min_motion_m,
+                                  min_rotation_rad=options.min_rotation_rad,
+                                  max_gap_s=options.max_gap_s)
+        eval_sets.append(cut_segments(evaluate, seg_opts))
+    for i, h_t in enumerate(h_t_values):
+        seg_opts = SegmentOptions(horizon_m=h_t, horizon_rad=options.h_t_rad,
+                                  short_drive=options.short_drive,
+                                  min_motion_m=options.min_motion_m,
+                                  min_rotation_rad=options.min_rotation_rad,
+                                  max_gap_s=options.max_gap_s)
+        train_seg = cut_segments(train, seg_opts)
+        if len(train_seg) < 8:
+            LOG.warning('h_t = %g m leaves %d training segments: skipped', h_t, len(train_seg))
+            continue
+        fits = fit_models(geometry, train_seg, options.fit_options(), models)
+        for j, eval_seg in enumerate(eval_sets):
+            if len(eval_seg) == 0:
+                continue
+            scores = evaluate_models({m: f.values for m, f in fits.items()}, geometry,
+                                     eval_seg, options.min_eval_path_m)
+            for m, ev in scores.items():
+                median[m][i, j] = ev.stats_t.median
+                iqr[m][i, j] = ev.stats_t.q75 - ev.stats_t.q25
+    return HorizonStudy(tuple(h_t_values), tuple(h_e_values), median, iqr)

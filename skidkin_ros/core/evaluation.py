@@ -1,0 +1,155 @@
+"""Relative errors per metre (Baril et al. 2020, after KITTI/Geiger 2012) and hold-out splits.
+
+On evaluation segments of horizon h_e (cut on the ground truth, the same for every model):
+
+- eps_t (m/m) = |end-position error| / ground-truth path length of the segment;
+- eps_theta (deg/m) = |wrapped heading error| (deg) / path length.
+
+Segments shorter than ``min_path_m`` (spins in place) are left out of these per-metre figures:
+dividing by a near-zero path would dominate every statistic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.core.fitting import segment_errors
+from skidkin_ros.core.models import get_model
+from skidkin_ros.core.segments import SegmentSet
+from skidkin_ros.core.specs import Geometry
+from skidkin_ros.errors import DataError, ParameterError
+
+__all__ = [
+    'ErrorStats',
+    'ModelEvaluation',
+    'evaluate_model',
+    'evaluate_models',
+    'split_holdout',
+    'HOLDOUT_MODES',
+]
+
+HOLDOUT_MODES = ('auto', 'drive', 'time')
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """Median, quartiles, 90th percentile, mean and count of one error metric."""
+
+    median: float
+    q25: float
+    q75: float
+    p90: float
+    mean: float
+    count: int
+
+    @classmethod
+    def of(cls, values: np.ndarray) -> 'ErrorStats':
+        values = np.asarray(values, dtype=float)
+        if values.size == 0:
+            nan = math.nan
+            return cls(nan, nan, nan, nan, nan, 0)
+        q25, med, q75, p90 = np.percentile(values, [25, 50, 75, 90])
+        return cls(float(med), float(q25), float(q75), float(p90), float(values.mean()),
+                   int(values.size))
+
+
+@dataclass(frozen=True)
+class ModelEvaluation:
+    """Per-segment errors of one model on the evaluation segments, and their statistics."""
+
+    model: str
+    errors: np.ndarray          # (N, 3) start-frame errors (m, m, rad) on every segment
+    scored: np.ndarray          # (N,) True where the segment enters eps_t / eps_theta
+    eps_t: np.ndarray           # (M,) m/m on the scored segments
+    eps_theta_deg: np.ndarray   # (M,) deg/m on the scored segments
+    stats_t: ErrorStats
+    stats_theta: ErrorStats
+
+
+def evaluate_model(name: str, values: Mapping[str, float], geometry: Geometry,
+                   segments: SegmentSet, min_path_m: float = 0.1) -> ModelEvaluation:
+    """Score one model with the given parameter values on the segments."""
+    model = get_model(name)
+    k = model.vector(dict(values), geometry)
+    errors = segment_errors(model, k, geometry, segments)
+    scored = segments.path_m >= min_path_m
+    path = segments.path_m[scored]
+    eps_t = np.hypot(errors[scored, 0], errors[scored, 1]) / path
+    eps_theta = np.degrees(np.abs(errors[scored, 2])) / path
+    return ModelEvaluation(name, errors, scored, eps_t, eps_theta, ErrorStats.of(eps_t),
+                           ErrorStats.of(eps_theta))
+
+
+def evaluate_models(values: Mapping[str, Mapping[str, float]], geometry: Geometry,
+                    segments: SegmentSet, min_path_m: float = 0.1) -> dict[str, ModelEvaluation]:
+    """Score every model of ``values`` ({model: {param: value}}) on the same segments."""
+    if len(segments) == 0:
+        raise DataError('no evaluation segment: drive more, or shorten h_e')
+    return {name: evaluate_model(name, vals, geometry, segments, min_path_m)
+            for name, vals in values.items()}
+
+
+def _time_slice(drive: Drive, t0_ns: int, t1_ns: int, suffix: str) -> Drive:
+    wheels = drive.wheels.between(t0_ns, t1_ns)
+    truth = drive.truth
+    if truth is not None:
+        keep = (truth.t_ns >= t0_ns) & (truth.t_ns <= t1_ns)
+        truth = PoseTrack(truth.t_ns[keep], truth.x[keep], truth.y[keep], truth.yaw[keep],
+                          truth.valid[keep])
+    imu = drive.imu
+    if imu is not None:
+        keep = (imu.t_ns >= t0_ns) & (imu.t_ns <= t1_ns)
+        imu = ImuSamples(imu.t_ns[keep], np.asarray(imu.yaw_rate)[keep])
+    return replace(drive, name=f'{drive.name}{suffix}', wheels=WheelSamples(
+        wheels.t_ns, wheels.omega_l, wheels.omega_r), truth=truth, imu=imu)
+
+
+def split_holdout(drives: Sequence[Drive], every: int = 3, mode: str = 'auto',
+                  block_s: float = 60.0, key: str | None = None
+                  ) -> tuple[list[Drive], list[Drive]]:
+    """Split drives into (train, evaluate) deterministically, when no evaluation drive is given.
+
+    - ``key`` (e.g. 'calib_step'): a drive goes to evaluation when ``int(meta[key]) % every ==
+      every - 1`` (every=2: odd values evaluate, even values train; the Husky table split);
+    - mode 'drive': every ``every``-th drive (the last of each group) evaluates;
+    - mode 'time': each drive is cut into blocks of ``block_s`` seconds and every ``every``-th
+      block evaluates (a block boundary loses at most one segment on each side);
+    - mode 'auto': 'drive' when there are at least ``2 * every`` drives, else 'time'.
+    """
+    if every < 2:
+        raise ParameterError(f'every must be >= 2 (one in every blocks evaluates), got {every}')
+    if mode not in HOLDOUT_MODES:
+        raise ParameterError(f'hold-out mode must be one of {HOLDOUT_MODES}, got {mode!r}')
+    if not drives:
+        raise DataError('no drive to split')
+    if key is not None:
+        missing = [d.name for d in drives if key not in d.meta]
+        if missing:
+            raise DataError(f'drive(s) {missing[:3]} have no {key!r} in their metadata; '
+                            'split by drive or time instead')
+        train = [d for d in drives if int(d.meta[key]) % every != every - 1]
+        evaluate = [d for d in drives if int(d.meta[key]) % every == every - 1]
+        return train, evaluate
+    if mode == 'auto':
+        mode = 'drive' if len(drives) >= 2 * every else 'time'
+    if mode == 'drive':
+        return ([d for i, d in enumerate(drives) if i % every != every - 1],
+                [d for i, d in enumerate(drives) if i % every == every - 1])
+    if not block_s > 0:
+        raise ParameterError(f'block_s must be > 0 s, got {block_s!r}')
+    train, evaluate = [], []
+    block_ns = int(block_s * 1e9)
+    for drive in drives:
+        if len(drive.wheels) == 0:
+            continue
+        t0 = int(drive.wheels.t_ns[0])
+        t_end = int(drive.wheels.t_ns[-1])
+        for index, start in enumerate(range(t0, t_end + 1, block_ns)):
+            part = _time_slice(drive, start, min(start + block_ns - 1, t_end), f'@{index}')
+            (evaluate if index % every == every - 1 else train).append(part)
+    return train, evaluate

@@ -1,0 +1,402 @@
+"""Fit the kinematic models on segments, as in Baril et al. 2020 (section "Experimental setup").
+
+Loss: the sum over segments of squared Mahalanobis distances between the ground-truth and the
+predicted end pose, l(k) = sum_i e_i^T Sigma^-1 e_i, each prediction starting from the segment's
+ground-truth start pose. e_i is expressed in the segment's start (body) frame (longitudinal,
+lateral, heading; heading wrapped), so a non-isotropic Sigma means something; with the default
+identity Sigma this equals the paper's world-frame loss. Sigma brings metres and radians to one
+unitless scale.
+
+The optimizer is scipy's bounded ``least_squares`` (trust-region reflective) on the whitened
+residuals W e_i (W^T W = Sigma^-1), bounds from each ParamSpec, optional robust loss
+(``soft_l1``, ``huber``, ``cauchy``... with ``f_scale`` in whitened units). All segments are rolled
+out at once (one vectorized call of the shared integrator per cost evaluation).
+
+Outlier trimming (C15): after a first fit, segments whose whitened squared distance exceeds
+``trim_chi2`` times a robust scale (median of the distances / median of chi2 with 3 dof) are
+dropped (at most ``trim_max_fraction`` of them, the worst first) and the model is refitted once.
+
+Several starts (C20: seeded, so the same input gives the same output) for models with at least
+``multi_start_min_params`` parameters: the default start plus random starts drawn around it.
+
+Diagnostics: standard errors from the Jacobian at the solution and the residual variance,
+cov = s^2 (J^T J)^-1, s^2 = sum(r^2) / (m - p) (with a robust loss, scipy's modified Jacobian
+and the robust cost are used: an approximation); non-observable parameters (C14) from a lack of
+turning / translation in the data and from the Jacobian's near-null space; parameters on a bound
+and non-converged fits (C16) make the fit invalid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import logging
+import math
+import time
+from typing import Sequence
+
+import numpy as np
+from scipy import optimize, stats
+
+from skidkin_ros.core.integrator import rollout_segments
+from skidkin_ros.core.models import get_model, KinematicModel, MODEL_NAMES
+from skidkin_ros.core.segments import segment_frame_error, SegmentSet
+from skidkin_ros.core.specs import Geometry
+from skidkin_ros.errors import DataError, ParameterError
+
+__all__ = [
+    'FitOptions',
+    'Excitation',
+    'FitResult',
+    'predict_end_poses',
+    'segment_errors',
+    'measure_excitation',
+    'fit_model',
+    'fit_models',
+]
+
+LOG = logging.getLogger(__name__)
+
+ROBUST_LOSSES = ('linear', 'soft_l1', 'huber', 'cauchy', 'arctan')
+
+# Parameters that only turning reveals / that only translation reveals, per model (C14).
+NEEDS_TURNING: dict[str, tuple[str, ...]] = {
+    'edd_symmetric': ('b_hat',),
+    'edd_asymmetric': ('x_v', 'y_l', 'y_r'),
+    'roc': ('beta_1', 'beta_2'),
+    'full_linear': ('gamma_11', 'gamma_12', 'gamma_21', 'gamma_22', 'gamma_31', 'gamma_32'),
+}
+NEEDS_TRANSLATION: dict[str, tuple[str, ...]] = {
+    'edd_symmetric': ('alpha', 'b_hat'),
+    'edd_asymmetric': ('alpha_l', 'alpha_r', 'x_v', 'y_l', 'y_r'),
+    'roc': ('alpha', 'beta_1', 'beta_2'),
+    'full_linear': ('gamma_11', 'gamma_12', 'gamma_21', 'gamma_22', 'gamma_31', 'gamma_32'),
+}
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Options of the least-squares fit (see the module docstring)."""
+
+    sigma_diag: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    loss: str = 'linear'
+    f_scale: float = 1.0
+    trim: bool = True
+    trim_chi2: float = float(stats.chi2.ppf(0.999, 3))
+    trim_max_fraction: float = 0.1
+    n_starts: int = 8
+    multi_start_min_params: int = 3
+    seed: int = 0
+    max_nfev: int = 60
+    screen_segments: int = 150
+    min_turning_segments: int = 3
+    min_turn_rad: float = 0.15
+    min_translating_segments: int = 3
+    min_translation_m: float = 0.3
+    null_space_tol: float = 1e-6
+    max_relative_se: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.loss not in ROBUST_LOSSES:
+            raise ParameterError(f'loss must be one of {ROBUST_LOSSES}, got {self.loss!r}')
+        sigma = np.asarray(self.sigma_diag, dtype=float)
+        if sigma.shape != (3,) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+            raise ParameterError('sigma_diag must be three finite variances > 0 for (x [m^2], '
+                                 f'y [m^2], yaw [rad^2]), got {self.sigma_diag!r}')
+        if not (self.f_scale > 0 and math.isfinite(self.f_scale)):
+            raise ParameterError(f'f_scale must be > 0 (whitened units), got {self.f_scale!r}')
+        if not 0.0 <= self.trim_max_fraction < 1.0:
+            raise ParameterError('trim_max_fraction must be in [0, 1), '
+                                 f'got {self.trim_max_fraction!r}')
+        if self.n_starts < 1:
+            raise ParameterError(f'n_starts must be >= 1, got {self.n_starts!r}')
+
+    @property
+    def whitening(self) -> np.ndarray:
+        return 1.0 / np.sqrt(np.asarray(self.sigma_diag, dtype=float))
+
+
+@dataclass(frozen=True)
+class Excitation:
+    """How much the training segments turn and translate (decides observability, C14)."""
+
+    segments: int
+    turning_segments: int
+    translating_segments: int
+    total_rotation_rad: float
+    total_path_m: float
+
+    def missing(self, options: FitOptions) -> list[str]:
+        gaps = []
+        if self.turning_segments < options.min_turning_segments:
+            gaps.append('turning')
+        if self.translating_segments < options.min_translating_segments:
+            gaps.append('translation')
+        return gaps
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """One model fitted on one set of segments."""
+
+    model: str
+    values: dict[str, float]
+    std_errors: dict[str, float]
+    cost: float
+    rms_error: tuple[float, float, float]
+    segments_used: int
+    segments_trimmed: int
+    converged: bool
+    status: str
+    starts: int
+    on_bound: tuple[str, ...] = ()
+    unobservable: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+    seconds: float = 0.0
+    trimmed_mask: np.ndarray = field(default=None, repr=False)
+
+    @property
+    def valid(self) -> bool:
+        """Tell whether the fit converged, is off its bounds and observable (C14/C16)."""
+        return self.converged and not self.on_bound and not self.unobservable
+
+
+def predict_end_poses(model: KinematicModel, k: np.ndarray, geometry: Geometry,
+                      segments: SegmentSet) -> np.ndarray:
+    """End pose (N, 3) predicted by the model for every segment, from its true start pose."""
+    end = np.empty((len(segments), 3))
+    for idx, width in segments.batches():
+        omega_l = segments.omega_l[idx, :width]
+        omega_r = segments.omega_r[idx, :width]
+        twist = model.twist(k, geometry, omega_l, omega_r)
+        end[idx] = rollout_segments(twist, segments.dt_s[idx, :width], segments.start[idx])[:, -1]
+    return end
+
+
+def segment_errors(model: KinematicModel, k: np.ndarray, geometry: Geometry,
+                   segments: SegmentSet) -> np.ndarray:
+    """End-pose errors (N, 3) in each segment's start frame (true - predicted, yaw wrapped)."""
+    predicted = predict_end_poses(model, k, geometry, segments)
+    return segment_frame_error(segments.start, segments.end, predicted)
+
+
+def measure_excitation(segments: SegmentSet, options: FitOptions) -> Excitation:
+    """Count segments that turn (|rotation| >= min_turn_rad) and that translate.
+
+    Translation is the straight-line displacement between the segment's ends (>=
+    min_translation_m), not the path length: ground-truth noise adds path length even to a spin
+    in place.
+    """
+    rotation = np.abs(segments.rotation_rad)
+    chord = np.hypot(*(segments.end[:, :2] - segments.start[:, :2]).T)
+    return Excitation(len(segments), int((rotation >= options.min_turn_rad).sum()),
+                      int((chord >= options.min_translation_m).sum()),
+                      float(rotation.sum()), float(segments.path_m.sum()))
+
+
+def _bounds(model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
+    pairs = [spec.optimizer_bounds() for spec in model.params]
+    return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+
+
+def _scales(model: KinematicModel, geometry: Geometry) -> np.ndarray:
+    """Typical magnitude of each parameter (for start draws and relative uncertainty)."""
+    unit_scale = {'m': geometry.track_width, 'm/rad': geometry.wheel_radius,
+                  '-': 1.0}
+    scales = []
+    for spec in model.params:
+        default = abs(spec.default_for(geometry))
+        scales.append(max(default, unit_scale.get(spec.unit, 1.0) * 0.5))
+    return np.array(scales)
+
+
+def _starts(model: KinematicModel, geometry: Geometry, options: FitOptions,
+            rng: np.random.Generator) -> list[np.ndarray]:
+    x0 = model.vector({}, geometry)
+    starts = [x0]
+    if len(model.params) < options.multi_start_min_params:
+        return starts
+    lo, hi = _bounds(model)
+    scales = _scales(model, geometry)
+    for _ in range(options.n_starts - 1):
+        draw = x0 + rng.uniform(-0.5, 0.5, size=x0.size) * scales
+        starts.append(np.clip(draw, lo + 1e-3 * scales, hi - 1e-3 * scales))
+    return starts
+
+
+def _solve(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
+           options: FitOptions, x0: np.ndarray) -> optimize.OptimizeResult:
+    lo, hi = _bounds(model)
+    weight = options.whitening
+
+    def residuals(k: np.ndarray) -> np.ndarray:
+        err = segment_errors(model, k, geometry, segments) * weight
+        return np.nan_to_num(err, nan=1e6, posinf=1e6, neginf=-1e6).ravel()
+
+    return optimize.least_squares(residuals, x0, bounds=(lo, hi), loss=options.loss,
+                                  f_scale=options.f_scale, x_scale='jac',
+                                  max_nfev=options.max_nfev * (len(x0) + 1), method='trf')
+
+
+def _best_solution(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
+                   options: FitOptions) -> tuple[optimize.OptimizeResult, int]:
+    rng = np.random.default_rng(options.seed)
+    starts = _starts(model, geometry, options, rng)
+    if len(starts) == 1:
+        return _solve(model, geometry, segments, options, starts[0]), 1
+    # Screen the starts on a deterministic subsample, then refine the best one on everything.
+    screen = segments
+    if len(segments) > options.screen_segments:
+        pick = np.linspace(0, len(segments) - 1, options.screen_segments).round().astype(int)
+        screen = segments.subset(np.unique(pick))
+    best = None
+    for x0 in starts:
+        sol = _solve(model, geometry, screen, options, x0)
+        if best is None or sol.cost < best.cost - 1e-12 * max(1.0, best.cost):
+            best = sol
+    return _solve(model, geometry, segments, options, best.x), len(starts)
+
+
+def _trim_mask(errors: np.ndarray, options: FitOptions) -> np.ndarray:
+    """Return True for segments kept after trimming outliers (C15)."""
+    dist2 = ((errors * options.whitening) ** 2).sum(axis=1)
+    scale = np.median(dist2) / stats.chi2.median(3)
+    if not scale > 0:
+        return np.ones(dist2.shape, bool)
+    outlier = dist2 > options.trim_chi2 * scale
+    max_drop = int(math.floor(options.trim_max_fraction * dist2.size))
+    if outlier.sum() > max_drop:
+        worst = np.argsort(-dist2, kind='stable')[:max_drop]
+        outlier = np.zeros(dist2.shape, bool)
+        outlier[worst] = True
+    return ~outlier
+
+
+def _std_errors(sol: optimize.OptimizeResult, n_params: int) -> np.ndarray:
+    m = sol.fun.size
+    dof = max(m - n_params, 1)
+    s2 = 2.0 * sol.cost / dof
+    jtj = sol.jac.T @ sol.jac
+    cov = np.linalg.pinv(jtj) * s2
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
+def _null_space_params(model: KinematicModel, geometry: Geometry, jac: np.ndarray,
+                       tol: float) -> set[str]:
+    """Parameters involved in near-null directions of the column-scaled Jacobian."""
+    scaled = jac * _scales(model, geometry)
+    norms = np.linalg.norm(scaled, axis=0)
+    names = set()
+    top = norms.max() if norms.size else 0.0
+    if top == 0.0:
+        return set(model.param_names)
+    for i, norm in enumerate(norms):
+        if norm <= tol * top:
+            names.add(model.param_names[i])
+    _, sv, vt = np.linalg.svd(scaled, full_matrices=False)
+    for value, vector in zip(sv, vt):
+        if value <= tol * sv[0]:
+            for i in np.nonzero(np.abs(vector) > 0.3)[0]:
+                names.add(model.param_names[i])
+    return names
+
+
+def _ideal_result(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
+                  options: FitOptions) -> FitResult:
+    err = segment_errors(model, np.zeros(0), geometry, segments)
+    white = err * options.whitening
+    return FitResult(model.name, {}, {}, float(0.5 * (white ** 2).sum()),
+                     tuple(float(v) for v in np.sqrt((err ** 2).mean(axis=0))), len(segments), 0,
+                     True, 'no parameter: evaluated only', 0,
+                     trimmed_mask=np.zeros(len(segments), bool))
+
+
+def fit_model(name: str, geometry: Geometry, segments: SegmentSet,
+              options: FitOptions | None = None) -> FitResult:
+    """Fit one model on the segments (ideal_dd, without parameters, is only evaluated)."""
+    options = options or FitOptions()
+    model = get_model(name)
+    if len(segments) < max(len(model.params) + 1, 2):
+        raise DataError(f'{len(segments)} training segment(s) are too few to fit {name!r} '
+                        f'({len(model.params)} parameters); drive more or shorten h_t')
+    tic = time.perf_counter()
+    if not model.params:
+        return _ideal_result(model, geometry, segments, options)
+    sol, n_starts = _best_solution(model, geometry, segments, options)
+    used = segments
+    kept = np.ones(len(segments), bool)
+    if options.trim:
+        kept = _trim_mask(segment_errors(model, sol.x, geometry, segments), options)
+        if not kept.all():
+            used = segments.subset(kept)
+            sol = _solve(model, geometry, used, options, sol.x)
+    trimmed = int((~kept).sum())
+    return _diagnose(model, geometry, used, options, sol, n_starts, trimmed, kept,
+                     time.perf_counter() - tic)
+
+
+def _diagnose(model: KinematicModel, geometry: Geometry, used: SegmentSet,
+              options: FitOptions, sol: optimize.OptimizeResult, n_starts: int, trimmed: int,
+              kept: np.ndarray, seconds: float) -> FitResult:
+    names = model.param_names
+    se = _std_errors(sol, len(names))
+    warnings = []
+    specs = model.params
+    on_bound = tuple(spec.name for spec, value in zip(specs, sol.x) if spec.on_bound(value))
+    if on_bound:
+        ranges = ', '.join(f'{s.name} in {s.range_text()}' for s in specs if s.name in on_bound)
+        warnings.append(f'{model.name}: parameter(s) {", ".join(on_bound)} sit on a bound '
+                        f'({ranges}): the data want a value outside the model; the fit is '
+                        'marked invalid')
+    unobservable = set(_null_space_params(model, geometry, sol.jac, options.null_space_tol))
+    excitation = measure_excitation(used, options)
+    for gap in excitation.missing(options):
+        if gap == 'turning':
+            params = NEEDS_TURNING.get(model.name, ())
+            have, need = excitation.turning_segments, options.min_turning_segments
+            remedy = f'turns and spins (|rotation| >= {options.min_turn_rad:g} rad per segment)'
+        else:
+            params = NEEDS_TRANSLATION.get(model.name, ())
+            have, need = excitation.translating_segments, options.min_translating_segments
+            remedy = f'straight and curved paths (>= {options.min_translation_m:g} m per segment)'
+        unobservable.update(params)
+        if params:
+            warnings.append(
+                f'{model.name}: not enough {gap} in the training data ({have} of '
+                f'{excitation.segments} segments, need {need}): {", ".join(params)} cannot be '
+                f'observed; drive {remedy}')
+    scales = _scales(model, geometry)
+    vague = [n for n, s, sc in zip(names, se, scales) if s > options.max_relative_se * sc]
+    if vague:
+        unobservable.update(vague)
+        warnings.append(f'{model.name}: standard error of {", ".join(vague)} exceeds '
+                        f'{options.max_relative_se:g}x its typical magnitude: not determined '
+                        'by the data')
+    ordered = tuple(n for n in names if n in unobservable)
+    if ordered and not any('cannot be observed' in w or 'standard error' in w for w in warnings):
+        warnings.append(f'{model.name}: parameter(s) {", ".join(ordered)} are not observable '
+                        '(near-null direction of the fit Jacobian)')
+    converged = bool(sol.success) and bool(np.all(np.isfinite(sol.x)))
+    if not converged:
+        warnings.append(f'{model.name}: optimizer did not converge ({sol.message})')
+    err = sol.fun.reshape(-1, 3) / options.whitening
+    return FitResult(
+        model=model.name, values=model.mapping(sol.x),
+        std_errors={n: float(s) for n, s in zip(names, se)},
+        cost=float(sol.cost), rms_error=tuple(float(v) for v in np.sqrt((err ** 2).mean(0))),
+        segments_used=len(used), segments_trimmed=trimmed, converged=converged,
+        status=str(sol.message), starts=n_starts, on_bound=on_bound, unobservable=ordered,
+        warnings=tuple(warnings), seconds=seconds, trimmed_mask=~kept)
+
+
+def fit_models(geometry: Geometry, segments: SegmentSet,
+               options: FitOptions | None = None,
+               models: Sequence[str] = MODEL_NAMES) -> dict[str, FitResult]:
+    """Fit every requested model (all five by default) on the same segments."""
+    options = options or FitOptions()
+    results = {}
+    for name in models:
+        result = fit_model(name, geometry, segments, options)
+        LOG.info('fitted %s on %d segments in %.2f s (cost %.4g, valid %s)', name,
+                 result.segments_used, result.seconds, result.cost, result.valid)
+        results[name] = result
+    return results

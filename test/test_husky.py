@@ -1,0 +1,34 @@
+"""The real Husky A200 windows (DRIVE dataset): the five models and the virtual track width."""
+
+from pathlib import Path
+
+import pytest
+
+from skidkin_ros.adapters.table import read_table
+from skidkin_ros.core.calibration import calibrate, CalibrationOptions
+from skidkin_ros.core.evaluation import split_holdout
+from skidkin_ros.core.specs import Geometry
+
+DATA = Path('/work/shared/data/drive_husky_windows.csv')
+HUSKY = Geometry(0.1651, 0.555)
+
+
+@pytest.mark.skipif(not DATA.is_file(), reason='Husky table not available')
+def test_husky_calibration():
+    train, evaluate = split_holdout(read_table(DATA), every=2, key='calib_step')
+    assert len(train) + len(evaluate) == 603
+    result = calibrate(train, evaluate, HUSKY, CalibrationOptions())
+    assert all(fit.valid for fit in result.fits.values()), result.warnings
+    ideal = result.evaluation['ideal_dd']
+    for name in ('edd_symmetric', 'edd_asymmetric', 'roc', 'full_linear'):
+        ev = result.evaluation[name]
+        # trained models: far better heading than the ideal differential drive
+        assert ev.stats_theta.median < 0.25 * ideal.stats_theta.median
+        assert ev.stats_t.median < 0.6 * ideal.stats_t.median
+    fit = result.fits['edd_symmetric']
+    ratio = fit.values['b_hat'] / HUSKY.track_width
+    # the skid-steer Husky turns as if its wheels were about twice as far apart
+    # (Clearpath ships wheel_separation_multiplier = 1.875)
+    assert 1.7 < ratio < 2.5
+    assert 0.8 < fit.values['alpha'] < 0.95
+    assert result.best in result.scores

@@ -1,0 +1,58 @@
+"""Noise-model calibration from segment residuals and its 95 % consistency."""
+
+from _calib_synth import GEOMETRY, make_drive
+import numpy as np
+import pytest
+
+from skidkin_ros.core.noise import NoiseModel
+from skidkin_ros.core.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.uncertainty import (calibrate_noise, consistency, fit_noise_model,
+                                          segment_covariances, segment_motion)
+
+VALUES = {'alpha': 0.9, 'b_hat': 1.04}
+TRUE_NOISE = NoiseModel(4e-3, 1e-3, 2e-4, 5e-3)
+
+
+def _segments():
+    drive = make_drive('edd_symmetric', duration_s=900.0, rate_hz=10.0, truth_every=1, seed=8)
+    return cut_segments([drive], SegmentOptions(horizon_m=2.0, horizon_rad=1.0))
+
+
+def test_rates_recovered_and_errors_95_percent_inside():
+    segs = _segments()
+    motion = segment_motion('edd_symmetric', VALUES, GEOMETRY, segs)
+    cov = segment_covariances(TRUE_NOISE, motion)
+    rng = np.random.default_rng(1)
+    errors = np.einsum('nij,nj->ni', np.linalg.cholesky(cov), rng.normal(size=(len(segs), 3)))
+    fitted = fit_noise_model(errors, motion)
+    assert fitted.var_x_per_m == pytest.approx(TRUE_NOISE.var_x_per_m, rel=0.3)
+    assert fitted.var_y_per_m == pytest.approx(TRUE_NOISE.var_y_per_m, rel=0.3)
+    # distance and rotation grow together on these segments: check the yaw variance they predict
+    true_yaw = segment_covariances(TRUE_NOISE, motion)[:, 2, 2].sum()
+    fitted_yaw = segment_covariances(fitted, motion)[:, 2, 2].sum()
+    assert fitted_yaw == pytest.approx(true_yaw, rel=0.15)
+    check = consistency(fitted, errors, motion)
+    assert check.segments == len(segs)
+    assert 0.92 <= check.inside_95_3dof <= 0.98
+    assert 0.92 <= check.inside_95_position_2dof <= 0.98
+    # a noise model 100x too small is flagged as inconsistent
+    tiny = NoiseModel(*(v / 100 for v in TRUE_NOISE.as_dict().values()))
+    assert consistency(tiny, errors, motion).inside_95_3dof < 0.5
+
+
+def test_basis_rotates_into_the_segment_frame():
+    segs = _segments()
+    motion = segment_motion('edd_symmetric', VALUES, GEOMETRY, segs)
+    # the longitudinal basis adds up to the distance travelled (its trace), whatever the turns
+    np.testing.assert_allclose(np.trace(motion.basis_x[:, :2, :2], axis1=1, axis2=2),
+                               motion.basis_yaw_m[:, 2, 2], rtol=1e-12)
+
+
+def test_calibrate_noise_on_model_residuals():
+    drive = make_drive('edd_symmetric', duration_s=300.0, rate_hz=20.0, truth_every=2, seed=2,
+                       wheel_noise=0.3, truth_noise_m=0.01, truth_noise_rad=0.005)
+    segs = cut_segments([drive], SegmentOptions(horizon_m=2.0))
+    result = calibrate_noise('edd_symmetric', VALUES, GEOMETRY, segs)
+    assert all(v >= 0 for v in result.noise.as_dict().values())
+    assert result.noise.var_x_per_m > 0
+    assert 0.8 <= result.consistency.inside_95_3dof <= 1.0
