@@ -146,6 +146,7 @@ def read_table(path: str | Path, dedupe_held_truth: bool = True) -> list[Drive]:
         if 'imu_yaw_rate' in cols:
             imu = ImuSamples(t_ns, cols['imu_yaw_rate'][rows_idx])
         meta = {'source': str(source), 'rows': (int(rows_idx[0]) + 2, int(rows_idx[-1]) + 2),
+                'row_index': rows_idx,
                 'held_truth_rows_dropped': int((~keep).sum())}
         if 'segment' in cols:
             meta['segment'] = _meta_value(np.array([seg_id]))

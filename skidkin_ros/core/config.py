@@ -15,6 +15,8 @@ from typing import Any, Mapping
 
 from skidkin_ros import __version__
 from skidkin_ros.atomic import atomic_write_text
+from skidkin_ros.core.augmented import AUGMENTED_NAME, AugmentedModel
+from skidkin_ros.core.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.models import get_model, MODELS
 from skidkin_ros.core.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                     NOISE_SPECS, NoiseModel)
@@ -30,6 +32,7 @@ __all__ = [
     'OdometryConfig',
     'flatten',
     'nest',
+    'parse_extensions',
     'read_params_file',
     'write_params_file',
     'params_document',
@@ -96,6 +99,29 @@ def _model_entries(geometry: Geometry) -> list[SchemaEntry]:
     return entries
 
 
+def _augmented_entries() -> list[SchemaEntry]:
+    entries = [
+        SchemaEntry('augmented.base', 'string', 'ideal_dd',
+                    'base model of the augmented model (model: augmented)',
+                    choices=tuple(MODELS)),
+        SchemaEntry('augmented.extensions', 'string', '',
+                    'extensions of the augmented model, comma-separated (e.g. '
+                    '"time_offset, lateral_skid"); known: ' + ', '.join(EXTENSIONS)),
+    ]
+    for ext in EXTENSIONS.values():
+        for spec in ext.params:
+            entries.append(SchemaEntry(
+                f'augmented.{ext.name}.{spec.name}', 'double', spec.default_for(None),
+                f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec))
+    return entries
+
+
+def parse_extensions(text: str) -> tuple[str, ...]:
+    """Return the extension names of a comma-separated list, in application order."""
+    names = [part.strip() for part in str(text).replace(';', ',').split(',')]
+    return ordered([name for name in names if name])
+
+
 def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
     """Every parameter the node declares, geometry first (model defaults depend on it)."""
     geometry = geometry or Geometry(GEOMETRY_SPECS[0].default_for(None),
@@ -111,8 +137,9 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                             f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
                 for spec in GEOMETRY_SPECS]
     entries += [
-        SchemaEntry('model', 'string', 'ideal_dd', 'kinematic model to run',
-                    choices=tuple(MODELS)),
+        SchemaEntry('model', 'string', 'ideal_dd',
+                    'kinematic model to run (augmented: a base model plus extensions, see '
+                    'augmented.*)', choices=tuple(MODELS) + (AUGMENTED_NAME,)),
         SchemaEntry('input', 'string', 'joint_state',
                     'joint_state (sensor_msgs/JointState) or wheel_topics (two std_msgs/Float64)',
                     choices=INPUT_MODES),
@@ -138,6 +165,7 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                             f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
                 for spec in NODE_SPECS]
     entries += _model_entries(geometry)
+    entries += _augmented_entries()
     return entries
 
 
@@ -189,16 +217,29 @@ class OdometryConfig:
     model_values: Mapping[str, Mapping[str, float]]
     noise: Mapping[str, NoiseModel | None]
     values: Mapping[str, Any] = field(repr=False, default_factory=dict)
+    augmented_base: str = 'ideal_dd'
+    augmented_extensions: tuple[str, ...] = ()
+    augmented_values: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
     def __getitem__(self, name: str) -> Any:
         return self.values[name]
 
     def bound_model(self, name: str | None = None):
+        """Return the model to run (an augmented model is a stateful twist source)."""
         name = name or self.model
+        if name == AUGMENTED_NAME:
+            structure = AugmentedModel(self.augmented_base, self.augmented_extensions)
+            base = get_model(self.augmented_base).bind(
+                self.model_values[self.augmented_base], self.geometry)
+            return structure.bind(base, {ext: self.augmented_values[ext]
+                                         for ext in self.augmented_extensions})
         return get_model(name).bind(self.model_values[name], self.geometry)
 
     @property
     def active_noise(self) -> NoiseModel | None:
+        """Return the noise model in force (an augmented model uses its base model's)."""
+        if self.model == AUGMENTED_NAME:
+            return self.noise.get(self.augmented_base)
         return self.noise.get(self.model)
 
     @classmethod
@@ -242,8 +283,17 @@ class OdometryConfig:
                     prefix + 'noise.')
             else:
                 noise[model.name] = None
-        get_model(values['model'])
-        return cls(values['model'], geometry, model_values, noise, values)
+        extensions = parse_extensions(values['augmented.extensions'])
+        augmented_values = {
+            ext.name: {spec.name: values[f'augmented.{ext.name}.{spec.name}']
+                       for spec in ext.params}
+            for ext in EXTENSIONS.values()}
+        for ext in EXTENSIONS.values():
+            ext.vector(augmented_values[ext.name])
+        if values['model'] != AUGMENTED_NAME:
+            get_model(values['model'])
+        return cls(values['model'], geometry, model_values, noise, values,
+                   values['augmented.base'], extensions, augmented_values)
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
@@ -294,10 +344,31 @@ def _yaml_float(value: float) -> float:
     return float(value)
 
 
+def _ros_value(value: Any) -> Any:
+    """Make a provenance value a valid ROS parameter: no None, no mixed or nested lists."""
+    if value is None:
+        return ''
+    if isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    if isinstance(value, (list, tuple)):
+        items = [_ros_value(v) for v in value]
+        kinds = {type(v) for v in items}
+        if not items:
+            return ''
+        if len(kinds) == 1 and kinds <= {bool, int, float, str}:
+            return items
+        if kinds <= {int, float}:
+            return [float(v) for v in items]
+        return [str(v) for v in items]
+    return str(value)
+
+
 def params_document(config_values: Mapping[str, Any],
                     provenance: Mapping[str, Any] | None = None) -> str:
     """Render flat parameters as a ROS 2 parameters file (floats always written as floats)."""
-    flat = {}
+    flat = {'schema_version': SCHEMA_VERSION}
     schema = {entry.name: entry for entry in parameter_schema()}
     for name, value in config_values.items():
         entry = schema.get(name)
@@ -310,7 +381,7 @@ def params_document(config_values: Mapping[str, Any],
     prov.setdefault('tool', f'skidkin_ros {__version__}')
     prov.setdefault('date', datetime.datetime.now(datetime.timezone.utc).isoformat(
         timespec='seconds'))
-    flat.update({f'provenance.{k}': v for k, v in flatten(prov).items()})
+    flat.update({f'provenance.{k}': _ros_value(v) for k, v in flatten(prov).items()})
     body = {'/**': {'ros__parameters': nest(flat)}}
     header = ('# skidkin_ros parameters file (ROS 2). Load with:\n'
               '#   ros2 run skidkin_ros odom_node --ros-args --params-file THIS_FILE\n')

@@ -20,7 +20,7 @@ import numpy as np
 from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.fitting import segment_errors
 from skidkin_ros.core.models import get_model
-from skidkin_ros.core.segments import SegmentSet
+from skidkin_ros.core.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.specs import Geometry
 from skidkin_ros.errors import DataError, ParameterError
 
@@ -31,6 +31,7 @@ __all__ = [
     'evaluate_models',
     'split_holdout',
     'HOLDOUT_MODES',
+    'relative_pose_errors',
 ]
 
 HOLDOUT_MODES = ('auto', 'drive', 'time')
@@ -149,7 +150,53 @@ def split_holdout(drives: Sequence[Drive], every: int = 3, mode: str = 'auto',
             continue
         t0 = int(drive.wheels.t_ns[0])
         t_end = int(drive.wheels.t_ns[-1])
-        for index, start in enumerate(range(t0, t_end + 1, block_ns)):
-            part = _time_slice(drive, start, min(start + block_ns - 1, t_end), f'@{index}')
+        # A drive shorter than 2 * every blocks still gives two evaluation blocks.
+        step_ns = max(1, min(block_ns, (t_end - t0) // (2 * every)))
+        for index, start in enumerate(range(t0, t_end + 1, step_ns)):
+            part = _time_slice(drive, start, min(start + step_ns - 1, t_end), f'@{index}')
             (evaluate if index % every == every - 1 else train).append(part)
     return train, evaluate
+
+
+def relative_pose_errors(t_ns: np.ndarray, estimate: np.ndarray, truth: PoseTrack,
+                         horizon_m: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Relative errors of any odometry output against ground truth, per metre (evo-style RPE).
+
+    ``estimate`` (N, 3) are poses at ``t_ns`` (e.g. what the node published). Windows of
+    ``horizon_m`` travelled on the ground-truth path, non-overlapping; the estimate's relative
+    motion over each window is compared with the truth's, in the window's start frame. Returns
+    (eps_t in m/m, eps_theta in deg/m).
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    estimate = np.asarray(estimate, dtype=float)
+    inside = (t_ns >= truth.t_ns[0]) & (t_ns <= truth.t_ns[-1])
+    t_ns, estimate = t_ns[inside], estimate[inside]
+    true = truth.interpolate(t_ns)
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(true[:, 0]),
+                                                     np.diff(true[:, 1])))])
+    starts, ends = [], []
+    a = 0
+    while a < len(t_ns) - 1:
+        b = int(np.searchsorted(path, path[a] + horizon_m, side='left'))
+        if b >= len(t_ns):
+            break
+        starts.append(a)
+        ends.append(b)
+        a = b
+    if not starts:
+        return np.empty(0), np.empty(0)
+    a_idx, b_idx = np.array(starts), np.array(ends)
+    est_a, est_b = estimate[a_idx], estimate[b_idx]
+    # the estimate's motion a -> b, replayed from the true start pose
+    c, s = np.cos(est_a[:, 2]), np.sin(est_a[:, 2])
+    dx, dy = est_b[:, 0] - est_a[:, 0], est_b[:, 1] - est_a[:, 1]
+    local = np.stack([c * dx + s * dy, -s * dx + c * dy, est_b[:, 2] - est_a[:, 2]], axis=-1)
+    start = true[a_idx]
+    ct, st = np.cos(start[:, 2]), np.sin(start[:, 2])
+    predicted = np.stack([start[:, 0] + ct * local[:, 0] - st * local[:, 1],
+                          start[:, 1] + st * local[:, 0] + ct * local[:, 1],
+                          start[:, 2] + local[:, 2]], axis=-1)
+    errors = segment_frame_error(start, true[b_idx], predicted)
+    length = path[b_idx] - path[a_idx]
+    return (np.hypot(errors[:, 0], errors[:, 1]) / length,
+            np.degrees(np.abs(errors[:, 2])) / length)

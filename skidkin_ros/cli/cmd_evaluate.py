@@ -1,0 +1,67 @@
+"""``skidkin evaluate``: score a parameters file's models on recordings (relative errors)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from types import SimpleNamespace
+
+from skidkin_ros.adapters.sources import load_sources
+from skidkin_ros.atomic import atomic_write_text
+from skidkin_ros.cli.cmd_calibrate import check_report_dir
+from skidkin_ros.cli.cmd_predict import load_config
+from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
+from skidkin_ros.cli.tables import error_table
+from skidkin_ros.core.evaluation import evaluate_models
+from skidkin_ros.core.segments import cut_segments, SegmentOptions
+from skidkin_ros.errors import DataError
+from skidkin_ros.report.figures import error_distributions
+
+__all__ = ['add_parser']
+
+
+def run(args: argparse.Namespace) -> int:
+    check_report_dir(args.report, args.force)
+    config = load_config(args.params)
+    sources = load_sources(args.sources, source_options(args, config.geometry))
+    print_notes(sources)
+    drives = [d for s in sources for d in s.drives]
+    segments = cut_segments(drives, SegmentOptions(horizon_m=args.h_e))
+    if len(segments) == 0:
+        raise DataError(f'no evaluation segment of {args.h_e:g} m in the given data '
+                        f'({segments.counts.as_dict()})')
+    models = args.models or list(config.model_values)
+    values = {m: config.model_values[m] for m in models}
+    evaluation = evaluate_models(values, config.geometry, segments)
+    say(f'{len(segments)} segments of h_e = {args.h_e:g} m; parameters from {args.params} '
+        f'(active model {config.model})')
+    table = error_table(evaluation, best=config.model)
+    say(table)
+    if args.report is not None:
+        args.report.mkdir(parents=True, exist_ok=True)
+        shim = SimpleNamespace(evaluation=evaluation, eval_segments=segments,
+                               options=SimpleNamespace(h_e=args.h_e))
+        error_distributions(shim, args.report / 'errors.png')
+        page = (f'# skidkin evaluate\n\nParameters: `{args.params}`; sources: '
+                + ', '.join(f'`{s.path}`' for s in sources)
+                + f'\n\n```\n{table}\n```\n\n![errors](errors.png)\n')
+        atomic_write_text(args.report / 'report.md', page, force=True)
+        say(f'report: {args.report / "report.md"}')
+    return 0
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        'evaluate', help="score a parameters file's models on recordings",
+        description='Cut the recordings into h_e segments on the ground-truth path and score '
+        'every model of the parameters file with the relative errors eps_t (m/m) and eps_theta '
+        '(deg/m) of Baril et al. (2020).')
+    parser.add_argument('sources', nargs='+', type=Path, help='bag(s) or trajectory table(s)')
+    parser.add_argument('--params', type=Path, required=True, help='parameters file')
+    parser.add_argument('--models', nargs='+', help='models to score (default: all)')
+    parser.add_argument('--h-e', type=float, default=2.0, metavar='M',
+                        help='evaluation horizon')
+    parser.add_argument('--report', type=Path, help='folder for report.md and errors.png')
+    parser.add_argument('--force', action='store_true', help='overwrite the report')
+    add_source_args(parser)
+    parser.set_defaults(run=run)

@@ -1,0 +1,58 @@
+"""Plain-text tables printed by the ``skidkin`` commands."""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+from skidkin_ros.core.evaluation import ModelEvaluation
+from skidkin_ros.core.fitting import FitResult
+from skidkin_ros.core.uncertainty import NoiseFit
+
+__all__ = ['error_table', 'parameter_lines']
+
+
+def _f(value: float, digits: int = 3) -> str:
+    return 'nan' if not math.isfinite(value) else f'{value:.{digits}g}'
+
+
+def error_table(evaluation: Mapping[str, ModelEvaluation],
+                fits: Mapping[str, FitResult] | None = None,
+                noise: Mapping[str, NoiseFit] | None = None, best: str | None = None) -> str:
+    """Return eps_t (m/m) and eps_theta (deg/m): median [q25, q75] p90 per model."""
+    header = (f'{"model":<15} {"eps_t m/m  median [q25, q75]   p90":<38}'
+              f'{"eps_theta deg/m  median [q25, q75]   p90":<44}{"segs":>5}')
+    if noise is not None:
+        header += '  in 95%'
+    if fits is not None:
+        header += '  fit'
+    lines = [header, '-' * (len(header) + 10)]
+    for name, ev in evaluation.items():
+        t, th = ev.stats_t, ev.stats_theta
+        row = (f'{name:<15} '
+               + f'{_f(t.median)} [{_f(t.q25)}, {_f(t.q75)}]  {_f(t.p90)}'.ljust(38)
+               + f'{_f(th.median)} [{_f(th.q25)}, {_f(th.q75)}]  {_f(th.p90)}'.ljust(44)
+               + f'{t.count:>5}')
+        if noise is not None:
+            fitted = noise.get(name)
+            row += (f'  {fitted.consistency.inside_95_3dof * 100:5.1f}%' if fitted is not None
+                    else '      -')
+        if fits is not None and name in fits:
+            row += '  ok' if fits[name].valid else '  INVALID'
+        if name == best:
+            row += '  <- best'
+        lines.append(row)
+    return '\n'.join(lines)
+
+
+def parameter_lines(fits: Mapping[str, FitResult]) -> list[str]:
+    lines = []
+    for name, fit in fits.items():
+        if not fit.values:
+            continue
+        parts = []
+        for param, value in fit.values.items():
+            err = fit.std_errors.get(param, math.nan) if fit.std_errors else math.nan
+            parts.append(f'{param}={value:.4g}' + (f' ±{err:.2g}' if math.isfinite(err) else ''))
+        lines.append(f'  {name:<15} ' + ', '.join(parts))
+    return lines

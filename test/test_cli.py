@@ -1,0 +1,155 @@
+"""The ``skidkin`` command end to end: calibrate -> parameters file -> predict == the real node."""
+
+import argparse
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+from skidkin_ros.cli import cmd_demo
+from skidkin_ros.cli.main import main
+from skidkin_ros.core.config import OdometryConfig, read_params_file
+from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.sim.simulate import SimConfig, simulate, write_truth_csv
+
+HUSKY = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
+
+
+@pytest.fixture(scope='module')
+def sim_table(tmp_path_factory):
+    folder = tmp_path_factory.mktemp('sim')
+    sim = simulate(SimConfig(duration_s=90.0, seed=5))
+    return write_truth_csv(sim, folder / 'drive.csv'), sim
+
+
+def _read_csv(path):
+    with open(path, newline='') as handle:
+        rows = list(csv.DictReader(handle))
+    return rows
+
+
+def test_calibrate_then_predict_then_the_real_node_agrees(sim_table, tmp_path, capsys):
+    table, sim = sim_table
+    params = tmp_path / 'params.yaml'
+    assert main(['calibrate', str(table), '--out', str(params), '--robot', 'sim']) == 0
+    out = capsys.readouterr().out
+    assert '<- best' in out and 'edd_asymmetric' in out
+    config = OdometryConfig.from_flat(read_params_file(params))
+    truth = sim.config.true_params
+    fitted = config.model_values['edd_asymmetric']
+    for name in ('alpha_l', 'alpha_r', 'y_l', 'y_r'):
+        assert fitted[name] == pytest.approx(truth[name], abs=0.03), name
+    assert config.active_noise is not None  # the covariance is calibrated
+
+    pred_csv = tmp_path / 'pred.csv'
+    assert main(['predict', str(table), '--params', str(params), '--out', str(pred_csv)]) == 0
+    rows = _read_csv(pred_csv)
+    assert len(rows) == len(sim.wheels) and 'pred_yaw' in rows[0] and 'x' in rows[0]
+
+    from skidkin_ros.node.replay import replay_through_node
+    wheels = WheelSamples(sim.wheels.t_ns - sim.wheels.t_ns[0], sim.wheels.omega_l,
+                          sim.wheels.omega_r)
+    replay = replay_through_node(wheels, params_file=params)
+    predicted = {int(round(float(r['t']) * 1e9)): (float(r['pred_x']), float(r['pred_y']),
+                                                   float(r['pred_yaw'])) for r in rows}
+    node = dict(zip((int(t) for t in replay.t_ns), replay.poses))
+    common = sorted(set(predicted) & set(node))
+    assert len(common) >= len(rows) - 2
+    diff = max(np.abs(np.array(predicted[t]) - node[t]).max() for t in common)
+    assert diff < 1e-5  # the CSV holds 6 decimals; the node and predict share the integrator
+
+
+def test_predict_names_the_file_model_and_accepts_another(sim_table, tmp_path):
+    table, _ = sim_table
+    params = tmp_path / 'p.yaml'
+    assert main(['calibrate', str(table), '--out', str(params), '--models', 'edd_symmetric']) == 0
+    first, second = tmp_path / 'a.csv', tmp_path / 'b.csv'
+    assert main(['predict', str(table), '--params', str(params), '--out', str(first)]) == 0
+    assert main(['predict', str(table), '--params', str(params), '--model', 'ideal_dd',
+                 '--out', str(second)]) == 0
+    a, b = _read_csv(first), _read_csv(second)
+    assert a[-1]['pred_x'] != b[-1]['pred_x']
+
+
+def test_rerun_gives_the_same_parameters(sim_table, tmp_path):
+    table, _ = sim_table
+    runs = []
+    for name in ('one.yaml', 'two.yaml'):
+        assert main(['calibrate', str(table), '--out', str(tmp_path / name)]) == 0
+        flat = read_params_file(tmp_path / name)
+        runs.append({k: v for k, v in flat.items() if not k.startswith('provenance.date')})
+    assert runs[0] == runs[1]  # C20
+
+
+def test_existing_output_is_kept_without_force(sim_table, tmp_path, capsys):
+    table, _ = sim_table
+    params = tmp_path / 'params.yaml'
+    params.write_text('precious')
+    assert main(['calibrate', str(table), '--out', str(params)]) == 5  # C18
+    assert params.read_text() == 'precious'
+    assert '--force' in capsys.readouterr().err
+
+
+def test_missing_source_is_a_clear_error(tmp_path, capsys):
+    code = main(['calibrate', str(tmp_path / 'nowhere_bag'), '--out', str(tmp_path / 'p.yaml')])
+    assert code == 3  # C1
+    err = capsys.readouterr().err
+    assert 'nowhere_bag' in err and 'Traceback' not in err
+    assert not (tmp_path / 'p.yaml').exists()
+
+
+def test_straight_driving_only_refuses_to_write_what_it_cannot_observe(tmp_path, capsys):
+    sim = simulate(SimConfig(duration_s=80.0, seed=1, script=(
+        (20.0, 4.0, 4.0), (20.0, -4.0, -4.0), (20.0, 4.0, 4.0))))
+    table = write_truth_csv(sim, tmp_path / 'straight.csv')
+    params = tmp_path / 'p.yaml'
+    code = main(['calibrate', str(table), '--out', str(params)])
+    err = capsys.readouterr().err
+    assert code == 4  # C14: no turning, the yaw parameters are not observable
+    assert 'b_hat' in err or 'not observable' in err or 'unobservable' in err
+    assert not params.exists()
+
+
+@pytest.mark.skipif(not HUSKY.exists(), reason='shared Husky data not present')
+def test_husky_calibration_from_the_command_line(tmp_path, capsys):
+    params = tmp_path / 'husky.yaml'
+    assert main(['calibrate', str(HUSKY), '--split-by', 'calib_step', '--wheel-radius',
+                 '0.1651', '--track-width', '0.555', '--out', str(params),
+                 '--report', str(tmp_path / 'report')]) == 0
+    out = capsys.readouterr().out
+    config = OdometryConfig.from_flat(read_params_file(params))
+    ratio = config.model_values['edd_symmetric']['b_hat'] / 0.555
+    assert 1.9 < ratio < 2.4  # Clearpath ships 1.875
+    assert 'wheel_separation_multiplier' in out
+    assert (tmp_path / 'report' / 'report.md').exists()
+    assert main(['evaluate', str(HUSKY), '--params', str(params)]) == 0
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()
+            if line.split() and line.split()[0] in config.model_values}
+    assert float(rows[config.model][1]) < 0.5 * float(rows['ideal_dd'][1])  # median eps_t
+
+
+def test_models_table_is_generated_from_the_specs(capsys):
+    assert main(['models']) == 0
+    out = capsys.readouterr().out
+    assert '`models.edd_asymmetric.y_r`' in out and '(-inf, 0)' in out
+
+
+def test_readme_model_table_matches_the_specs(capsys):
+    readme = (Path(__file__).resolve().parents[1] / 'README.md').read_text()
+    main(['models'])
+    assert capsys.readouterr().out.strip() in readme, 'run `skidkin models` and paste it'
+
+
+@pytest.mark.heavy
+def test_demo_pipeline_sized_down(tmp_path):
+    args = argparse.Namespace(out=tmp_path / 'demo', force=False, train_duration=60.0,
+                              eval_duration=40.0, no_cache=True, progress=False)
+    summary = cmd_demo.pipeline(args)
+    assert summary['params'].exists()
+    truth, icp = summary['true_params'], summary['fitted_icp']
+    for name in ('alpha_l', 'alpha_r', 'y_l', 'y_r'):
+        assert icp[name] == pytest.approx(truth[name], abs=0.05), name
+    assert summary['node_vs_predict'] < 1e-9
+    node_t, _ = summary['node_eps']
+    ideal_t, _ = summary['ideal_eps']
+    assert np.median(node_t) < 0.25 * np.median(ideal_t)
