@@ -1,0 +1,217 @@
+"""Run every skidkin_ros benchmark in one go and write results.json, results.md and a plot.
+
+Examples::
+
+    python bench/run.py --out bench/results            # full run (make bench), a few minutes
+    python bench/run.py --smoke --out /tmp/bench       # tiny sizes, seconds (CI, make bench-smoke)
+    python bench/run.py --out /tmp/bench --only node   # one part (node, calibration, lidar,
+                                                       # diagnosis); the others are left empty
+
+Parts: the odometry node against a bare relay (bench/node_bench.py), calibration time against
+distance (calib_bench.py), the lidar pipeline (lidar_bench.py) and the diagnosis
+(diag_bench.py). Absolute numbers depend on the machine and its load; ratios measured in the
+same run are what to compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+import datetime
+import json
+import logging
+import math
+import os
+from pathlib import Path
+import platform
+import sys
+import tempfile
+import time
+from typing import Any, Sequence
+
+import calib_bench
+import diag_bench
+import lidar_bench
+import node_bench
+import report
+from skidkin_ros.atomic import atomic_write_text
+from skidkin_ros.core.models import MODEL_NAMES
+
+PARTS = ('node', 'calibration', 'lidar', 'diagnosis')
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """Everything that differs between the full and the smoke run."""
+
+    node_plan: tuple[tuple[float, float], ...]
+    node_ladder_hz: tuple[float, ...]
+    node_ladder_s: float
+    node_models: tuple[str, ...]
+    node_augmented: bool
+    calib_km: tuple[float, ...]
+    calib_drive_s: float
+    holdout_block_s: float
+    calib_n_starts: int | None
+    lidar_durations_s: tuple[float, ...]
+    lidar_azimuth_deg: float
+    lidar_horizon_m: float
+    diag_km: tuple[float, ...]
+    diag_drive_s: float
+
+
+FULL = Sizes(
+    node_plan=((100.0, 4.0), (1000.0, 3.0)),
+    node_ladder_hz=(1500.0, 2000.0, 2500.0, 3000.0, 4000.0, 5000.0, 6000.0),
+    node_ladder_s=1.5, node_models=MODEL_NAMES, node_augmented=True,
+    calib_km=(0.5, 1.0, 2.0, 4.0), calib_drive_s=600.0, holdout_block_s=60.0,
+    calib_n_starts=None,
+    lidar_durations_s=(20.0, 40.0, 80.0), lidar_azimuth_deg=0.5, lidar_horizon_m=2.0,
+    diag_km=(0.05, 0.1), diag_drive_s=60.0)
+SMOKE = Sizes(
+    node_plan=((100.0, 0.5), (1000.0, 0.5)), node_ladder_hz=(), node_ladder_s=0.3,
+    node_models=('full_linear',), node_augmented=False,
+    calib_km=(0.02, 0.04), calib_drive_s=40.0, holdout_block_s=10.0, calib_n_starts=1,
+    lidar_durations_s=(3.0, 5.0), lidar_azimuth_deg=4.0, lidar_horizon_m=0.5,
+    diag_km=(), diag_drive_s=60.0)
+
+
+def machine_facts() -> dict[str, Any]:
+    """Return what the numbers depend on: CPUs, Python, platform, RMW, load, date."""
+    cpu_model = 'unknown'
+    try:
+        with open('/proc/cpuinfo', encoding='utf-8') as stream:
+            for line in stream:
+                if line.startswith('model name'):
+                    cpu_model = line.split(':', 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    try:
+        from rclpy.utilities import get_rmw_implementation_identifier
+        rmw = get_rmw_implementation_identifier()
+    except (ImportError, RuntimeError):
+        rmw = os.environ.get('RMW_IMPLEMENTATION', 'unknown')
+    load = os.getloadavg() if hasattr(os, 'getloadavg') else (math.nan,) * 3
+    return {
+        'cpus': os.cpu_count(), 'cpu_model': cpu_model, 'python': platform.python_version(),
+        'platform': platform.platform(), 'rmw': rmw,
+        'loadavg': ' '.join(f'{v:.2f}' for v in load),
+        'date': datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC'),
+    }
+
+
+def augmented_params() -> tuple[str, dict[str, str]] | None:
+    """Return the label and node parameters of the heaviest augmented model, None if absent."""
+    try:
+        from skidkin_ros.core.augmented import AUGMENTED_NAME
+        from skidkin_ros.core.config import parameter_schema
+        from skidkin_ros.core.extensions import EXTENSION_NAMES
+    except ImportError:
+        return None
+    if 'augmented.extensions' not in {entry.name for entry in parameter_schema()}:
+        return None
+    extensions = [name for name in EXTENSION_NAMES if name != 'sparse_correction']
+    label = f'{AUGMENTED_NAME}: edd_symmetric + {len(extensions)} extensions'
+    return label, {'model': AUGMENTED_NAME, 'augmented.base': 'edd_symmetric',
+                   'augmented.extensions': ','.join(extensions)}
+
+
+def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
+    """Measure the relay (first and last, to bracket drift) and the node with every model."""
+    suts: list[tuple[str, str, dict[str, str] | None]] = [('relay', 'bare rclpy relay', None)]
+    suts += [('odom', f'odom_node {model}', {'model': model}) for model in sizes.node_models]
+    not_run = {}
+    augmented = augmented_params() if sizes.node_augmented else None
+    if augmented is not None:
+        suts.append(('odom', f'odom_node {augmented[0]}', augmented[1]))
+    elif not smoke:
+        not_run['odom_node augmented'] = 'n/a yet (augmented models not in the node schema)'
+    if smoke:
+        for model in MODEL_NAMES:
+            if model not in sizes.node_models:
+                not_run[f'odom_node {model}'] = 'not run in the smoke run'
+    else:
+        suts.append(('relay', 'bare rclpy relay (again)', None))
+    results = []
+    for kind, label, params in suts:
+        print(f'  node: {label}', flush=True)
+        results.append(node_bench.measure_sut(kind, label, params, sizes.node_plan,
+                                              sizes.node_ladder_hz, sizes.node_ladder_s,
+                                              domain_id))
+    return {'suts': results, 'not_run': not_run, 'ladder_hz': list(sizes.node_ladder_hz),
+            'plan': [list(step) for step in sizes.node_plan], 'domain_id': domain_id}
+
+
+def _empty(part: str) -> dict[str, Any]:
+    if part == 'node':
+        return {'suts': [], 'not_run': {}, 'ladder_hz': [], 'plan': []}
+    if part == 'diagnosis':
+        return {'available': False, 'reason': 'not run (--only)', 'rows': []}
+    if part == 'lidar':
+        return {'rows': [], 'azimuth_resolution_deg': math.nan, 'horizon_m': math.nan}
+    return {'rows': [], 'per_km_ratio_largest_smallest': math.nan}
+
+
+def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
+            command: str) -> dict[str, Any]:
+    """Run the requested parts and write results.json, results.md and cost_vs_size.png."""
+    sizes = SMOKE if smoke else FULL
+    tic = time.perf_counter()
+    results: dict[str, Any] = {'command': command, 'smoke': smoke, 'machine': machine_facts()}
+    results.update({part: _empty(part) for part in PARTS})
+    if 'node' in parts:
+        print('node benchmark', flush=True)
+        results['node'] = run_node(sizes, domain_id, smoke)
+    if 'calibration' in parts:
+        print('calibration benchmark', flush=True)
+        results['calibration'] = calib_bench.run(sizes.calib_km, sizes.calib_drive_s,
+                                                 sizes.holdout_block_s, sizes.calib_n_starts)
+    if 'lidar' in parts:
+        print('lidar benchmark', flush=True)
+        with tempfile.TemporaryDirectory(prefix='skidkin_bench_') as folder:
+            results['lidar'] = lidar_bench.run(Path(folder), sizes.lidar_durations_s,
+                                               sizes.lidar_azimuth_deg, sizes.lidar_horizon_m)
+    if 'diagnosis' in parts:
+        print('diagnosis benchmark', flush=True)
+        if sizes.diag_km:
+            results['diagnosis'] = diag_bench.run(sizes.diag_km, sizes.diag_drive_s,
+                                                  min(sizes.holdout_block_s, 20.0))
+        else:
+            results['diagnosis'] = {'available': False, 'rows': [],
+                                    'reason': 'not run in the smoke run (too slow for CI)'}
+    results['elapsed_s'] = time.perf_counter() - tic
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / 'results.json', json.dumps(results, indent=1, default=str),
+                      force=True)
+    report.write_markdown(results, out / 'results.md')
+    report.write_plot(results, out / 'cost_vs_size.png')
+    return results
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Parse the command line and run the benchmarks; return the exit code."""
+    parser = argparse.ArgumentParser(
+        description='Benchmark the skidkin_ros node, calibration, lidar pipeline and '
+        'diagnosis; write results.json, results.md and cost_vs_size.png.',
+        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n\n')[1])
+    parser.add_argument('--out', type=Path, default=Path('bench/results'),
+                        help='output folder (default: bench/results)')
+    parser.add_argument('--smoke', action='store_true',
+                        help='tiny sizes: checks that everything runs, in seconds')
+    parser.add_argument('--only', nargs='+', choices=PARTS, default=list(PARTS),
+                        help='run only these parts')
+    parser.add_argument('--domain-id', type=int, default=None,
+                        help='ROS domain of the node benchmark (default: from the process id, '
+                        'away from domain 0)')
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    domain_id = args.domain_id if args.domain_id is not None else 40 + os.getpid() % 60
+    command = 'python bench/run.py ' + ' '.join(sys.argv[1:] if argv is None else argv)
+    results = run_all(args.out, args.smoke, args.only, domain_id, command.strip())
+    print(f'wrote {args.out / "results.md"} in {results["elapsed_s"]:.0f} s')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

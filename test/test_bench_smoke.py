@@ -1,0 +1,68 @@
+"""The benchmark runs end to end at smoke size and writes its table, raw results and plot."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+import subprocess
+import sys
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+@pytest.mark.ros
+def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
+    out = tmp_path / 'results'
+    proc = subprocess.run([sys.executable, str(ROOT / 'bench' / 'run.py'), '--smoke',
+                           '--out', str(out)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads((out / 'results.json').read_text())
+    assert results['smoke'] is True
+    assert results['machine']['cpus'] >= 1
+
+    # Node: the relay and the node both answered every rate step and were timed.
+    suts = {sut['label']: sut for sut in results['node']['suts']}
+    assert set(suts) == {'bare rclpy relay', 'odom_node full_linear'}
+    for sut in suts.values():
+        assert sut['error'] is None, sut
+        assert [step['rate_hz'] for step in sut['steps']] == [100.0, 1000.0]
+        for step in sut['steps']:
+            assert step['sent'] > 0 and step['received'] > 0.5 * step['sent']
+            assert _finite(step['p50_latency_us']) and step['p50_latency_us'] > 0
+            assert _finite(step['p99_latency_us'])
+            assert step['p99_latency_us'] >= step['p50_latency_us']
+            assert _finite(step['cpu_us_per_msg']) and step['cpu_us_per_msg'] > 0
+
+    # Calibration: one row per size, growing data, finite times.
+    rows = results['calibration']['rows']
+    assert [row['target_km'] for row in rows] == [0.02, 0.04]
+    assert rows[1]['wheel_samples'] > rows[0]['wheel_samples']
+    assert all(_finite(row['calibrate_s']) and row['calibrate_s'] > 0 for row in rows)
+    assert all(set(row['fit_s_by_model']) >= {'ideal_dd', 'full_linear'} for row in rows)
+
+    # Lidar: every frame was read and registered, the memory probe reported a peak.
+    lidar = results['lidar']['rows']
+    assert [row['frames'] for row in lidar] == [30, 50]
+    for row in lidar:
+        assert row['icp_ok_frames'] >= 0.9 * row['frames']
+        for key in ('read_ms_per_frame', 'icp_ms_per_frame', 'real_time_factor'):
+            assert _finite(row[key]) and row[key] > 0, key
+        assert _finite(row['memory'].get('peak_mb')), row['memory']
+    assert results['diagnosis']['available'] is False
+
+    # The Markdown table names the command and has the expected rows; the plot is a PNG.
+    text = (out / 'results.md').read_text()
+    assert 'python bench/run.py --smoke' in text
+    for needle in ('| bare rclpy relay |', '| odom_node full_linear |',
+                   '| odom_node roc | not run in the smoke run', '## Calibration',
+                   '## Lidar pipeline', 'diagnosis: not run in the smoke run'):
+        assert needle in text, needle
+    assert (out / 'cost_vs_size.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
