@@ -100,8 +100,8 @@ def run(args: argparse.Namespace) -> int:
     print_result(result)
     base = {'robot': args.robot, **input_parameters(train)}
     flat = result_to_parameters(result, base, allow_invalid=False)
-    written = write_params_file(args.out, flat, provenance(result, train, evaluate,
-                                                          'skidkin calibrate'), force=args.force)
+    prov = provenance(result, train, evaluate, 'skidkin calibrate')
+    written = write_params_file(args.out, flat, prov, force=args.force)
     say(f'\nbest model: {result.best}  (parameters file: {written}; run the node with\n'
         f'  ros2 run skidkin_ros odom_node --ros-args --params-file {written})')
     if args.report is not None:

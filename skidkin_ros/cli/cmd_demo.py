@@ -93,8 +93,8 @@ def pipeline(args: argparse.Namespace) -> dict:
     exact = calibrate([train_sim.drive('train_exact')], [eval_sim.drive('eval_exact')],
                       geometry, options)
     truth_params = dict(train_cfg.true_params)
-    say(f'      true {train_cfg.true_model}: ' + ', '.join(f'{k}={v:g}'
-                                                          for k, v in truth_params.items()))
+    listed = ', '.join(f'{k}={v:g}' for k, v in truth_params.items())
+    say(f'      true {train_cfg.true_model}: {listed}')
     for label, res in (('fitted on kiss-icp', result), ('fitted on exact truth', exact)):
         fit = res.fits[train_cfg.true_model]
         say(f'      {label:<22} ' + ', '.join(f'{k}={v:.4f}' for k, v in fit.values.items()))

@@ -25,7 +25,7 @@ def load_config(path: Path, model: str | None = None) -> OdometryConfig:
 
 
 def limits_of(config: OdometryConfig) -> IntegratorLimits:
-    """The node's integrator limits, so offline prediction matches the node sample for sample."""
+    """Return the node's integrator limits, so offline prediction matches it sample for sample."""
     return IntegratorLimits(max_dt_s=config['max_dt'],
                             max_wheel_speed_rad_s=config['max_wheel_speed'])
 

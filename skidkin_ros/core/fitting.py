@@ -87,7 +87,8 @@ class FitOptions:
     multi_start_min_params: int = 3
     seed: int = 0
     max_nfev: int = 60
-    screen_segments: int = 150
+    screen_segments: int = 100
+    screen_max_nfev: int = 12
     min_turning_segments: int = 3
     min_turn_rad: float = 0.15
     min_translating_segments: int = 3
@@ -224,7 +225,8 @@ def _starts(model: KinematicModel, geometry: Geometry, options: FitOptions,
 
 
 def _solve(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
-           options: FitOptions, x0: np.ndarray) -> optimize.OptimizeResult:
+           options: FitOptions, x0: np.ndarray,
+           max_nfev: int | None = None) -> optimize.OptimizeResult:
     lo, hi = _bounds(model)
     weight = options.whitening
 
@@ -234,26 +236,34 @@ def _solve(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
 
     return optimize.least_squares(residuals, x0, bounds=(lo, hi), loss=options.loss,
                                   f_scale=options.f_scale, x_scale='jac',
-                                  max_nfev=options.max_nfev * (len(x0) + 1), method='trf')
+                                  max_nfev=(max_nfev or options.max_nfev) * (len(x0) + 1),
+                                  method='trf')
 
 
 def _best_solution(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
-                   options: FitOptions) -> tuple[optimize.OptimizeResult, int]:
+                   options: FitOptions) -> tuple[optimize.OptimizeResult, int, bool]:
+    """Best start, solved on a deterministic subsample when the data are large.
+
+    Returns (solution, number of starts, whether the solution is on the whole set). The caller
+    trims with it and refines once on everything: one full solve instead of two.
+    """
     rng = np.random.default_rng(options.seed)
     starts = _starts(model, geometry, options, rng)
-    if len(starts) == 1:
-        return _solve(model, geometry, segments, options, starts[0]), 1
-    # Screen the starts on a deterministic subsample, then refine the best one on everything.
     screen = segments
     if len(segments) > options.screen_segments:
         pick = np.linspace(0, len(segments) - 1, options.screen_segments).round().astype(int)
         screen = segments.subset(np.unique(pick))
+    # Screening only has to rank the starts: a start still wandering after a few iterations
+    # is not the best one, so screening solves are capped; the winner is refined in full.
+    cap = options.screen_max_nfev if len(starts) > 1 else None
     best = None
     for x0 in starts:
-        sol = _solve(model, geometry, screen, options, x0)
+        sol = _solve(model, geometry, screen, options, x0, cap)
         if best is None or sol.cost < best.cost - 1e-12 * max(1.0, best.cost):
             best = sol
-    return _solve(model, geometry, segments, options, best.x), len(starts)
+    if cap is not None and screen is segments:
+        best = _solve(model, geometry, segments, options, best.x)
+    return best, len(starts), screen is segments
 
 
 def _trim_mask(errors: np.ndarray, options: FitOptions) -> np.ndarray:
@@ -321,14 +331,16 @@ def fit_model(name: str, geometry: Geometry, segments: SegmentSet,
     tic = time.perf_counter()
     if not model.params:
         return _ideal_result(model, geometry, segments, options)
-    sol, n_starts = _best_solution(model, geometry, segments, options)
+    sol, n_starts, on_all = _best_solution(model, geometry, segments, options)
     used = segments
     kept = np.ones(len(segments), bool)
     if options.trim:
         kept = _trim_mask(segment_errors(model, sol.x, geometry, segments), options)
         if not kept.all():
             used = segments.subset(kept)
-            sol = _solve(model, geometry, used, options, sol.x)
+            on_all = False
+    if not on_all:
+        sol = _solve(model, geometry, used, options, sol.x)
     trimmed = int((~kept).sum())
     return _diagnose(model, geometry, used, options, sol, n_starts, trimmed, kept,
                      time.perf_counter() - tic)

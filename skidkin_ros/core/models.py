@@ -78,25 +78,31 @@ class KinematicModel:
     def check_constraints(self, k: np.ndarray) -> None:
         """Cross-parameter constraints beyond the per-parameter ranges (none by default)."""
 
+    def rows(self, k: np.ndarray, geometry: Geometry) -> np.ndarray | None:
+        """J(k) as one (3, 2) matrix for models linear in the wheel speeds, else None."""
+        return None
+
     def jacobian(self, k: np.ndarray, geometry: Geometry,
                  omega_l: np.ndarray, omega_r: np.ndarray) -> np.ndarray:
         """J(k) with shape (..., 3, 2); depends on the wheel speeds only for the ROC model."""
-        raise NotImplementedError
+        rows = self.rows(k, geometry)
+        if rows is None:
+            raise NotImplementedError
+        return np.broadcast_to(rows, np.broadcast(omega_l, omega_r).shape + (3, 2)).copy()
 
     def twist(self, k: np.ndarray, geometry: Geometry,
               omega_l: np.ndarray, omega_r: np.ndarray) -> np.ndarray:
         """Apply J(k) to the wheel speeds, giving (v_x, v_y, omega) with shape (..., 3)."""
         omega_l = np.asarray(omega_l, dtype=float)
         omega_r = np.asarray(omega_r, dtype=float)
+        rows = self.rows(k, geometry)
+        if rows is not None:  # linear model: no per-sample Jacobian to build
+            return omega_l[..., None] * rows[:, 0] + omega_r[..., None] * rows[:, 1]
         jac = self.jacobian(k, geometry, omega_l, omega_r)
         return jac[..., 0] * omega_l[..., None] + jac[..., 1] * omega_r[..., None]
 
     def bind(self, values: Mapping[str, float], geometry: Geometry) -> 'BoundModel':
         return BoundModel(self, geometry, self.vector(values, geometry))
-
-
-def _linear_jacobian(rows: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    return np.broadcast_to(rows, shape + (3, 2)).copy()
 
 
 class IdealDD(KinematicModel):
@@ -107,10 +113,9 @@ class IdealDD(KinematicModel):
     reference = 'textbook'
     formula = 'J = r [[1/2, 1/2], [0, 0], [-1/b, 1/b]]'
 
-    def jacobian(self, k, geometry, omega_l, omega_r):
+    def rows(self, k, geometry):
         r, b = geometry.wheel_radius, geometry.track_width
-        rows = np.array([[r / 2, r / 2], [0.0, 0.0], [-r / b, r / b]])
-        return _linear_jacobian(rows, np.broadcast(omega_l, omega_r).shape)
+        return np.array([[r / 2, r / 2], [0.0, 0.0], [-r / b, r / b]])
 
 
 class EddSymmetric(KinematicModel):
@@ -131,11 +136,10 @@ class EddSymmetric(KinematicModel):
                   'virtual track width 2 y0 (ICR distance)', default_doc='b', lower_open=True),
     )
 
-    def jacobian(self, k, geometry, omega_l, omega_r):
+    def rows(self, k, geometry):
         alpha, b_hat = k
         r = geometry.wheel_radius
-        rows = r * alpha * np.array([[0.5, 0.5], [0.0, 0.0], [-1.0 / b_hat, 1.0 / b_hat]])
-        return _linear_jacobian(rows, np.broadcast(omega_l, omega_r).shape)
+        return r * alpha * np.array([[0.5, 0.5], [0.0, 0.0], [-1.0 / b_hat, 1.0 / b_hat]])
 
 
 class EddAsymmetric(KinematicModel):
@@ -170,15 +174,14 @@ class EddAsymmetric(KinematicModel):
                 f'models.{self.name}: y_l ({y_l:g} m) must be greater than y_r ({y_r:g} m); '
                 'the left ICR lies on the left (+y) of the right one')
 
-    def jacobian(self, k, geometry, omega_l, omega_r):
+    def rows(self, k, geometry):
         alpha_l, alpha_r, x_v, y_l, y_r = k
         scale = geometry.wheel_radius / (y_l - y_r)
-        rows = scale * np.array([
+        return scale * np.array([
             [-y_r * alpha_l, y_l * alpha_r],
             [x_v * alpha_l, -x_v * alpha_r],
             [-alpha_l, alpha_r],
         ])
-        return _linear_jacobian(rows, np.broadcast(omega_l, omega_r).shape)
 
 
 class RocModel(KinematicModel):
@@ -257,9 +260,8 @@ class FullLinear(KinematicModel):
                   'yaw rate per right wheel speed', default_doc='r/b'),
     )
 
-    def jacobian(self, k, geometry, omega_l, omega_r):
-        rows = np.asarray(k, dtype=float).reshape(3, 2)
-        return _linear_jacobian(rows, np.broadcast(omega_l, omega_r).shape)
+    def rows(self, k, geometry):
+        return np.asarray(k, dtype=float).reshape(3, 2)
 
 
 @dataclass(frozen=True)
