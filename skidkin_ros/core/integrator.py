@@ -6,6 +6,14 @@ advanced by the exact SE(2) exponential, with a series branch for small rotation
 continuous with the closed form. The batch rollout (vectorized over many segments, used for
 fitting) and the streaming integrator (used by the node and ``skidkin predict``) perform the same
 additions in the same order, so they agree to the last bit.
+
+Stateful sources (an augmented model with a first-order response, a time-in-drive regime; see
+:mod:`skidkin_ros.core.augmented`) carry a small state from sample to sample. Their protocol is
+:class:`StatefulTwistSource`: ``begin`` takes a new sample (returns the twist now published),
+``advance`` gives the mean twist over the held interval and the state at its end. The streaming
+integrator calls these two; the batch form :func:`stream_twists` runs the same recursion over whole
+drives at once (``source.intervals``), and :func:`rollout_stream` integrates it like the
+streaming integrator does, so offline fitting and the live node run one pipeline.
 """
 
 from __future__ import annotations
@@ -13,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import enum
 import math
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -25,6 +33,10 @@ __all__ = [
     'rollout_segments',
     'wrap_angle',
     'TwistSource',
+    'StatefulTwistSource',
+    'is_stateful',
+    'stream_twists',
+    'rollout_stream',
     'SampleStatus',
     'StepResult',
     'IntegratorLimits',
@@ -107,6 +119,77 @@ class TwistSource(Protocol):
         ...
 
 
+class StatefulTwistSource(Protocol):
+    """A twist source with memory (``stateful = True``); the state is an immutable value.
+
+    ``begin(state, t_ns, omega_l, omega_r, restart)`` takes a new sample (state None: the first
+    sample; restart: after a gap, the dynamics restart) and returns (state, twist published now);
+    ``advance(state, dt_s)`` returns (state at the end of the held interval, mean twist over it);
+    ``intervals(t_ns, omega_l, omega_r, dt_s, restart)`` is the batch form over (D, L) arrays and
+    returns (published twists, mean twists), both (D, L, 3); ``output_offset_ns`` is added to the
+    stamps of what is published (the true motion lags the wheel stamps by it).
+    """
+
+    stateful: bool
+    output_offset_ns: int
+
+    def twist(self, omega_l, omega_r) -> np.ndarray:
+        ...
+
+    def begin(self, state: Any, t_ns: int, omega_l: float, omega_r: float,
+              restart: bool) -> tuple[Any, np.ndarray]:
+        ...
+
+    def advance(self, state: Any, dt_s: float) -> tuple[Any, np.ndarray]:
+        ...
+
+    def intervals(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
+                  dt_s: np.ndarray, restart: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ...
+
+
+def is_stateful(source: Any) -> bool:
+    """Tell whether a twist source carries state between samples."""
+    return bool(getattr(source, 'stateful', False))
+
+
+def _as_rows(values, dtype=float) -> np.ndarray:
+    array = np.asarray(values, dtype=dtype)
+    return array[None] if array.ndim == 1 else array
+
+
+def stream_twists(source: TwistSource, t_ns, omega_l, omega_r,
+                  max_dt_s: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Batch form of the streaming pipeline over clean drives (D, L) or one drive (L,).
+
+    Returns (published twists (D, L, 3), mean twists over [t_i, t_i+1) (D, L, 3), step
+    durations (D, L) with the last step and steps longer than ``max_dt_s`` set to 0, as the
+    streaming integrator does not integrate across gaps). Padding: repeat the last stamp.
+    """
+    t = _as_rows(t_ns, np.int64)
+    wl = _as_rows(omega_l)
+    wr = _as_rows(omega_r)
+    dt_s = np.zeros(t.shape)
+    dt_s[:, :-1] = np.diff(t, axis=1) * 1e-9
+    restart = np.zeros(t.shape, dtype=bool)
+    restart[:, 1:] = dt_s[:, :-1] > max_dt_s
+    dt_s[dt_s > max_dt_s] = 0.0
+    if is_stateful(source):
+        held, mean = source.intervals(t, wl, wr, dt_s, restart)
+    else:
+        held = np.asarray(source.twist(wl, wr), dtype=float)
+        mean = held
+    return held, mean, dt_s
+
+
+def rollout_stream(source: TwistSource, t_ns, omega_l, omega_r, start=(0.0, 0.0, 0.0),
+                   max_dt_s: float = math.inf) -> np.ndarray:
+    """Pose after every sample of one clean drive (L, 3), as the streaming integrator gives it."""
+    _, mean, dt_s = stream_twists(source, t_ns, omega_l, omega_r, max_dt_s)
+    poses = rollout_segments(mean[:, :-1], dt_s[:, :-1], np.asarray(start, float)[None])
+    return poses[0]
+
+
 class SampleStatus(enum.Enum):
     """What the integrator did with a wheel sample."""
 
@@ -156,6 +239,12 @@ class StreamingIntegrator:
     last_t_ns: int | None = None
     held_twist: np.ndarray = field(default_factory=lambda: np.zeros(3))
     held_speeds: tuple[float, float] = (0.0, 0.0)
+    state: Any = None
+
+    @property
+    def output_offset_ns(self) -> int:
+        """Return the offset (ns) to add to a sample stamp for what is published."""
+        return int(getattr(self.source, 'output_offset_ns', 0))
 
     def reset(self, pose=(0.0, 0.0, 0.0)) -> None:
         """Zero (or set) the pose and forget the held speeds and the last stamp."""
@@ -163,18 +252,31 @@ class StreamingIntegrator:
         self.last_t_ns = None
         self.held_twist = np.zeros(3)
         self.held_speeds = (0.0, 0.0)
+        self.state = None
 
     def set_source(self, source: TwistSource) -> None:
-        """Switch model (parameters changed at runtime); the held twist is recomputed."""
+        """Switch model (parameters changed at runtime); the held twist is recomputed.
+
+        A stateful source starts afresh from the held speeds (its state is not carried over).
+        """
         self.source = source
+        self.state = None
+        if is_stateful(source) and self.last_t_ns is not None:
+            self.state, twist = source.begin(None, self.last_t_ns, *self.held_speeds, True)
+            self.held_twist = np.asarray(twist, dtype=float)
+            return
         self.held_twist = np.asarray(source.twist(*self.held_speeds), dtype=float)
 
     def _reject(self, status: SampleStatus, detail: str) -> StepResult:
         return StepResult(status, self.pose.copy(), self.held_twist.copy(), 0.0, detail)
 
-    def _hold(self, t_ns: int, omega_l: float, omega_r: float) -> None:
+    def _hold(self, t_ns: int, omega_l: float, omega_r: float, restart: bool = False) -> None:
         self.last_t_ns = t_ns
         self.held_speeds = (omega_l, omega_r)
+        if is_stateful(self.source):
+            self.state, twist = self.source.begin(self.state, t_ns, omega_l, omega_r, restart)
+            self.held_twist = np.asarray(twist, dtype=float)
+            return
         self.held_twist = np.asarray(self.source.twist(omega_l, omega_r), dtype=float)
 
     def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
@@ -202,21 +304,26 @@ class StreamingIntegrator:
                               self.held_twist.copy(), 0.0, 'duplicate stamp (dt = 0)')
         dt_s = dt_ns * 1e-9
         if dt_s > self.limits.max_dt_s:
-            self._hold(t_ns, omega_l, omega_r)
+            self._hold(t_ns, omega_l, omega_r, restart=True)
             return StepResult(SampleStatus.GAP, self.pose.copy(), self.held_twist.copy(), dt_s,
                               f'gap of {dt_s:.3f} s > max_dt {self.limits.max_dt_s:g} s: '
                               'not integrated across')
         vx, vy, w = self.held_twist
+        new_state = self.state
+        if is_stateful(self.source):
+            new_state, mean = self.source.advance(self.state, dt_s)
+            vx, vy, w = mean
         with np.errstate(all='ignore'):  # a non-finite result is caught just below
             dx, dy, dth = body_increment(vx, vy, w, dt_s)
             new_pose = np.array(compose(self.pose[0], self.pose[1], self.pose[2], dx, dy, dth),
                                 dtype=float)
         if not np.all(np.isfinite(new_pose)):
-            self._hold(t_ns, omega_l, omega_r)
+            self._hold(t_ns, omega_l, omega_r, restart=True)
             return StepResult(SampleStatus.NON_FINITE_STATE, self.pose.copy(),
                               self.held_twist.copy(), dt_s,
                               'integration produced a non-finite pose; kept the last finite one')
         self.pose = new_pose
+        self.state = new_state
         self._hold(t_ns, omega_l, omega_r)
         return StepResult(SampleStatus.INTEGRATED, self.pose.copy(), self.held_twist.copy(),
                           dt_s)

@@ -20,12 +20,17 @@ __all__ = ['Prediction', 'predict_wheels']
 
 @dataclass(frozen=True)
 class Prediction:
-    """Pose after every wheel sample (x, y, yaw), the held twist, and what happened to it."""
+    """Pose after every wheel sample (x, y, yaw), the held twist, and what happened to it.
+
+    ``t_ns`` are the stamps the node publishes: the sample stamps plus ``offset_ns``, the time
+    offset of an augmented model (0 for the five base models).
+    """
 
     t_ns: np.ndarray
     poses: np.ndarray
     twists: np.ndarray
     status: tuple[SampleStatus, ...]
+    offset_ns: int = 0
 
     @property
     def accepted(self) -> np.ndarray:
@@ -47,4 +52,5 @@ def predict_wheels(wheels: WheelSamples, source: TwistSource,
         poses[i] = result.pose
         twists[i] = result.twist
         status.append(result.status)
-    return Prediction(wheels.t_ns.copy(), poses, twists, tuple(status))
+    offset_ns = integrator.output_offset_ns
+    return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns)

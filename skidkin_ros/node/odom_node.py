@@ -379,7 +379,8 @@ class OdomNode(Node):
         self._mark_fresh()
         if status is SampleStatus.DUPLICATE_STAMP:
             return  # held speeds updated; a second message with the same stamp would confuse EKFs
-        self._publish(t_ns, result)
+        # With a time offset (augmented model) the pose integrated to t is the pose at t + offset.
+        self._publish(t_ns + self._integrator.output_offset_ns, result)
 
     def _mark_fresh(self) -> None:
         self._last_accepted_mono_ns = time.monotonic_ns()

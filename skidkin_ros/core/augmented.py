@@ -1,0 +1,332 @@
+"""Augmented models: a base model plus named extensions, run by the shared integrator.
+
+``AugmentedModel(base_name, extensions).bind(base, {ext: {param: value}})`` gives a
+:class:`BoundAugmented`, a stateful twist source (see
+:class:`skidkin_ros.core.integrator.StatefulTwistSource`) that the streaming integrator (node,
+``skidkin predict``) and the batch forms (:func:`~skidkin_ros.core.integrator.stream_twists`,
+:class:`SegmentPredictor` for fitting) run alike.
+
+Per wheel sample i (stamp t_i, speeds held over [t_i, t_i+1)):
+
+1. x_i = twist-stage extensions applied, in order, to the base twist J(k) [omega_l, omega_r],
+   with the time since the drive (or the node) started;
+2. with ``first_order_lag`` (tau > 0) the body twist y follows x exactly for a held input:
+   y_i+1 = x_i + (y_i - x_i) d, d = exp(-dt / tau), and the twist integrated over the step is its
+   mean x_i + (y_i - x_i) tau (1 - d) / dt; y starts at x on the first sample and after a gap;
+   without a lag y = x;
+3. ``time_offset`` shifts what is published: the pose integrated up to t_i is the pose at
+   t_i + offset (``output_offset_ns``).
+
+Limitation: when a segment starts or ends inside a sample interval (a time offset that is not a
+multiple of the sample period), the batch form uses the interval's mean twist for the partial
+step; this only matters together with a lag.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from scipy.signal import lfilter
+
+from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.extensions import get_extension, ordered
+from skidkin_ros.core.integrator import is_stateful, rollout_segments
+from skidkin_ros.core.models import BoundModel, get_model
+from skidkin_ros.core.segments import segment_frame_error, SegmentSet
+from skidkin_ros.core.specs import Geometry
+from skidkin_ros.errors import ParameterError
+
+__all__ = ['AUGMENTED_NAME', 'AugmentedModel', 'AugmentedState', 'BoundAugmented',
+           'SegmentPredictor', 'lag_factors', 'lag_response', 'relative_errors']
+
+AUGMENTED_NAME = 'augmented'
+
+
+@dataclass(frozen=True)
+class AugmentedState:
+    """Streaming state: first stamp (ns), twist-stage output x and body twist y (held)."""
+
+    t0_ns: int
+    x: np.ndarray
+    y: np.ndarray
+
+
+def lag_factors(dt_s, tau_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return (d, g): the decay exp(-dt/tau) and the mean factor tau (1 - d) / dt (1 at dt=0)."""
+    dt = np.asarray(dt_s, dtype=float)
+    ratio = dt / tau_s
+    d = np.exp(-ratio)
+    positive = dt > 0.0
+    g = np.where(positive, -np.expm1(-ratio) / np.where(positive, ratio, 1.0), 1.0)
+    return d, g
+
+
+@dataclass(frozen=True)
+class BoundAugmented:
+    """A base model with extensions and all parameters fixed: what the integrator runs."""
+
+    base: BoundModel
+    extensions: tuple[str, ...]
+    values: tuple[np.ndarray, ...]
+    stateful: bool = field(default=True, init=False)
+
+    name = AUGMENTED_NAME
+
+    @property
+    def geometry(self) -> Geometry:
+        return self.base.geometry
+
+    def _param(self, ext: str, param: str, default: float = 0.0) -> float:
+        if ext not in self.extensions:
+            return default
+        index = self.extensions.index(ext)
+        return float(self.values[index][get_extension(ext).param_names.index(param)])
+
+    @property
+    def tau_s(self) -> float:
+        return self._param('first_order_lag', 'tau_s')
+
+    @property
+    def output_offset_s(self) -> float:
+        return self._param('time_offset', 'offset_s')
+
+    @property
+    def output_offset_ns(self) -> int:
+        return int(round(self.output_offset_s * 1e9))
+
+    def extension_values(self) -> dict[str, dict[str, float]]:
+        """Return {extension: {parameter: value}} in application order."""
+        return {name: get_extension(name).mapping(k)
+                for name, k in zip(self.extensions, self.values)}
+
+    def memoryless(self, omega_l, omega_r, t_s) -> np.ndarray:
+        """Return x: the base twist after the twist-stage extensions (..., 3)."""
+        omega_l = np.asarray(omega_l, dtype=float)
+        omega_r = np.asarray(omega_r, dtype=float)
+        twist = self.base.twist(omega_l, omega_r)
+        for name, k in zip(self.extensions, self.values):
+            twist = get_extension(name).apply(k, twist, omega_l, omega_r, t_s)
+        return twist
+
+    def twist(self, omega_l, omega_r) -> np.ndarray:
+        """Return the steady-state twist at the drive start (what a stateless user sees)."""
+        return self.memoryless(omega_l, omega_r, 0.0)
+
+    # ---------------------------------------------------------------- streaming form
+    def begin(self, state: AugmentedState | None, t_ns: int, omega_l: float, omega_r: float,
+              restart: bool) -> tuple[AugmentedState, np.ndarray]:
+        """Take a new sample; return the new state and the body twist published now."""
+        t0 = t_ns if state is None else state.t0_ns
+        x = np.asarray(self.memoryless(omega_l, omega_r, (t_ns - t0) * 1e-9), dtype=float)
+        if state is None or restart or not self.tau_s > 0.0:
+            y = x
+        else:
+            y = state.y
+        return AugmentedState(t0, x, y), y
+
+    def advance(self, state: AugmentedState, dt_s: float) -> tuple[AugmentedState, np.ndarray]:
+        """Return the state after holding for dt_s and the mean twist over that interval."""
+        tau = self.tau_s
+        if not tau > 0.0:
+            return state, state.x
+        d, g = lag_factors(dt_s, tau)
+        diff = state.y - state.x
+        return (AugmentedState(state.t0_ns, state.x, state.x + diff * d),
+                state.x + diff * g)
+
+    # ---------------------------------------------------------------- batch form
+    def intervals(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
+                  dt_s: np.ndarray, restart: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Batch form over (D, L): (published twists, mean twists over each interval)."""
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        t_s = (t_ns - t_ns[:, :1]) * 1e-9
+        x = np.asarray(self.memoryless(omega_l, omega_r, t_s), dtype=float)
+        tau = self.tau_s
+        if not tau > 0.0:
+            return x, x
+        return lag_response(x, np.asarray(dt_s, dtype=float), np.asarray(restart, bool), tau)
+
+
+def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
+                 tau_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Run the first-order response over (D, L) rows: (published twists, mean twists).
+
+    Rows sampled at a constant period without restart go through scipy's lfilter (the same
+    recursion, to rounding); the others through the sample loop the streaming form runs.
+    """
+    d, g = lag_factors(dt_s, tau_s)
+    held = np.empty_like(x)
+    length = x.shape[1]
+    steady = np.array([length > 2 and not restart[r].any()
+                       and np.all(dt_s[r, :-1] == dt_s[r, 0]) and dt_s[r, 0] > 0
+                       for r in range(x.shape[0])], dtype=bool)
+    for r in np.nonzero(steady)[0]:
+        decay = float(d[r, 0])
+        held[r] = lfilter([0.0, 1.0 - decay], [1.0, -decay], x[r], axis=0,
+                          zi=x[r, :1].copy())[0]
+    rows = np.nonzero(~steady)[0]
+    if rows.size:
+        xs, ds, rs = x[rows], d[rows], restart[rows]
+        y = xs[:, 0].copy()
+        for i in range(length):
+            held[rows, i] = y
+            if i + 1 < length:
+                x_i = xs[:, i]
+                y = np.where(rs[:, i + 1, None], xs[:, i + 1], x_i + (y - x_i) * ds[:, i, None])
+    mean = x + (held - x) * g[..., None]
+    return held, mean
+
+
+class AugmentedModel:
+    """A base model name and an ordered list of extension names (the structure, no values)."""
+
+    def __init__(self, base: str, extensions: Sequence[str]) -> None:
+        self.base_model = get_model(base)
+        self.extensions = ordered(extensions)
+
+    @property
+    def base(self) -> str:
+        return self.base_model.name
+
+    def bind(self, base: BoundModel | Mapping[str, float],
+             values: Mapping[str, Mapping[str, float]] | None = None,
+             geometry: Geometry | None = None) -> BoundAugmented:
+        """Bind to a base BoundModel (or base values + geometry) and extension values."""
+        if not isinstance(base, BoundModel):
+            if geometry is None:
+                raise ParameterError('bind: give a BoundModel, or base values and a geometry')
+            base = self.base_model.bind(dict(base), geometry)
+        if base.model.name != self.base:
+            raise ParameterError(f'bind: base model is {base.model.name!r}, expected '
+                                 f'{self.base!r}')
+        values = dict(values or {})
+        unknown = sorted(set(values) - set(self.extensions))
+        if unknown:
+            raise ParameterError(f'values given for extension(s) {unknown} that are not in the '
+                                 f'model {list(self.extensions)}')
+        vectors = tuple(get_extension(name).vector(dict(values.get(name, {})))
+                        for name in self.extensions)
+        return BoundAugmented(base, self.extensions, vectors)
+
+
+def _pad_drives(drives: Sequence[Drive]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    width = max(max((len(d.wheels) for d in drives), default=1), 1)
+    count = len(drives)
+    t = np.zeros((count, width), dtype=np.int64)
+    wl = np.zeros((count, width))
+    wr = np.zeros((count, width))
+    sizes = np.zeros(count, dtype=int)
+    for i, drive in enumerate(drives):
+        n = len(drive.wheels)
+        sizes[i] = n
+        if n == 0:
+            continue
+        t[i, :n] = drive.wheels.t_ns
+        t[i, n:] = drive.wheels.t_ns[-1]
+        wl[i, :n] = drive.wheels.omega_l
+        wr[i, :n] = drive.wheels.omega_r
+        wl[i, n:] = drive.wheels.omega_l[-1]
+        wr[i, n:] = drive.wheels.omega_r[-1]
+    return t, wl, wr, sizes
+
+
+class SegmentPredictor:
+    """Predict segment end poses with any (stateful) source, over whole drives.
+
+    The source runs over every drive (its state evolves along the drive as in the node); each
+    segment then integrates the mean twists of the wheel samples held over its window
+    [t_a - offset, t_b - offset] from its ground-truth start pose. With a plain base model and no
+    offset this is exactly what :func:`skidkin_ros.core.fitting.predict_end_poses` computes.
+    """
+
+    def __init__(self, drives: Sequence[Drive], segments: SegmentSet,
+                 max_dt_s: float = 0.5) -> None:
+        self.drives = list(drives)
+        self.segments = segments
+        self.t_ns, self.omega_l, self.omega_r, self.sizes = _pad_drives(self.drives)
+        dt = np.zeros(self.t_ns.shape)
+        dt[:, :-1] = np.diff(self.t_ns, axis=1) * 1e-9
+        self.restart = np.zeros(self.t_ns.shape, dtype=bool)
+        self.restart[:, 1:] = dt[:, :-1] > max_dt_s
+        dt[dt > max_dt_s] = 0.0
+        self.dt_s = dt
+        self._windows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._steady: dict[int, Any] = {}
+
+    def __len__(self) -> int:
+        return len(self.segments)
+
+    def windows(self, offset_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return (flat sample index (S, W), step durations (S, W)) for a time offset."""
+        cached = self._windows.get(offset_ns)
+        if cached is not None:
+            return cached
+        width = self.t_ns.shape[1]
+        seg = self.segments
+        parts = []
+        for d in np.unique(seg.drive):
+            rows = np.nonzero(seg.drive == d)[0]
+            stamps = self.t_ns[d, :self.sizes[d]]
+            s_a = seg.t_a_ns[rows].astype(np.int64) - offset_ns
+            s_b = seg.t_b_ns[rows].astype(np.int64) - offset_ns
+            lo = np.searchsorted(stamps, s_a, side='right')
+            hi = np.searchsorted(stamps, s_b, side='left')
+            parts.append((rows, d, stamps, s_a, s_b, lo, np.maximum(hi, lo)))
+        steps = max([int((p[6] - p[5]).max()) + 1 for p in parts if p[0].size] or [1])
+        index = np.zeros((len(seg), steps), dtype=np.int64)
+        dt_s = np.zeros((len(seg), steps))
+        k = np.arange(steps)[None, :]
+        for rows, d, stamps, s_a, s_b, lo, hi in parts:
+            inner = (hi - lo)[:, None]
+            # breaks: s_a, the stamps lo..hi-1 strictly inside, s_b; step k holds sample lo-1+k
+            held = lo[:, None] - 1 + k
+            at = np.clip(held, 0, stamps.size - 1)
+            step_start = np.where(k == 0, s_a[:, None], stamps[at])
+            step_end = np.where(k < inner, stamps[np.clip(held + 1, 0, stamps.size - 1)],
+                                s_b[:, None])
+            real = k <= inner
+            index[rows] = np.where(real, at, 0) + d * width
+            dt_s[rows] = np.where(real, (step_end - step_start) * 1e-9, 0.0)
+        if len(self._windows) > 64:
+            self._windows.clear()
+        self._windows[offset_ns] = (index, dt_s)
+        return index, dt_s
+
+    def mean_twists(self, source: Any) -> np.ndarray:
+        """Return the mean twist over every sample interval of every drive, flat (D * L, 3)."""
+        if is_stateful(source):
+            _, mean = source.intervals(self.t_ns, self.omega_l, self.omega_r, self.dt_s,
+                                       self.restart)
+        else:
+            mean = np.asarray(source.twist(self.omega_l, self.omega_r), dtype=float)
+        return mean.reshape(-1, 3)
+
+    def predict_ends(self, source: Any, keep: np.ndarray | None = None) -> np.ndarray:
+        """Return the predicted end pose (S, 3) of every segment (or of ``keep`` indices)."""
+        index, dt_s = self.windows(int(getattr(source, 'output_offset_ns', 0)))
+        start = self.segments.start
+        if keep is not None:
+            index, dt_s, start = index[keep], dt_s[keep], start[keep]
+        twist = self.mean_twists(source)[index]
+        return rollout_segments(twist, dt_s, start)[:, -1]
+
+    def errors(self, source: Any, keep: np.ndarray | None = None) -> np.ndarray:
+        """Return the end-pose error of every segment in its start frame (true - predicted)."""
+        start, end = self.segments.start, self.segments.end
+        if keep is not None:
+            start, end = start[keep], end[keep]
+        with np.errstate(all='ignore'):
+            predicted = self.predict_ends(source, keep)
+        return segment_frame_error(start, end, predicted)
+
+
+def relative_errors(errors: np.ndarray, path_m: np.ndarray,
+                    min_path_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Return eps_t (m/m) and eps_theta (deg/m) of the segments at least min_path_m long."""
+    scored = path_m >= min_path_m
+    path = path_m[scored]
+    return (np.hypot(errors[scored, 0], errors[scored, 1]) / path,
+            np.degrees(np.abs(errors[scored, 2])) / path)

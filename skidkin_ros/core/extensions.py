@@ -1,0 +1,272 @@
+"""Named extensions of a kinematic model: what a linear wheel-to-body map misses.
+
+An augmented model is a base model (any of the five, with its parameters) followed by a list of
+extensions. Each extension has its own parameter specs (name, unit, default, bounds,
+description), a formula, the signal that reveals it in the residuals, and acts at one stage:
+
+- ``timing``: the true motion lags the wheel stamps by an offset (``time_offset``): poses are
+  published at sample stamp + offset, and a segment [t_a, t_b] of ground truth is predicted from
+  the wheel samples of [t_a - offset, t_b - offset];
+- ``twist``: a memoryless change of the body twist (v_x, v_y, omega) given the wheel speeds and
+  the time since the drive started (slips, skid, direction, terrain, the sparse fallback);
+- ``dynamics``: the body twist follows the twist of the previous stages through a first-order
+  response (``first_order_lag``), applied last.
+
+Every extension with default parameters leaves the base model unchanged (the neutral value),
+so an augmented model with defaults predicts exactly what its base model predicts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from skidkin_ros.core.specs import check_value, ParamSpec
+from skidkin_ros.errors import ParameterError
+
+__all__ = [
+    'Extension',
+    'EXTENSIONS',
+    'EXTENSION_NAMES',
+    'SPARSE_FEATURES',
+    'get_extension',
+    'ordered',
+    'ratio_bump',
+    'sparse_features',
+]
+
+# Never remove more than this fraction of the forward speed (keeps v_x's sign).
+MAX_SPEED_SLIP = 0.8
+
+
+@dataclass(frozen=True)
+class Extension:
+    """One named extension: specs, stage, formula and the signal that reveals it.
+
+    ``fitted`` names the parameters a diagnosis fits (the others keep their value, e.g. a blend
+    width); ``scan`` names parameters first searched on a grid (step-like effects), and
+    ``refine`` says whether they are then refined by least squares.
+    """
+
+    name: str
+    title: str
+    stage: str
+    formula: str
+    signal: str
+    params: tuple[ParamSpec, ...]
+    fitted: tuple[str, ...]
+    scan: tuple[str, ...] = ()
+    refine: bool = True
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(spec.name for spec in self.params)
+
+    def defaults(self) -> dict[str, float]:
+        return {spec.name: spec.default_for(None) for spec in self.params}
+
+    def vector(self, values: Mapping[str, float], prefix: str = '') -> np.ndarray:
+        """Return the parameter vector in spec order; missing values take their defaults."""
+        unknown = sorted(set(values) - set(self.param_names))
+        if unknown:
+            raise ParameterError(f'extension {self.name!r} has no parameter(s) {unknown}; its '
+                                 f'parameters are {list(self.param_names)}')
+        merged = {**self.defaults(), **values}
+        prefix = prefix or f'augmented.{self.name}.'
+        return np.array([check_value(spec, merged[spec.name], prefix) for spec in self.params])
+
+    def mapping(self, k: Sequence[float]) -> dict[str, float]:
+        return {name: float(value) for name, value in zip(self.param_names, k)}
+
+    def apply(self, k: np.ndarray, twist: np.ndarray, omega_l: np.ndarray,
+              omega_r: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        """Return the twist (..., 3) after this extension (twist stage; identity otherwise)."""
+        if self.stage != 'twist':
+            return twist
+        return _TWIST_FUNCTIONS[self.name](k, twist, omega_l, omega_r, t_s)
+
+
+def _spec(name: str, unit: str, default: float, lower: float, upper: float,
+          text: str) -> ParamSpec:
+    return ParamSpec(name, unit, default, lower, upper, text)
+
+
+def ratio_bump(omega_l: np.ndarray, omega_r: np.ndarray, peak: float,
+               width: float) -> np.ndarray:
+    """Return a bump in [0, 1] around a slow/fast wheel-speed ratio ``peak`` (same sign only)."""
+    big = np.maximum(np.abs(omega_l), np.abs(omega_r))
+    small = np.minimum(np.abs(omega_l), np.abs(omega_r))
+    same_sign = (omega_l * omega_r) > 0.0
+    ratio = np.where(same_sign & (big > 0.0), small / np.where(big > 0.0, big, 1.0), -1.0)
+    return np.exp(-((ratio - peak) / width) ** 2)
+
+
+def _speed_slip(k, twist, omega_l, omega_r, t_s):
+    out = np.array(twist, dtype=float, copy=True)
+    v_x = out[..., 0]
+    out[..., 0] = v_x * (1.0 - np.minimum(k[0] * np.abs(v_x), MAX_SPEED_SLIP))
+    return out
+
+
+def _direction_asymmetry(k, twist, omega_l, omega_r, t_s):
+    out = np.array(twist, dtype=float, copy=True)
+    v_x = out[..., 0]
+    reverse = np.clip(-v_x / k[1], 0.0, 1.0)
+    out[..., 0] = v_x * (1.0 - k[0] * reverse)
+    return out
+
+
+def _lateral_skid(k, twist, omega_l, omega_r, t_s):
+    out = np.array(twist, dtype=float, copy=True)
+    out[..., 1] = out[..., 1] + k[0] * out[..., 0] * out[..., 2]
+    return out
+
+
+def _icr_offset(k, twist, omega_l, omega_r, t_s):
+    out = np.array(twist, dtype=float, copy=True)
+    out[..., 1] = out[..., 1] + k[0] * out[..., 2]
+    return out
+
+
+def _ratio_yaw_slip(k, twist, omega_l, omega_r, t_s):
+    out = np.array(twist, dtype=float, copy=True)
+    bump = ratio_bump(np.asarray(omega_l, float), np.asarray(omega_r, float), k[1], k[2])
+    out[..., 2] = out[..., 2] * (1.0 - k[0] * bump)
+    return out
+
+
+def _terrain_regime(k, twist, omega_l, omega_r, t_s):
+    out = np.array(twist, dtype=float, copy=True)
+    scale = np.where(np.asarray(t_s) >= k[1], 1.0 - k[0], 1.0)
+    out[..., 0] = out[..., 0] * scale
+    out[..., 2] = out[..., 2] * scale
+    return out
+
+
+# The sparse fallback: a library of candidate terms of the base twist (v = v_x, w = omega).
+SPARSE_FEATURES: tuple[tuple[str, str], ...] = (
+    ('v', 'm/s'), ('w', 'rad/s'), ('v_abs_v', 'm^2/s^2'), ('w_abs_w', 'rad^2/s^2'),
+    ('v_w', 'm rad/s^2'), ('abs_v', 'm/s'), ('abs_w', 'rad/s'),
+)
+_SPARSE_OUTPUTS: tuple[tuple[str, str], ...] = (('vx', 'm/s'), ('vy', 'm/s'), ('wz', 'rad/s'))
+
+
+def sparse_features(twist: np.ndarray) -> np.ndarray:
+    """Return the library terms (..., F) of the base twist, in SPARSE_FEATURES order."""
+    v = np.asarray(twist)[..., 0]
+    w = np.asarray(twist)[..., 2]
+    return np.stack([v, w, v * np.abs(v), w * np.abs(w), v * w, np.abs(v), np.abs(w)], axis=-1)
+
+
+def _sparse_correction(k, twist, omega_l, omega_r, t_s):
+    features = sparse_features(twist)
+    coef = np.asarray(k, dtype=float).reshape(len(_SPARSE_OUTPUTS), len(SPARSE_FEATURES))
+    return np.asarray(twist, dtype=float) + features @ coef.T
+
+
+def _sparse_specs() -> tuple[ParamSpec, ...]:
+    specs = []
+    for out_name, out_unit in _SPARSE_OUTPUTS:
+        for feat_name, feat_unit in SPARSE_FEATURES:
+            specs.append(_spec(f'{out_name}_{feat_name}', f'({out_unit})/({feat_unit})', 0.0,
+                               -10.0, 10.0, f'{out_name} correction per {feat_name}'))
+    return tuple(specs)
+
+
+_TWIST_FUNCTIONS = {
+    'speed_slip': _speed_slip,
+    'direction_asymmetry': _direction_asymmetry,
+    'lateral_skid': _lateral_skid,
+    'icr_offset': _icr_offset,
+    'ratio_yaw_slip': _ratio_yaw_slip,
+    'terrain_regime': _terrain_regime,
+    'sparse_correction': _sparse_correction,
+}
+
+_ALL: tuple[Extension, ...] = (
+    Extension(
+        'time_offset', 'Time offset between wheel stamps and motion', 'timing',
+        'pose(t + offset) = integral of the wheel-driven twist up to t', 'lag (cross-correlation)',
+        (_spec('offset_s', 's', 0.0, -0.5, 0.5,
+               'the true motion lags the wheel stamps by this (published stamps shift by it)'),),
+        ('offset_s',)),
+    Extension(
+        'first_order_lag', 'First-order response of the body', 'dynamics',
+        'tau d(twist)/dt = twist_model - twist (exact for inputs held between samples)',
+        'wheel acceleration',
+        (_spec('tau_s', 's', 0.0, 0.0, 2.0, 'time constant of the body twist response'),),
+        ('tau_s',)),
+    Extension(
+        'speed_slip', 'Longitudinal slip growing with speed', 'twist',
+        'v_x *= 1 - min(k |v_x|, 0.8)', 'v_x |v_x|',
+        (_spec('k', 's/m', 0.0, 0.0, 2.0, 'slip fraction per m/s of forward speed'),),
+        ('k',)),
+    Extension(
+        'direction_asymmetry', 'More slip when reversing', 'twist',
+        'v_x *= 1 - k clip(-v_x / blend, 0, 1)', 'direction of travel',
+        (_spec('k', '-', 0.0, -0.9, 0.9, 'extra fraction of v_x lost when driving backward'),
+         ParamSpec('blend_m_s', 'm/s', 0.05, 0.0, 1.0,
+                   'speed over which forward blends into backward', lower_open=True)),
+        ('k',)),
+    Extension(
+        'lateral_skid', 'Lateral skid in turns (centrifugal)', 'twist',
+        'v_y += k v_x omega', 'v_x omega',
+        (_spec('k', 's', 0.0, -1.0, 1.0, 'lateral speed per unit of v_x omega'),),
+        ('k',)),
+    Extension(
+        'icr_offset', 'Rotation centre offset along the body', 'twist',
+        'v_y += x omega', 'yaw rate',
+        (_spec('x_m', 'm', 0.0, -2.0, 2.0,
+               'the tracked point lies x ahead of the rotation centre (an ICR behind base_link, '
+               'or a ground-truth frame mounted ahead of it)'),),
+        ('x_m',)),
+    Extension(
+        'ratio_yaw_slip', 'Yaw slip at a wheel-speed ratio', 'twist',
+        'omega *= 1 - k exp(-((ratio - peak) / width)^2), ratio = slow/fast side (same sign)',
+        'wheel-speed ratio',
+        (_spec('k', '-', 0.0, -0.9, 0.95, 'largest fraction of the yaw rate lost'),
+         ParamSpec('ratio_peak', '-', 0.5, 0.0, 1.0,
+                   'speed ratio (slow / fast side) where the loss peaks'),
+         ParamSpec('ratio_width', '-', 0.15, 0.0, 1.0, 'width of the loss around the peak',
+                   lower_open=True)),
+        ('k', 'ratio_peak')),
+    Extension(
+        'terrain_regime', 'Terrain regime switching in time', 'twist',
+        '(v_x, omega) *= 1 - k once the time since the drive start >= switch_s',
+        'time in drive',
+        (_spec('k', '-', 0.0, -0.9, 0.9, 'fraction of v_x and omega lost in the regime'),
+         _spec('switch_s', 's', 0.0, 0.0, 1e6, 'time since the drive start when it begins')),
+        ('k',), scan=('switch_s',), refine=False),
+    Extension(
+        'sparse_correction', 'Sparse regression on a library of twist terms', 'twist',
+        'twist += C @ [v, w, v|v|, w|w|, v w, |v|, |w|] (terms chosen by STLSQ)',
+        'selected library terms', _sparse_specs(), ()),
+)
+
+EXTENSIONS: dict[str, Extension] = {ext.name: ext for ext in _ALL}
+EXTENSION_NAMES: tuple[str, ...] = tuple(EXTENSIONS)
+# Order in which extensions are applied: timing, twist stage (registry order), dynamics.
+_STAGE_ORDER = {'timing': 0, 'twist': 1, 'dynamics': 2}
+
+
+def get_extension(name: str) -> Extension:
+    """Look an extension up by name; an unknown name lists the known ones."""
+    try:
+        return EXTENSIONS[name]
+    except KeyError:
+        raise ParameterError(f'unknown extension {name!r}; known extensions are: '
+                             f'{", ".join(EXTENSION_NAMES)}') from None
+
+
+def ordered(names: Sequence[str]) -> tuple[str, ...]:
+    """Return extension names in application order, checking each is known and unique."""
+    seen = []
+    for name in names:
+        get_extension(name)
+        if name in seen:
+            raise ParameterError(f'extension {name!r} is listed twice')
+        seen.append(name)
+    return tuple(sorted(seen, key=lambda n: (_STAGE_ORDER[EXTENSIONS[n].stage],
+                                             EXTENSION_NAMES.index(n))))

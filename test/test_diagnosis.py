@@ -1,0 +1,172 @@
+"""Diagnosis: differentiator, sparse regression, and undeclared simulated effects found."""
+
+from dataclasses import replace
+import math
+
+import numpy as np
+import pytest
+from skidkin_ros.core.augmented import SegmentPredictor
+from skidkin_ros.core.config import OdometryConfig, read_params_file, write_params_file
+from skidkin_ros.core.diagnosis import (body_velocities, diagnose, DiagnosisOptions, ModelState,
+                                        stlsq, truth_velocities)
+from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
+from skidkin_ros.core.evaluation import ErrorStats
+from skidkin_ros.core.fitting import fit_model
+from skidkin_ros.core.segments import cut_segments
+from skidkin_ros.core.specs import Geometry
+from skidkin_ros.errors import OutputError, ParameterError
+from skidkin_ros.report.diagnosis import write_diagnosis_report
+from skidkin_ros.sim.effects import EFFECT_NAMES, EFFECTS, make_effect
+from skidkin_ros.sim.simulate import SimConfig, simulate
+
+GEOM = Geometry(0.1651, 0.555)
+TRUE = {'alpha': 0.9, 'b_hat': 0.85}
+WHEEL_PERIOD_S = 0.05
+
+
+def icp_like(drive, rng, sigma_xy=0.01, sigma_yaw=0.003):
+    """Return the drive with ICP-like truth: 10 Hz noisy poses held onto the 20 Hz wheel grid."""
+    truth = drive.truth
+    held = np.arange(len(truth)) // 2 * 2
+    noise = rng.normal(0.0, 1.0, (3, len(truth)))
+    return replace(drive, truth=PoseTrack(
+        truth.t_ns, truth.x[held] + sigma_xy * noise[0][held],
+        truth.y[held] + sigma_xy * noise[1][held], truth.yaw[held] + sigma_yaw * noise[2][held]))
+
+
+def sim_drives(effect, seeds, duration_s):
+    drives = []
+    for seed in seeds:
+        config = SimConfig(duration_s=duration_s, seed=seed, true_model='edd_symmetric',
+                           true_params=TRUE, effects=(effect,) if effect else ())
+        drives.append(icp_like(simulate(config).drive(f'sim{seed}'),
+                               np.random.default_rng(100 + seed)))
+    return drives
+
+
+def true_state(effect, duration_s):
+    """Return the simulator's true model as an augmented model (wheel speeds held centred)."""
+    extensions = {'time_offset': {'offset_s': -WHEEL_PERIOD_S / 2}}
+    if effect is not None:
+        k = effect.strength
+        extensions[effect.name] = {
+            'time_offset': {'offset_s': k - WHEEL_PERIOD_S / 2}, 'first_order_lag': {'tau_s': k},
+            'speed_slip': {'k': k}, 'ratio_yaw_slip': {'k': k}, 'lateral_skid': {'k': k},
+            'direction_asymmetry': {'k': k},
+            'terrain_regime': {'k': k, 'switch_s': 0.5 * duration_s}}[effect.name]
+    return ModelState(tuple(extensions), dict(TRUE), extensions)
+
+
+def run_case(effect, duration_s=120.0, options=None):
+    train = sim_drives(effect, [1, 2], duration_s)
+    evaluate = sim_drives(effect, [3, 4, 5], duration_s)
+    options = options or DiagnosisOptions()
+    base = fit_model('edd_symmetric', GEOM, cut_segments(train, options.train_segments()))
+    result = diagnose(train, evaluate, GEOM, {'edd_symmetric': base.values}, 'edd_symmetric',
+                      options)
+    predictor = SegmentPredictor(evaluate, cut_segments(evaluate, options.eval_segments()))
+    errors = predictor.errors(true_state(effect, duration_s).bind('edd_symmetric', GEOM))
+    scored = predictor.segments.path_m >= options.min_eval_path_m
+    path = predictor.segments.path_m[scored]
+    truth_t = ErrorStats.of(np.hypot(errors[scored, 0], errors[scored, 1]) / path)
+    truth_th = ErrorStats.of(np.degrees(np.abs(errors[scored, 2])) / path)
+    return result, truth_t, truth_th
+
+
+# ------------------------------------------------------------------------------------ fast
+def test_differentiator_recovers_body_velocity_from_held_noisy_poses():
+    v, w = 0.8, 0.5
+    t_s = np.arange(0, 10, 0.05)
+    x = v / w * np.sin(w * t_s)
+    y = v / w * (1 - np.cos(w * t_s))
+    yaw = w * t_s
+    held = np.arange(t_s.size) // 2 * 2
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 1, (3, t_s.size))[:, held]
+    t_ns = (t_s * 1e9).astype(np.int64)
+    track = PoseTrack(t_ns, x[held] + 0.005 * noise[0], y[held] + 0.005 * noise[1],
+                      yaw[held] + 0.002 * noise[2])
+    drive = Drive('arc', WheelSamples(t_ns, np.zeros(t_s.size), np.zeros(t_s.size)), track)
+    fresh_t, twist, valid = truth_velocities(drive, 0.35)
+    assert fresh_t.size == t_s.size // 2  # held duplicates dropped
+    assert valid[2:-2].all() and not valid[0]
+    np.testing.assert_allclose(np.median(twist[valid], axis=0), [v, 0.0, w], atol=0.01)
+    assert np.std(twist[valid, 0]) < 0.05
+    exact, ok = body_velocities(t_ns, np.stack([x, y, yaw], axis=-1), 0.2)
+    np.testing.assert_allclose(exact[ok], np.tile([v, 0.0, w], (ok.sum(), 1)), atol=2e-3)
+
+
+def test_stlsq_keeps_only_the_true_terms():
+    rng = np.random.default_rng(1)
+    features = rng.normal(size=(500, 6))
+    target = 0.7 * features[:, 1] - 0.3 * features[:, 4] + rng.normal(0, 0.05, 500)
+    coef = stlsq(features, target, threshold=0.1)
+    assert np.nonzero(coef)[0].tolist() == [1, 4]
+    np.testing.assert_allclose(coef[[1, 4]], [0.7, -0.3], atol=0.02)
+
+
+def test_options_are_validated():
+    with pytest.raises(ParameterError, match='unknown extension'):
+        DiagnosisOptions(candidates=('lateral_skd',))
+    with pytest.raises(ParameterError, match='significance'):
+        DiagnosisOptions(significance=0.0)
+
+
+def test_found_effect_goes_into_a_parameters_file_and_a_report(tmp_path):
+    """A short run with a strong skid; candidates narrowed so it stays quick."""
+    options = DiagnosisOptions(candidates=('time_offset', 'lateral_skid', 'speed_slip'),
+                               max_extensions=2)
+    result, _, _ = run_case(make_effect('lateral_skid', 0.1), 60.0, options)
+    assert result.extensions == ('lateral_skid',)
+    assert result.final.ext_values['lateral_skid']['k'] == pytest.approx(0.1, abs=0.03)
+    lines = result.summary_lines()
+    assert any('added lateral_skid' in line for line in lines)
+    base_flat = {'wheel_radius': 0.1651, 'track_width': 0.555, 'model': 'edd_symmetric',
+                 'robot': 'sim'}
+    flat = result.to_parameters(base_flat)
+    path = write_params_file(tmp_path / 'augmented.yaml', flat, result.provenance)
+    config = OdometryConfig.from_flat(read_params_file(path))
+    assert config.model == 'augmented' and config.augmented_base == 'edd_symmetric'
+    assert 'lateral_skid' in config.augmented_extensions and config['robot'] == 'sim'
+    bound = config.bound_model()
+    np.testing.assert_allclose(bound.twist(3.0, 5.0), result.bound().twist(3.0, 5.0))
+    page = write_diagnosis_report(result, tmp_path / 'report')
+    text = page.read_text()
+    assert 'lateral_skid' in text and '| + lateral_skid |' in text
+    assert (tmp_path / 'report' / 'diagnosis_residuals.png').stat().st_size > 1000
+    with pytest.raises(OutputError):
+        write_diagnosis_report(result, tmp_path / 'report')
+    # the found effect lowers the held-out error
+    assert result.steps[-1].stats_t.median < 0.8 * result.steps[1].stats_t.median
+
+
+# ------------------------------------------------------------------------------------ heavy
+@pytest.mark.heavy
+def test_effect_free_data_gets_no_extension(tmp_path):
+    result, _, _ = run_case(None)
+    assert result.extensions == ()
+    assert all(not c.accepted for c in result.candidates)
+    flat = result.to_parameters({'model': 'edd_symmetric', 'models.edd_symmetric.alpha': 0.9})
+    assert flat['model'] == 'edd_symmetric' and 'augmented.extensions' not in flat
+
+
+STRENGTH_SEED = 7
+
+
+def drawn_effect(name):
+    """Return the effect at a strength drawn uniformly in its range (seeded per effect)."""
+    spec = EFFECTS[name]
+    rng = np.random.default_rng([STRENGTH_SEED, EFFECT_NAMES.index(name)])
+    return make_effect(name, float(rng.uniform(spec.low, spec.high)))
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize('name', EFFECT_NAMES)
+def test_undeclared_effect_is_named_and_its_error_removed(name):
+    effect = drawn_effect(name)
+    result, truth_t, truth_th = run_case(effect)
+    assert result.extensions == (name,), (effect.describe(), result.summary_lines())
+    after = result.steps[-1]
+    assert after.stats_t.median <= 1.5 * truth_t.median, result.summary_lines()
+    assert after.stats_theta.median <= 1.5 * truth_th.median, result.summary_lines()
+    assert math.isfinite(after.stats_t.p90)

@@ -1,0 +1,211 @@
+"""Extensions in closed form, the augmented model's state, and streaming == batch."""
+
+import math
+
+import numpy as np
+import pytest
+from skidkin_ros.core.augmented import AugmentedModel, lag_factors, SegmentPredictor
+from skidkin_ros.core.config import OdometryConfig, parameter_schema, parse_extensions
+from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
+from skidkin_ros.core.extensions import (EXTENSION_NAMES, EXTENSIONS, get_extension,
+                                         SPARSE_FEATURES)
+from skidkin_ros.core.fitting import predict_end_poses
+from skidkin_ros.core.integrator import (IntegratorLimits, rollout, rollout_stream,
+                                         SampleStatus, StreamingIntegrator)
+from skidkin_ros.core.models import get_model
+from skidkin_ros.core.prediction import predict_wheels
+from skidkin_ros.core.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.specs import Geometry
+from skidkin_ros.errors import ParameterError
+from skidkin_ros.sim.effects import EFFECT_NAMES
+
+GEOM = Geometry(0.1651, 0.555)
+BASE = get_model('edd_symmetric').bind({'alpha': 0.9, 'b_hat': 0.8}, GEOM)
+
+
+def augmented(values):
+    return AugmentedModel('edd_symmetric', list(values)).bind(BASE, values)
+
+
+def test_every_simulator_effect_has_an_extension_and_specs_are_complete():
+    assert set(EFFECT_NAMES) <= set(EXTENSION_NAMES)
+    assert 'sparse_correction' in EXTENSIONS
+    for ext in EXTENSIONS.values():
+        assert ext.params and ext.formula and ext.signal
+        for spec in ext.params:
+            assert spec.unit and spec.description and spec.lower <= spec.default_for(None)
+        # defaults are neutral: the base model is unchanged
+        k = ext.vector({})
+        twist = BASE.twist(np.array([1.0, -2.0, 3.0]), np.array([2.0, -1.0, 1.5]))
+        np.testing.assert_array_equal(
+            ext.apply(k, twist, np.array([1.0, -2.0, 3.0]), np.array([2.0, -1.0, 1.5]),
+                      np.zeros(3)), twist)
+
+
+@pytest.mark.parametrize('name,values,check', [
+    ('speed_slip', {'k': 0.2}, lambda b, t: (b[0] * (1 - 0.2 * abs(b[0])), b[1], b[2])),
+    ('lateral_skid', {'k': 0.05}, lambda b, t: (b[0], 0.05 * b[0] * b[2], b[2])),
+    ('icr_offset', {'x_m': 0.2}, lambda b, t: (b[0], 0.2 * b[2], b[2])),
+    ('direction_asymmetry', {'k': 0.3},
+     lambda b, t: (b[0] * (1 - 0.3 * min(max(-b[0] / 0.05, 0), 1)), b[1], b[2])),
+    ('terrain_regime', {'k': 0.25, 'switch_s': 1.0},
+     lambda b, t: ((b[0] * 0.75, b[1], b[2] * 0.75) if t >= 1.0 else tuple(b))),
+])
+@pytest.mark.parametrize('wl,wr,t_s', [(3.0, 4.0, 0.5), (-3.0, -2.0, 1.5), (2.0, -2.0, 2.0)])
+def test_memoryless_formulas(name, values, check, wl, wr, t_s):
+    base = BASE.twist(wl, wr)
+    ext = get_extension(name)
+    out = ext.apply(ext.vector(values), base, np.float64(wl), np.float64(wr), t_s)
+    np.testing.assert_allclose(out, check(base, t_s), atol=1e-12)
+
+
+def test_ratio_yaw_slip_peaks_at_half_speed_ratio():
+    ext = get_extension('ratio_yaw_slip')
+    k = ext.vector({'k': 0.4})
+    for wl, wr, expected_loss in ((2.0, 4.0, 0.4), (4.0, 4.0, 0.4 * math.exp(-(0.5 / 0.15) ** 2)),
+                                  (-2.0, 4.0, 0.0)):
+        base = BASE.twist(wl, wr)
+        out = ext.apply(k, base, np.float64(wl), np.float64(wr), 0.0)
+        assert out[2] == pytest.approx(base[2] * (1 - expected_loss), abs=1e-12)
+
+
+def test_sparse_correction_adds_the_library_terms():
+    ext = get_extension('sparse_correction')
+    assert len(ext.params) == 3 * len(SPARSE_FEATURES)
+    k = ext.vector({'vx_v_abs_v': -0.1, 'wz_w': 0.05})
+    base = BASE.twist(3.0, 5.0)
+    out = ext.apply(k, base, 3.0, 5.0, 0.0)
+    assert out[0] == pytest.approx(base[0] - 0.1 * base[0] * abs(base[0]))
+    assert out[2] == pytest.approx(base[2] * 1.05)
+
+
+def test_lag_is_the_exact_response_to_a_held_input():
+    model = augmented({'first_order_lag': {'tau_s': 0.3}})
+    t_ns = np.arange(0, 41) * 50_000_000
+    wl = np.where(t_ns >= 500_000_000, 4.0, 0.0)
+    poses = rollout_stream(model, t_ns, wl, wl)
+    v_ss = BASE.twist(4.0, 4.0)[0]
+    # step at t0 = 0.5 s: x(t) = v (T - tau (1 - exp(-T / tau))), T = t - t0
+    for i in (20, 30, 40):
+        elapsed = (t_ns[i] - 500_000_000) * 1e-9
+        expected = v_ss * (elapsed - 0.3 * (1 - math.exp(-elapsed / 0.3)))
+        assert poses[i, 0] == pytest.approx(expected, rel=1e-12, abs=1e-12)
+    d, g = lag_factors(np.array([0.0, 0.05]), 0.3)
+    assert g[0] == 1.0 and d[1] == pytest.approx(math.exp(-0.05 / 0.3))
+
+
+def _random_drive(seed, n=400):
+    rng = np.random.default_rng(seed)
+    t_ns = np.cumsum(rng.integers(30_000_000, 70_000_000, n)).astype(np.int64)
+    t_ns[n // 4] = t_ns[n // 4 - 1]      # duplicate stamp
+    t_ns[n * 5 // 8:] += 2_000_000_000  # a gap longer than max_dt
+    wl, wr = rng.uniform(-5, 5, (2, n))
+    return t_ns, wl, wr
+
+
+ALL_VALUES = {'time_offset': {'offset_s': 0.07}, 'first_order_lag': {'tau_s': 0.2},
+              'speed_slip': {'k': 0.2}, 'lateral_skid': {'k': 0.05},
+              'direction_asymmetry': {'k': 0.2}, 'ratio_yaw_slip': {'k': 0.3},
+              'icr_offset': {'x_m': 0.1},
+              'terrain_regime': {'k': 0.2, 'switch_s': 6.0},
+              'sparse_correction': {'vx_v_abs_v': -0.05}}
+
+
+@pytest.mark.parametrize('names', [('first_order_lag',), ('terrain_regime', 'lateral_skid'),
+                                   tuple(ALL_VALUES)])
+def test_streaming_and_batch_agree_sample_for_sample_with_state(names):
+    model = augmented({n: ALL_VALUES[n] for n in names})
+    t_ns, wl, wr = _random_drive(3)
+    limits = IntegratorLimits(max_dt_s=0.5)
+    streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model, limits)
+    batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5)
+    assert np.array_equal(streamed.poses, batch)
+    assert streamed.status.count(SampleStatus.GAP) == 1
+    assert streamed.status.count(SampleStatus.DUPLICATE_STAMP) == 1
+    # the state matters: without it (no lag, no regime) the path differs
+    plain = rollout_stream(BASE, t_ns, wl, wr, max_dt_s=0.5)
+    assert np.abs(plain[-1] - batch[-1]).max() > 1e-3
+
+
+def test_time_offset_shifts_published_stamps_only():
+    model = augmented({'time_offset': {'offset_s': 0.07}})
+    t_ns, wl, wr = _random_drive(4, 50)
+    result = predict_wheels(WheelSamples(t_ns, wl, wr), model, IntegratorLimits(max_dt_s=5))
+    plain = predict_wheels(WheelSamples(t_ns, wl, wr), BASE, IntegratorLimits(max_dt_s=5))
+    assert model.output_offset_ns == 70_000_000
+    assert np.array_equal(result.t_ns, t_ns + 70_000_000)
+    assert np.array_equal(result.poses, plain.poses)
+
+
+def test_base_model_speed_is_unchanged_and_reset_clears_the_state():
+    model = augmented({'first_order_lag': {'tau_s': 0.5}})
+    stream = StreamingIntegrator(model)
+    stream.step(0, 0.0, 0.0)
+    stream.step(100_000_000, 5.0, 5.0)
+    assert stream.state is not None and stream.held_twist[0] == 0.0  # lags behind the input
+    stream.reset()
+    assert stream.state is None
+    stream.step(0, 5.0, 5.0)
+    assert stream.held_twist[0] == pytest.approx(BASE.twist(5.0, 5.0)[0])  # starts settled
+    plain = StreamingIntegrator(BASE)
+    plain.step(0, 1.0, 1.0)
+    assert plain.state is None  # a base model never builds a state
+
+
+def _drive_with_truth(seed):
+    t_ns, wl, wr = _random_drive(seed, 300)
+    t_ns[300 * 5 // 8:] -= 2_000_000_000  # no gap here
+    t_ns = np.unique(t_ns)
+    wl, wr = wl[:t_ns.size], wr[:t_ns.size]
+    truth = rollout(BASE.twist(wl[:-1], wr[:-1]), np.diff(t_ns) * 1e-9)
+    keep = np.arange(0, t_ns.size, 2)
+    return Drive(f'd{seed}', WheelSamples(t_ns, wl, wr),
+                 PoseTrack(t_ns[keep], *truth[keep].T))
+
+
+def test_segment_predictor_matches_the_fitting_code_and_shifts_windows():
+    drives = [_drive_with_truth(5), _drive_with_truth(6)]
+    segments = cut_segments(drives, SegmentOptions(horizon_m=1.0))
+    predictor = SegmentPredictor(drives, segments)
+    expected = predict_end_poses(BASE.model, BASE.k, GEOM, segments)
+    np.testing.assert_allclose(predictor.predict_ends(BASE), expected, atol=1e-12)
+    np.testing.assert_allclose(predictor.errors(BASE), 0.0, atol=1e-9)
+    shifted = augmented({'time_offset': {'offset_s': 0.1}})
+    assert np.abs(predictor.errors(shifted)).max() > 1e-3
+
+
+def test_parameters_file_schema_holds_the_augmented_model():
+    names = {entry.name for entry in parameter_schema()}
+    assert {'augmented.base', 'augmented.extensions', 'augmented.time_offset.offset_s',
+            'augmented.first_order_lag.tau_s'} <= names
+    config = OdometryConfig.from_flat({
+        'model': 'augmented', 'augmented.base': 'edd_symmetric',
+        'augmented.extensions': 'lateral_skid, time_offset',
+        'models.edd_symmetric.alpha': 0.9, 'models.edd_symmetric.b_hat': 0.8,
+        'augmented.lateral_skid.k': 0.05, 'augmented.time_offset.offset_s': 0.03})
+    bound = config.bound_model()
+    assert bound.extensions == ('time_offset', 'lateral_skid')
+    assert bound.output_offset_ns == 30_000_000
+    np.testing.assert_allclose(bound.twist(3.0, 4.0),
+                               get_extension('lateral_skid').apply(
+                                   np.array([0.05]), BASE.twist(3.0, 4.0), 3.0, 4.0, 0.0))
+    assert parse_extensions('') == ()
+    with pytest.raises(ParameterError, match='unknown extension'):
+        OdometryConfig.from_flat({'augmented.extensions': 'time_ofset'})
+    with pytest.raises(ParameterError, match='outside its allowed range'):
+        OdometryConfig.from_flat({'augmented.first_order_lag.tau_s': -1.0})
+
+
+def test_constant_rate_lag_uses_the_filter_path_and_still_matches_streaming():
+    model = augmented({'first_order_lag': {'tau_s': 0.15}, 'speed_slip': {'k': 0.1}})
+    rng = np.random.default_rng(8)
+    t_ns = np.arange(600, dtype=np.int64) * 50_000_000
+    wl = np.repeat(rng.uniform(-5, 5, 30), 20)
+    wr = np.repeat(rng.uniform(-5, 5, 30), 20)
+    streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model)
+    batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5)
+    np.testing.assert_allclose(batch, streamed.poses, rtol=0, atol=1e-9)
+    held, _ = model.intervals(t_ns[None], wl[None], wr[None],
+                              np.append(np.diff(t_ns) * 1e-9, 0.0)[None],
+                              np.zeros((1, t_ns.size), bool))
+    np.testing.assert_allclose(held[0], streamed.twists, rtol=0, atol=1e-12)
