@@ -1,76 +1,22 @@
 """Diagnosis: differentiator, sparse regression, and undeclared simulated effects found."""
 
-from dataclasses import replace
 import math
 
 import numpy as np
 import pytest
-from skidkin_ros.core.augmented import SegmentPredictor
 from skidkin_ros.core.config import OdometryConfig, read_params_file, write_params_file
-from skidkin_ros.core.diagnosis import (body_velocities, diagnose, DiagnosisOptions, ModelState,
-                                        stlsq, truth_velocities)
+from skidkin_ros.core.diagnosis import (body_velocities, DiagnosisOptions, stlsq,
+                                        truth_velocities)
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
-from skidkin_ros.core.evaluation import ErrorStats
-from skidkin_ros.core.fitting import fit_model
-from skidkin_ros.core.segments import cut_segments
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.effects_study import drawn_effect, run_case as study_case
 from skidkin_ros.errors import OutputError, ParameterError
 from skidkin_ros.report.diagnosis import write_diagnosis_report
-from skidkin_ros.sim.effects import EFFECT_NAMES, EFFECTS, make_effect
-from skidkin_ros.sim.simulate import SimConfig, simulate
-
-GEOM = Geometry(0.1651, 0.555)
-TRUE = {'alpha': 0.9, 'b_hat': 0.85}
-WHEEL_PERIOD_S = 0.05
-
-
-def icp_like(drive, rng, sigma_xy=0.01, sigma_yaw=0.003):
-    """Return the drive with ICP-like truth: 10 Hz noisy poses held onto the 20 Hz wheel grid."""
-    truth = drive.truth
-    held = np.arange(len(truth)) // 2 * 2
-    noise = rng.normal(0.0, 1.0, (3, len(truth)))
-    return replace(drive, truth=PoseTrack(
-        truth.t_ns, truth.x[held] + sigma_xy * noise[0][held],
-        truth.y[held] + sigma_xy * noise[1][held], truth.yaw[held] + sigma_yaw * noise[2][held]))
-
-
-def sim_drives(effect, seeds, duration_s):
-    drives = []
-    for seed in seeds:
-        config = SimConfig(duration_s=duration_s, seed=seed, true_model='edd_symmetric',
-                           true_params=TRUE, effects=(effect,) if effect else ())
-        drives.append(icp_like(simulate(config).drive(f'sim{seed}'),
-                               np.random.default_rng(100 + seed)))
-    return drives
-
-
-def true_state(effect, duration_s):
-    """Return the simulator's true model as an augmented model (wheel speeds held centred)."""
-    extensions = {'time_offset': {'offset_s': -WHEEL_PERIOD_S / 2}}
-    if effect is not None:
-        k = effect.strength
-        extensions[effect.name] = {
-            'time_offset': {'offset_s': k - WHEEL_PERIOD_S / 2}, 'first_order_lag': {'tau_s': k},
-            'speed_slip': {'k': k}, 'ratio_yaw_slip': {'k': k}, 'lateral_skid': {'k': k},
-            'direction_asymmetry': {'k': k},
-            'terrain_regime': {'k': k, 'switch_s': 0.5 * duration_s}}[effect.name]
-    return ModelState(tuple(extensions), dict(TRUE), extensions)
+from skidkin_ros.sim.effects import EFFECT_NAMES, make_effect
 
 
 def run_case(effect, duration_s=120.0, options=None):
-    train = sim_drives(effect, [1, 2], duration_s)
-    evaluate = sim_drives(effect, [3, 4, 5], duration_s)
-    options = options or DiagnosisOptions()
-    base = fit_model('edd_symmetric', GEOM, cut_segments(train, options.train_segments()))
-    result = diagnose(train, evaluate, GEOM, {'edd_symmetric': base.values}, 'edd_symmetric',
-                      options)
-    predictor = SegmentPredictor(evaluate, cut_segments(evaluate, options.eval_segments()))
-    errors = predictor.errors(true_state(effect, duration_s).bind('edd_symmetric', GEOM))
-    scored = predictor.segments.path_m >= options.min_eval_path_m
-    path = predictor.segments.path_m[scored]
-    truth_t = ErrorStats.of(np.hypot(errors[scored, 0], errors[scored, 1]) / path)
-    truth_th = ErrorStats.of(np.degrees(np.abs(errors[scored, 2])) / path)
-    return result, truth_t, truth_th
+    case = study_case(effect, duration_s, options)
+    return case.result, case.truth_t, case.truth_theta
 
 
 # ------------------------------------------------------------------------------------ fast
@@ -148,16 +94,6 @@ def test_effect_free_data_gets_no_extension(tmp_path):
     assert all(not c.accepted for c in result.candidates)
     flat = result.to_parameters({'model': 'edd_symmetric', 'models.edd_symmetric.alpha': 0.9})
     assert flat['model'] == 'edd_symmetric' and 'augmented.extensions' not in flat
-
-
-STRENGTH_SEED = 7
-
-
-def drawn_effect(name):
-    """Return the effect at a strength drawn uniformly in its range (seeded per effect)."""
-    spec = EFFECTS[name]
-    rng = np.random.default_rng([STRENGTH_SEED, EFFECT_NAMES.index(name)])
-    return make_effect(name, float(rng.uniform(spec.low, spec.high)))
 
 
 @pytest.mark.heavy

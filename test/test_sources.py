@@ -1,0 +1,40 @@
+"""Loading a SOURCE: the lidar extrinsic must come from /tf_static or the user (fault row C17)."""
+
+import numpy as np
+import pytest
+from skidkin_ros.adapters.bag_writer import BagWriter
+from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, load_source, SourceOptions
+from skidkin_ros.errors import DataError
+
+NAMES = ['front_left_wheel_joint', 'rear_left_wheel_joint', 'front_right_wheel_joint',
+         'rear_right_wheel_joint']
+
+
+def _bag_without_tf_static(path):
+    rng = np.random.default_rng(0)
+    t0 = 1_700_000_000_000_000_000
+    with BagWriter(path) as bag:
+        for i in range(40):
+            bag.write_joint_state('/joint_states', t0 + i * 50_000_000, NAMES, [1.0] * 4)
+        for i in range(3):
+            xyz = rng.uniform(-10, 10, (500, 3))
+            bag.write_pointcloud('/points', t0 + i * 100_000_000, 'lidar', xyz,
+                                 np.linspace(0.0, 0.1, 500))
+    return path
+
+
+def test_missing_extrinsic_is_refused_with_the_remedy(tmp_path):
+    bag = _bag_without_tf_static(tmp_path / 'bag')
+    with pytest.raises(DataError) as err:
+        load_source(bag, SourceOptions(ground_truth='icp'))
+    text = str(err.value)
+    assert '--extrinsic' in text and 'x_v' in text and "'lidar'" in text
+
+
+def test_extrinsic_from_xyz_rpy_is_a_rigid_transform():
+    t = extrinsic_from_xyz_rpy([0.3, -0.1, 0.5, 0.0, 0.0, np.pi / 2])
+    np.testing.assert_allclose(t[:3, 3], [0.3, -0.1, 0.5])
+    np.testing.assert_allclose(t[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3), atol=1e-12)
+    with pytest.raises(DataError, match='6 finite numbers'):
+        extrinsic_from_xyz_rpy([0.0, 0.0, float('nan'), 0.0, 0.0, 0.0])
