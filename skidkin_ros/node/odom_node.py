@@ -156,6 +156,7 @@ class OdomNode(Node):
         overridable = QoSOverridingOptions.with_default_policies()
         self._odom_pub = self.create_publisher(Odometry, 'odom', output_qos,
                                                qos_overriding_options=overridable)
+        self._odom_msg = Odometry()
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', output_qos)
         self._tf_broadcaster = self._make_tf_broadcaster(config['publish_tf'])
         self._input = config['input']
@@ -398,15 +399,17 @@ class OdomNode(Node):
             return
         pose_cov = self._covariance.pose_covariance_6x6()
         twist_cov = self._covariance.twist_covariance_6x6(result.twist, self._period_s)
-        values = (result.pose, result.twist, pose_cov, twist_cov)
-        if not all(np.all(np.isfinite(v)) for v in values):
+        # One reduction instead of four: a sum is finite only if every term is.
+        total = (float(np.sum(result.pose)) + float(np.sum(result.twist))
+                 + float(np.sum(pose_cov)) + float(np.sum(twist_cov)))
+        if not math.isfinite(total):
             self.counters['non_finite_output'] += 1
             self._warn('non_finite_output', 'odometry has a non-finite pose, twist or '
                        f'covariance (pose {result.pose}, twist {result.twist}); not published',
                        error=True)
             return
         x, y, yaw = (float(v) for v in result.pose)
-        msg = Odometry()
+        msg = self._odom_msg  # reused: publish() serializes it before returning
         msg.header.stamp = ns_to_stamp(t_ns)
         msg.header.frame_id = config['odom_frame_id']
         msg.child_frame_id = config['base_frame_id']
@@ -415,11 +418,11 @@ class OdomNode(Node):
         qx, qy, qz, qw = yaw_to_quaternion(yaw)
         msg.pose.pose.orientation.z = qz
         msg.pose.pose.orientation.w = qw
-        msg.pose.covariance = pose_cov.ravel().tolist()
+        msg.pose.covariance = np.ascontiguousarray(pose_cov, dtype=np.float64).reshape(36)
         msg.twist.twist.linear.x = float(result.twist[0])
         msg.twist.twist.linear.y = float(result.twist[1])
         msg.twist.twist.angular.z = float(result.twist[2])
-        msg.twist.covariance = twist_cov.ravel().tolist()
+        msg.twist.covariance = np.ascontiguousarray(twist_cov, dtype=np.float64).reshape(36)
         self._odom_pub.publish(msg)
         self.counters['published'] += 1
         self._last_published_t_ns = t_ns
