@@ -31,7 +31,7 @@ from skidkin_ros.core.evaluation import evaluate_models, ModelEvaluation, split_
 from skidkin_ros.core.fitting import fit_models, FitOptions, FitResult
 from skidkin_ros.core.models import get_model, MODEL_NAMES
 from skidkin_ros.core.noise import NOISE_SPECS
-from skidkin_ros.core.segments import cut_segments, SegmentOptions, SegmentSet
+from skidkin_ros.core.segments import cut_segments, HorizonOptions, SegmentOptions, SegmentSet
 from skidkin_ros.core.specs import Geometry
 from skidkin_ros.core.uncertainty import calibrate_noise, NoiseFit
 from skidkin_ros.errors import DataError, FitError, ParameterError
@@ -44,18 +44,9 @@ TIE_TOLERANCE = 0.02
 
 
 @dataclass(frozen=True)
-class CalibrationOptions:
+class CalibrationOptions(HorizonOptions):
     """Everything that shapes a calibration (saved with the results as provenance)."""
 
-    h_t: float = 2.0
-    h_e: float = 2.0
-    h_t_rad: float | None = 1.0
-    short_drive: str = 'whole'
-    min_motion_m: float = 0.05
-    min_rotation_rad: float = 0.05
-    max_gap_s: float = 0.5
-    min_eval_path_m: float = 0.1
-    sigma_diag: tuple[float, float, float] = (1.0, 1.0, 1.0)
     loss: str = 'linear'
     f_scale: float = 1.0
     trim: bool = True
@@ -77,16 +68,6 @@ class CalibrationOptions:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ParameterError(f'{name} must be a distance > 0 m, got {value!r}')
         self.fit_options()
-
-    def train_segments(self) -> SegmentOptions:
-        return SegmentOptions(horizon_m=self.h_t, horizon_rad=self.h_t_rad,
-                              short_drive=self.short_drive, min_motion_m=self.min_motion_m,
-                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
-
-    def eval_segments(self) -> SegmentOptions:
-        return SegmentOptions(horizon_m=self.h_e, short_drive=self.short_drive,
-                              min_motion_m=self.min_motion_m,
-                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
 
     def fit_options(self) -> FitOptions:
         return FitOptions(sigma_diag=tuple(self.sigma_diag), loss=self.loss,

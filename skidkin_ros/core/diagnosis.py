@@ -52,7 +52,7 @@ from skidkin_ros.core.extensions import (EXTENSION_NAMES, get_extension, ordered
 from skidkin_ros.core.fitting import _trim_mask, FitOptions
 from skidkin_ros.core.integrator import rollout_stream
 from skidkin_ros.core.models import BoundModel, get_model
-from skidkin_ros.core.segments import cut_segments, SegmentOptions, SegmentSet
+from skidkin_ros.core.segments import cut_segments, HorizonOptions, SegmentOptions, SegmentSet
 from skidkin_ros.core.specs import Geometry
 from skidkin_ros.errors import DataError, ParameterError
 
@@ -67,18 +67,9 @@ TIE_SIGNIFICANCE = 0.05
 
 
 @dataclass(frozen=True)
-class DiagnosisOptions:
+class DiagnosisOptions(HorizonOptions):
     """Everything that shapes a diagnosis (saved with the results as provenance)."""
 
-    h_t: float = 2.0
-    h_e: float = 2.0
-    h_t_rad: float | None = 1.0
-    short_drive: str = 'whole'
-    min_motion_m: float = 0.05
-    min_rotation_rad: float = 0.05
-    max_gap_s: float = 0.5
-    min_eval_path_m: float = 0.1
-    sigma_diag: tuple[float, float, float] = (1.0, 1.0, 1.0)
     candidates: tuple[str, ...] = EXTENSION_NAMES
     refit_base: bool = True
     folds: int = 3
@@ -116,16 +107,6 @@ class DiagnosisOptions:
             raise ParameterError('sigma_diag must be three variances > 0 (m^2, m^2, rad^2)')
         if not self.smoothing_s > 0:
             raise ParameterError(f'smoothing_s must be > 0 s, got {self.smoothing_s!r}')
-
-    def train_segments(self) -> SegmentOptions:
-        return SegmentOptions(horizon_m=self.h_t, horizon_rad=self.h_t_rad,
-                              short_drive=self.short_drive, min_motion_m=self.min_motion_m,
-                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
-
-    def eval_segments(self) -> SegmentOptions:
-        return SegmentOptions(horizon_m=self.h_e, short_drive=self.short_drive,
-                              min_motion_m=self.min_motion_m,
-                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
 
     @property
     def whitening(self) -> np.ndarray:

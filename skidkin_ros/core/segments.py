@@ -35,7 +35,8 @@ import numpy as np
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.errors import DataError, ParameterError
 
-__all__ = ['SegmentOptions', 'SegmentCounts', 'SegmentSet', 'cut_segments', 'segment_frame_error']
+__all__ = ['SegmentOptions', 'HorizonOptions', 'SegmentCounts', 'SegmentSet', 'cut_segments',
+           'segment_frame_error']
 
 SHORT_DRIVE_MODES = ('whole', 'drop')
 
@@ -62,6 +63,36 @@ class SegmentOptions:
         if self.short_drive not in SHORT_DRIVE_MODES:
             raise ParameterError(f'short_drive must be one of {SHORT_DRIVE_MODES}, '
                                  f'got {self.short_drive!r}')
+
+
+@dataclass(frozen=True)
+class HorizonOptions:
+    """How training (h_t) and evaluation (h_e) segments are cut: shared by calibrate and diagnose.
+
+    Training segments also end after ``h_t_rad`` of turning (spins in place still make segments);
+    evaluation segments are cut by distance only, as in the paper. ``sigma_diag`` is the loss
+    covariance of the end-pose errors (x [m^2], y [m^2], yaw [rad^2]).
+    """
+
+    h_t: float = 2.0
+    h_e: float = 2.0
+    h_t_rad: float | None = 1.0
+    short_drive: str = 'whole'
+    min_motion_m: float = 0.05
+    min_rotation_rad: float = 0.05
+    max_gap_s: float = 0.5
+    min_eval_path_m: float = 0.1
+    sigma_diag: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def train_segments(self) -> SegmentOptions:
+        return SegmentOptions(horizon_m=self.h_t, horizon_rad=self.h_t_rad,
+                              short_drive=self.short_drive, min_motion_m=self.min_motion_m,
+                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
+
+    def eval_segments(self) -> SegmentOptions:
+        return SegmentOptions(horizon_m=self.h_e, short_drive=self.short_drive,
+                              min_motion_m=self.min_motion_m,
+                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import json
 import math
 from pathlib import Path
@@ -12,11 +11,12 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from skidkin_ros.atomic import atomic_write_bytes, atomic_write_text, check_writable  # noqa: E402
+from skidkin_ros.atomic import atomic_write_text, check_writable  # noqa: E402
 from skidkin_ros.core.diagnosis import COMPONENTS, DiagnosisResult  # noqa: E402
 from skidkin_ros.core.extensions import (get_extension, SPARSE_FEATURES,  # noqa: E402
                                          sparse_features)
 from skidkin_ros.errors import OutputError  # noqa: E402
+from skidkin_ros.report.figures import save_figure  # noqa: E402
 
 __all__ = ['EXPLAINING_SIGNAL', 'residual_figure', 'error_figure', 'render_diagnosis_page',
            'write_diagnosis_report']
@@ -52,14 +52,6 @@ def _main_sparse_term(result: DiagnosisResult) -> tuple[str, str]:
                key=lambda term: abs(values.get(term, 0.0)) * spread[term.split('_', 1)[1]])
     output, feature = best.split('_', 1)
     return _OUTPUT_COMPONENT[output], _FEATURE_SIGNAL[feature]
-
-
-def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format='png', dpi=110)
-    plt.close(fig)
-    return atomic_write_bytes(path, buffer.getvalue(), force=True)
 
 
 def _binned(x: np.ndarray, y: np.ndarray, bins: int = 20) -> tuple[np.ndarray, np.ndarray]:
@@ -128,7 +120,7 @@ def residual_figure(result: DiagnosisResult, path: Path) -> Path:
         ax.set_ylabel(f'residual {component} ({unit})' + (' x direction' if fold else ''))
         ax.set_title(title)
         ax.legend(loc='best', fontsize=8, markerscale=3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def error_figure(result: DiagnosisResult, path: Path) -> Path:
@@ -144,7 +136,7 @@ def error_figure(result: DiagnosisResult, path: Path) -> Path:
         ax.set_xticks(range(len(labels)))
         ax.set_xticklabels(labels, rotation=20, ha='right', fontsize=8)
         ax.set_title(f'held-out {title}')
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _num(value: float, digits: int = 4) -> str:

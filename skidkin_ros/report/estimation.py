@@ -12,7 +12,7 @@ import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
 from skidkin_ros.core.consistency import NeesSummary, SegmentNees  # noqa: E402
-from skidkin_ros.report.figures import _save  # noqa: E402
+from skidkin_ros.report.figures import save_figure  # noqa: E402
 
 if TYPE_CHECKING:
     from skidkin_ros.estimation_study import FilterRuns
@@ -44,7 +44,7 @@ def error_over_time(runs: 'FilterRuns', path: Path) -> Path:
     axes[1].set_xlabel('time (s)')
     axes[0].legend(fontsize=8)
     axes[0].set_title(f'Errors over {runs.odom_errors.shape[0]} held-out drives')
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def nees_over_time_figure(runs: 'FilterRuns', path: Path) -> Path:
@@ -62,7 +62,7 @@ def nees_over_time_figure(runs: 'FilterRuns', path: Path) -> Path:
     ax.set_ylabel('average NEES')
     ax.legend(fontsize=8)
     ax.set_title(f'EKF: {100 * ekf.share_inside:.0f} % of samples inside the band')
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def segment_nees_figure(odometry: SegmentNees, horizons: Mapping[float, NeesSummary],
@@ -96,7 +96,7 @@ def segment_nees_figure(odometry: SegmentNees, horizons: Mapping[float, NeesSumm
     axes[1].set_ylabel('average NEES (3 dof)')
     axes[1].legend(fontsize=8)
     fig.suptitle('Odometry alone on independent windows of held-out drives')
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def write_estimation_figures(out_dir: Path, odometry: SegmentNees,

@@ -15,11 +15,11 @@ from skidkin_ros.core.calibration import CalibrationResult, HorizonStudy  # noqa
 from skidkin_ros.core.integrator import rollout_segments  # noqa: E402
 from skidkin_ros.core.models import get_model  # noqa: E402
 
-__all__ = ['error_distributions', 'rotation_per_metre', 'angular_error_map', 'segment_paths',
-           'horizon_figure']
+__all__ = ['save_figure', 'error_distributions', 'rotation_per_metre', 'angular_error_map',
+           'segment_paths', 'horizon_figure']
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
     """Render to memory, then write atomically (never half a PNG); the caller checked force."""
     fig.tight_layout()
     buffer = io.BytesIO()
@@ -46,7 +46,7 @@ def error_distributions(result: CalibrationResult, path: Path) -> Path:
         ax.grid(alpha=0.3)
     fig.suptitle(f'Evaluation errors on {len(result.eval_segments)} segments '
                  f'(h_e = {result.options.h_e:g} m)')
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def rotation_per_metre(result: CalibrationResult, path: Path, bins: int = 12) -> Path:
@@ -79,7 +79,7 @@ def rotation_per_metre(result: CalibrationResult, path: Path, bins: int = 12) ->
     ax.set_ylabel('actual rotation per metre (deg/m)')
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def angular_error_map(result: CalibrationResult, path: Path, model: str | None = None) -> Path:
@@ -95,7 +95,7 @@ def angular_error_map(result: CalibrationResult, path: Path, model: str | None =
     ax.set_title(f'Angular error of {model}')
     ax.set_aspect('equal', adjustable='datalim')
     ax.grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def segment_paths(result: CalibrationResult, path: Path, count: int = 4) -> Path:
@@ -119,7 +119,7 @@ def segment_paths(result: CalibrationResult, path: Path, count: int = 4) -> Path
         ax.set_title(f'segment {int(pick[i])}', fontsize=9)
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=6)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def horizon_figure(study: HorizonStudy, path: Path) -> Path:
@@ -136,4 +136,4 @@ def horizon_figure(study: HorizonStudy, path: Path) -> Path:
             ax.set_xlabel('h_e (m)')
             ax.grid(alpha=0.3)
         axes[row][0].legend(fontsize=7)
-    return _save(fig, path)
+    return save_figure(fig, path)
