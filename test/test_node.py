@@ -26,20 +26,6 @@ R = 0.1651
 B = 0.555
 
 
-@pytest.fixture
-def make_rig():
-    rigs = []
-
-    def factory(overrides=None, params_file=None):
-        rig = NodeRig(overrides, params_file)
-        rigs.append(rig)
-        return rig
-
-    yield factory
-    for rig in rigs:
-        rig.close()
-
-
 def drive(rig, omega_l, omega_r, n=11, dt_ns=20_000_000):
     """Send n samples of constant speed; return (start stamp, duration in s)."""
     t0 = wall_ns() - 5 * NS_PER_S

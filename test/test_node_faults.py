@@ -4,7 +4,7 @@ import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
-from node_harness import best_effort_publisher, NodeRig, NS_PER_S, wall_ns
+from node_harness import best_effort_publisher, NS_PER_S, wall_ns
 import numpy as np
 import pytest
 from rclpy.clock import ClockType
@@ -14,20 +14,6 @@ pytestmark = pytest.mark.ros
 
 R = 0.1651
 DT = 20_000_000
-
-
-@pytest.fixture
-def make_rig():
-    rigs = []
-
-    def factory(overrides=None, params_file=None):
-        rig = NodeRig(overrides, params_file)
-        rigs.append(rig)
-        return rig
-
-    yield factory
-    for rig in rigs:
-        rig.close()
 
 
 def start_ns():

@@ -27,7 +27,7 @@ import numpy as np
 
 from skidkin_ros import __version__
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.evaluation import evaluate_models, ModelEvaluation, split_holdout
+from skidkin_ros.core.evaluation import evaluate_models, ModelEvaluation, resolve_holdout
 from skidkin_ros.core.fitting import fit_models, FitOptions, FitResult
 from skidkin_ros.core.models import get_model, MODEL_NAMES
 from skidkin_ros.core.noise import NOISE_SPECS
@@ -144,12 +144,9 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
               options: CalibrationOptions | None = None) -> CalibrationResult:
     """Run the whole calibration recipe (module docstring) and return its result."""
     options = options or CalibrationOptions()
-    holdout = 'given'
-    if evaluate is None:
-        train, evaluate = split_holdout(train, options.holdout_every, options.holdout_mode,
-                                        options.holdout_block_s, options.holdout_key)
-        holdout = (f'held out 1 in {options.holdout_every} '
-                   f'({options.holdout_key or options.holdout_mode})')
+    train, evaluate, holdout = resolve_holdout(train, evaluate, options.holdout_every,
+                                               options.holdout_mode, options.holdout_block_s,
+                                               options.holdout_key)
     train_seg = _segments(train, options.train_segments(), 'training')
     eval_seg = _segments(evaluate, options.eval_segments(), 'evaluation')
     models = tuple(dict.fromkeys(('ideal_dd',) + tuple(options.models)))

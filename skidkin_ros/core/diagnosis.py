@@ -46,7 +46,7 @@ from skidkin_ros import __version__
 from skidkin_ros.core.augmented import (AUGMENTED_NAME, AugmentedModel, BoundAugmented,
                                         relative_errors, SegmentPredictor)
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.evaluation import ErrorStats, split_holdout
+from skidkin_ros.core.evaluation import ErrorStats, resolve_holdout
 from skidkin_ros.core.extensions import (EXTENSION_NAMES, get_extension, ordered,
                                          SPARSE_FEATURES, sparse_features)
 from skidkin_ros.core.fitting import _trim_mask, FitOptions
@@ -912,14 +912,9 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
     model = get_model(base_model_name)
     given = dict(base_values_by_model.get(base_model_name, {}))
     model.vector(given, geometry)
-    holdout = 'given'
-    if evaluate is None:
-        train, evaluate = split_holdout(train, options.holdout_every, options.holdout_mode,
-                                        options.holdout_block_s, options.holdout_key)
-        holdout = (f'held out 1 in {options.holdout_every} '
-                   f'({options.holdout_key or options.holdout_mode})')
-    train = list(train)
-    evaluate = list(evaluate)
+    train, evaluate, holdout = resolve_holdout(train, evaluate, options.holdout_every,
+                                               options.holdout_mode, options.holdout_block_s,
+                                               options.holdout_key)
     tic = time.perf_counter()
     train_seg = _segments(train, options.train_segments(), 'training')
     eval_seg = _segments(evaluate, options.eval_segments(), 'evaluation')

@@ -32,6 +32,7 @@ __all__ = [
     'split_holdout',
     'HOLDOUT_MODES',
     'relative_pose_errors',
+    'resolve_holdout',
 ]
 
 HOLDOUT_MODES = ('auto', 'drive', 'time')
@@ -156,6 +157,16 @@ def split_holdout(drives: Sequence[Drive], every: int = 3, mode: str = 'auto',
             part = _time_slice(drive, start, min(start + step_ns - 1, t_end), f'@{index}')
             (evaluate if index % every == every - 1 else train).append(part)
     return train, evaluate
+
+
+def resolve_holdout(train: Sequence[Drive], evaluate: Sequence[Drive] | None, every: int,
+                    mode: str, block_s: float, key: str | None
+                    ) -> tuple[list[Drive], list[Drive], str]:
+    """Return (train, evaluate, how): the given split, or a deterministic hold-out of train."""
+    if evaluate is not None:
+        return list(train), list(evaluate), 'given'
+    train, evaluate = split_holdout(train, every, mode, block_s, key)
+    return train, evaluate, f'held out 1 in {every} ({key or mode})'
 
 
 def relative_pose_errors(t_ns: np.ndarray, estimate: np.ndarray, truth: PoseTrack,
