@@ -11,12 +11,12 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from skidkin_ros.atomic import atomic_write_text, check_writable  # noqa: E402
+from skidkin_ros.atomic import atomic_write_text  # noqa: E402
 from skidkin_ros.core.diagnosis import COMPONENTS, DiagnosisResult  # noqa: E402
 from skidkin_ros.core.extensions import (get_extension, SPARSE_FEATURES,  # noqa: E402
                                          sparse_features)
-from skidkin_ros.errors import OutputError  # noqa: E402
 from skidkin_ros.report.figures import save_figure  # noqa: E402
+from skidkin_ros.report.page import prepare_report  # noqa: E402
 
 __all__ = ['EXPLAINING_SIGNAL', 'residual_figure', 'error_figure', 'render_diagnosis_page',
            'write_diagnosis_report']
@@ -195,12 +195,7 @@ def write_diagnosis_report(result: DiagnosisResult, out_dir: str | Path,
 
     An existing diagnosis.md needs ``force`` (OutputError otherwise); the folder is created.
     """
-    folder = Path(out_dir)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise OutputError(f'cannot create report folder {folder}: {err}') from err
-    page = check_writable(folder / 'diagnosis.md', force)
+    folder, page = prepare_report(out_dir, 'diagnosis.md', force)
     images = {'residuals': residual_figure(result, folder / 'diagnosis_residuals.png').name,
               'errors': error_figure(result, folder / 'diagnosis_errors.png').name}
     return atomic_write_text(page, render_diagnosis_page(result, images), force=force)

@@ -12,7 +12,7 @@ from skidkin_ros.core.models import get_model
 from skidkin_ros.errors import OutputError
 from skidkin_ros.report import figures
 
-__all__ = ['write_report', 'render_page']
+__all__ = ['write_report', 'render_page', 'prepare_report']
 
 
 def _num(value: float, digits: int = 4) -> str:
@@ -97,18 +97,26 @@ def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
     return '\n'.join(lines)
 
 
-def write_report(result: CalibrationResult, out_dir: str | Path, force: bool = False,
-                 study: HorizonStudy | None = None) -> Path:
-    """Write report.md and its PNGs into out_dir; return the path of report.md.
+def prepare_report(out_dir: str | Path, page_name: str, force: bool) -> tuple[Path, Path]:
+    """Create the report folder and check its page may be written; return (folder, page).
 
-    An existing report.md needs ``force`` (OutputError otherwise); the folder is created.
+    An existing page needs ``force`` (OutputError otherwise), checked before any figure is made.
     """
     folder = Path(out_dir)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise OutputError(f'cannot create report folder {folder}: {err}') from err
-    page = check_writable(folder / 'report.md', force)
+    return folder, check_writable(folder / page_name, force)
+
+
+def write_report(result: CalibrationResult, out_dir: str | Path, force: bool = False,
+                 study: HorizonStudy | None = None) -> Path:
+    """Write report.md and its PNGs into out_dir; return the path of report.md.
+
+    An existing report.md needs ``force`` (OutputError otherwise); the folder is created.
+    """
+    folder, page = prepare_report(out_dir, 'report.md', force)
     images = {}
     makers = [('errors', 'errors.png', figures.error_distributions),
               ('rotation', 'rotation_per_metre.png', figures.rotation_per_metre),
