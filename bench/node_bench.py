@@ -11,6 +11,11 @@ Process layout (identical for every system under test, SUT):
   paced rate with ``header.stamp`` = the wall clock just before ``publish`` and takes the
   Odometry back; latency = wall clock at receipt - stamp (the same host clock on both sides).
 
+The relay and a node run side by side (both pinned to the same core, one driven at a time):
+:func:`paired_steps` alternates them in short blocks, so a machine that drifts moves both and
+the ratio of paired p50s stays put (on a shared virtual machine, the p50 of the same relay at
+1 kHz swings between 0.35 and 2.5 ms from one half-second to the next).
+
 Per rate step: p50/p99 latency, messages sent/received (drops = sent - received: the SUT input
 is best effort, so a SUT that cannot keep up loses messages) and the SUT's CPU time over the
 step (sum of ``/proc/<pid>/task/*/schedstat``, every thread incl. DDS), divided by the messages.
@@ -277,59 +282,89 @@ def held(step: dict[str, Any], pace_tolerance: float = 0.95) -> bool:
             and step['achieved_hz'] >= pace_tolerance * step['rate_hz'])
 
 
-def measure_sut(kind: str, label: str, params: Mapping[str, str] | None,
-                plan: Sequence[tuple[float, float]], ladder: Sequence[float], ladder_s: float,
-                domain_id: int, drain_s: float = 0.3, warmup_s: float = 0.5) -> dict[str, Any]:
-    """Start one SUT, run the fixed steps and the rate ladder against it; return the rows.
+class Sut:
+    """One system under test: its process (pinned to ``cpu``) and the driver that talks to it.
 
-    kind: 'relay' or 'odom'; label: the row name; params: node parameters (odom only).
-
-    plan: (rate Hz, seconds) steps always run (100 Hz, 1 kHz); ladder: rates tried in
-    increasing order, for ladder_s each, until one is not held (a drop, or the driver could
-    not pace it). ``max_held_hz`` is the highest achieved rate of a held step.
+    kind: 'relay' or 'odom'; label: the row name; params: node parameters (odom only). Raises
+    RuntimeError (after cleaning up) when the SUT does not start and match.
     """
-    namespace = f'/bench_{os.getpid()}_{next(_instance)}'
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
-    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else []
-    proc = subprocess.Popen(sut_command(kind, namespace, params), env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    if len(cpus) >= 2:
-        pin(proc.pid, cpus[-1])
-        pin(0, cpus[0])
-    driver = Driver(namespace, domain_id)
-    steps: list[dict[str, Any]] = []
-    error = None
-    try:
-        driver.wait_connected(30.0, proc)
-        driver.paced(500.0, warmup_s)
-        driver.spin_for(drain_s)
-        for rate_hz, seconds in plan:
-            steps.append(_step(driver, proc.pid, rate_hz, seconds, drain_s))
-        for rate_hz in ladder:
-            row = _step(driver, proc.pid, rate_hz, ladder_s, drain_s)
-            row['ladder'] = True
-            steps.append(row)
-            if not held(row):
-                break
-    except RuntimeError as err:
-        error = str(err)
-    finally:
-        driver.close()
-        if hasattr(os, 'sched_setaffinity') and cpus:
-            os.sched_setaffinity(0, set(cpus))
-        proc.terminate()
+
+    def __init__(self, kind: str, label: str, params: Mapping[str, str] | None,
+                 domain_id: int, cpu: int | None, warmup_s: float = 0.5,
+                 drain_s: float = 0.2) -> None:
+        self.kind = kind
+        self.label = label
+        self.params = dict(params or {})
+        self.drain_s = drain_s
+        namespace = f'/bench_{os.getpid()}_{next(_instance)}'
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
+        self.proc = subprocess.Popen(sut_command(kind, namespace, params), env=env,
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                     text=True)
+        if cpu is not None:
+            pin(self.proc.pid, cpu)
+        self.driver = Driver(namespace, domain_id)
         try:
-            _, stderr = proc.communicate(timeout=10)
+            self.driver.wait_connected(30.0, self.proc)
+            self.driver.paced(500.0, warmup_s)
+            self.driver.spin_for(drain_s)
+        except RuntimeError:
+            self.close()
+            raise
+
+    def step(self, rate_hz: float, seconds: float, **tags: Any) -> dict[str, Any]:
+        """Drive the SUT at rate_hz for seconds; return the step's row (with ``tags``)."""
+        row = _step(self.driver, self.proc.pid, rate_hz, seconds, self.drain_s)
+        row.update(tags)
+        return row
+
+    def ladder(self, rates: Sequence[float], seconds: float) -> list[dict[str, Any]]:
+        """Climb the rates until one is not held; return every step tried."""
+        rows = []
+        for rate_hz in rates:
+            rows.append(self.step(rate_hz, seconds, ladder=True))
+            if not held(rows[-1]):
+                break
+        return rows
+
+    def close(self) -> list[str]:
+        """Stop the driver and the SUT; return the last lines of the SUT's stderr."""
+        self.driver.close()
+        self.proc.terminate()
+        try:
+            _, stderr = self.proc.communicate(timeout=10)
         except subprocess.TimeoutExpired:
-            proc.kill()
-            _, stderr = proc.communicate()
-    held_rates = [s['achieved_hz'] for s in steps if held(s)]
-    return {
-        'kind': kind, 'label': label, 'params': dict(params or {}), 'steps': steps,
-        'error': error,
-        'max_held_hz': max(held_rates, default=0.0),
-        'stderr_tail': (stderr or '').strip().splitlines()[-5:] if error else [],
-    }
+            self.proc.kill()
+            _, stderr = self.proc.communicate()
+        return (stderr or '').strip().splitlines()[-5:]
+
+
+def paired_steps(reference: Sut, sut: Sut, plan: Sequence[tuple[float, float]],
+                 rounds: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Alternate the reference and the SUT in short blocks at every rate of the plan.
+
+    Each (rate, seconds) of the plan is split into ``rounds`` blocks per SUT, run as
+    reference, SUT, SUT, reference, ... so both see the same machine at the same time: a
+    machine that drifts (frequency, other load) moves both, and the ratio of the paired p50s
+    stays put. Returns (the SUT's steps, the reference's steps), each tagged with its round.
+    """
+    sut_rows: list[dict[str, Any]] = []
+    ref_rows: list[dict[str, Any]] = []
+    for rate_hz, seconds in plan:
+        block_s = seconds / rounds
+        for index in range(rounds):
+            order = ((reference, ref_rows), (sut, sut_rows))
+            for who, rows in (order if index % 2 == 0 else order[::-1]):
+                rows.append(who.step(rate_hz, block_s, round=index, pair=sut.label))
+    return sut_rows, ref_rows
+
+
+def pin_driver(cpus: Sequence[int]) -> int | None:
+    """Pin this (driver) process to the first CPU; return the SUTs' CPU (None: no pinning)."""
+    if len(cpus) < 2:
+        return None
+    pin(0, cpus[0])
+    return cpus[-1]
 
 
 def _main(argv: Sequence[str]) -> int:

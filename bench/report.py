@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from skidkin_ros.atomic import atomic_write_text
 
@@ -20,58 +20,80 @@ def _num(value: Any, digits: int = 1) -> str:
     return f'{value:.{digits}f}'
 
 
-def _step(sut: Mapping[str, Any], rate_hz: float) -> Mapping[str, Any] | None:
-    for step in sut['steps']:
-        if step['rate_hz'] == rate_hz and not step.get('ladder'):
-            return step
-    return None
+def _median(values: Sequence[float]) -> float:
+    finite = sorted(v for v in values if isinstance(v, (int, float)) and math.isfinite(v))
+    if not finite:
+        return math.nan
+    mid = len(finite) // 2
+    return finite[mid] if len(finite) % 2 else 0.5 * (finite[mid - 1] + finite[mid])
+
+
+def _at(steps: Sequence[Mapping[str, Any]], rate_hz: float) -> list[Mapping[str, Any]]:
+    return [s for s in steps if s['rate_hz'] == rate_hz and not s.get('ladder')]
 
 
 def node_rows(node: Mapping[str, Any]) -> list[dict[str, Any]]:
-    """Return one summary row per SUT with the ratios against the mean relay."""
-    relays = [s for s in node['suts'] if s['kind'] == 'relay' and not s['error']]
-    base = {}
-    for rate in (100.0, 1000.0):
-        values = [_step(s, rate)['p50_latency_us'] for s in relays if _step(s, rate)]
-        base[rate] = sum(values) / len(values) if values else math.nan
+    """Return one summary row per SUT: medians over its rounds and the paired ratios.
+
+    A node's latency ratio at a rate is the median, over rounds, of its p50 divided by the p50
+    of the relay block run next to it; its CPU ratio compares the mean CPU per message of the
+    same blocks. The relay row pools every block it ran (ratio 1 by definition).
+    """
     rows = []
     for sut in node['suts']:
-        row: dict[str, Any] = {'label': sut['label'], 'error': sut['error']}
+        row: dict[str, Any] = {'label': sut['label'], 'error': sut['error'],
+                               'reference': sut['kind'] == 'relay'}
         for rate, key in ((100.0, '100'), (1000.0, '1k')):
-            step = _step(sut, rate)
-            row[f'p50_{key}'] = step['p50_latency_us'] if step else math.nan
-            row[f'p99_{key}'] = step['p99_latency_us'] if step else math.nan
-            row[f'drop_{key}'] = f'{step["dropped"]}/{step["sent"]}' if step else 'n/a'
-            row[f'cpu_{key}'] = step['cpu_us_per_msg'] if step else math.nan
-            row[f'ratio_{key}'] = row[f'p50_{key}'] / base[rate] if base[rate] else math.nan
+            mine = _at(sut['steps'], rate)
+            refs = {s['round']: s for s in _at(sut.get('reference_steps', []), rate)}
+            row[f'p50_{key}'] = _median([s['p50_latency_us'] for s in mine])
+            row[f'p99_{key}'] = _median([s['p99_latency_us'] for s in mine])
+            row[f'drop_{key}'] = (f'{sum(s["dropped"] for s in mine)}/'
+                                  f'{sum(s["sent"] for s in mine)}' if mine else 'n/a')
+            cpu = [s['cpu_us_per_msg'] for s in mine]
+            row[f'cpu_{key}'] = sum(cpu) / len(cpu) if cpu else math.nan
+            pairs = [(s, refs[s['round']]) for s in mine if s.get('round') in refs]
+            row[f'ratio_{key}'] = (1.0 if row['reference'] else _median(
+                [s['p50_latency_us'] / r['p50_latency_us'] for s, r in pairs
+                 if r['p50_latency_us'] > 0]))
+            ref_cpu = [r['cpu_us_per_msg'] for _, r in pairs]
+            row[f'cpu_ratio_{key}'] = (1.0 if row['reference'] else
+                                       row[f'cpu_{key}'] / (sum(ref_cpu) / len(ref_cpu))
+                                       if ref_cpu and sum(ref_cpu) > 0 else math.nan)
         row['max_held_hz'] = sut['max_held_hz']
         rows.append(row)
     return rows
 
 
 def _node_section(node: Mapping[str, Any]) -> list[str]:
+    rounds = node.get('rounds', 1)
     lines = ['## Node: JointState -> Odometry, against a bare rclpy relay', '',
-             f'Latency ratio = p50 / mean p50 of the relay runs at the same rate (goal <= '
-             f'{LATENCY_GOAL}); max held = highest paced rate losing <= 0.1 % of the '
-             f'messages (goal >= {RATE_GOAL_HZ:.0f} Hz; ladder {node["ladder_hz"]}); CPU = SUT '
-             'process CPU time (all threads) / messages sent. SUT pinned to one core, driver on '
-             'another.', '',
-             '| SUT | p50 µs 100 Hz | p99 µs 100 Hz | ratio 100 Hz | p50 µs 1 kHz | '
-             'p99 µs 1 kHz | ratio 1 kHz | dropped 1 kHz | CPU µs/msg 100 Hz | '
-             'CPU µs/msg 1 kHz | max held Hz |',
-             '|---|---|---|---|---|---|---|---|---|---|---|']
+             'The relay runs for the whole benchmark; each node alternates with it in '
+             f'{rounds} short blocks per rate (relay, node, node, relay, ...), so both see the '
+             'same machine at the same time. Latency ratio = median over the blocks of node '
+             f'p50 / relay p50 of the paired block (goal <= {LATENCY_GOAL}); p50 and p99 = '
+             'median over the blocks; CPU = SUT process CPU time (all threads) / messages '
+             'sent, and its ratio to the paired relay blocks; max held = highest paced rate '
+             f'losing <= 0.1 % of the messages (goal >= {RATE_GOAL_HZ:.0f} Hz; ladder '
+             f'{node["ladder_hz"]}). SUTs pinned to one core, driver on the other.', '',
+             '| SUT | p50 µs 100 Hz | ratio 100 Hz | p50 µs 1 kHz | p99 µs 1 kHz | '
+             'ratio 1 kHz | dropped 1 kHz | CPU µs/msg 1 kHz | CPU ratio 1 kHz | '
+             'max held Hz |',
+             '|---|---|---|---|---|---|---|---|---|---|']
     for row in node_rows(node):
         if row['error']:
-            lines.append(f'| {row["label"]} | failed: {row["error"]} |' + ' |' * 10)
+            lines.append(f'| {row["label"]} | failed: {row["error"]} |' + ' |' * 8)
             continue
+        ratio = ('reference' if row['reference'] else _num(row['ratio_100'], 2),
+                 'reference' if row['reference'] else _num(row['ratio_1k'], 2),
+                 'reference' if row['reference'] else _num(row['cpu_ratio_1k'], 2))
         lines.append(
-            f'| {row["label"]} | {_num(row["p50_100"], 0)} | {_num(row["p99_100"], 0)} | '
-            f'{_num(row["ratio_100"], 2)} | {_num(row["p50_1k"], 0)} | '
-            f'{_num(row["p99_1k"], 0)} | {_num(row["ratio_1k"], 2)} | {row["drop_1k"]} | '
-            f'{_num(row["cpu_100"], 0)} | {_num(row["cpu_1k"], 0)} | '
+            f'| {row["label"]} | {_num(row["p50_100"], 0)} | {ratio[0]} | '
+            f'{_num(row["p50_1k"], 0)} | {_num(row["p99_1k"], 0)} | {ratio[1]} | '
+            f'{row["drop_1k"]} | {_num(row["cpu_1k"], 0)} | {ratio[2]} | '
             f'{_num(row["max_held_hz"], 0)} |')
     for label, reason in node.get('not_run', {}).items():
-        lines.append(f'| {label} | {reason} |' + ' |' * 10)
+        lines.append(f'| {label} | {reason} |' + ' |' * 8)
     return lines + ['']
 
 

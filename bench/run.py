@@ -27,7 +27,7 @@ import platform
 import sys
 import tempfile
 import time
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import calib_bench
 import diag_bench
@@ -47,6 +47,7 @@ class Sizes:
     node_plan: tuple[tuple[float, float], ...]
     node_ladder_hz: tuple[float, ...]
     node_ladder_s: float
+    node_rounds: int
     node_models: tuple[str, ...]
     node_augmented: bool
     calib_km: tuple[float, ...]
@@ -61,15 +62,15 @@ class Sizes:
 
 
 FULL = Sizes(
-    node_plan=((100.0, 4.0), (1000.0, 3.0)),
+    node_plan=((100.0, 6.0), (1000.0, 6.0)),
     node_ladder_hz=(1500.0, 2000.0, 2500.0, 3000.0, 4000.0, 5000.0, 6000.0),
-    node_ladder_s=1.5, node_models=MODEL_NAMES, node_augmented=True,
+    node_ladder_s=1.5, node_rounds=12, node_models=MODEL_NAMES, node_augmented=True,
     calib_km=(0.5, 1.0, 2.0, 4.0), calib_drive_s=600.0, holdout_block_s=60.0,
     calib_n_starts=None,
     lidar_durations_s=(20.0, 40.0, 80.0), lidar_azimuth_deg=0.5, lidar_horizon_m=2.0,
     diag_km=(0.05, 0.1), diag_drive_s=60.0)
 SMOKE = Sizes(
-    node_plan=((100.0, 0.5), (1000.0, 0.5)), node_ladder_hz=(), node_ladder_s=0.3,
+    node_plan=((100.0, 0.5), (1000.0, 0.5)), node_ladder_hz=(), node_ladder_s=0.3, node_rounds=1,
     node_models=('full_linear',), node_augmented=False,
     calib_km=(0.02, 0.04), calib_drive_s=40.0, holdout_block_s=10.0, calib_n_starts=1,
     lidar_durations_s=(3.0, 5.0), lidar_azimuth_deg=4.0, lidar_horizon_m=0.5,
@@ -101,6 +102,16 @@ def machine_facts() -> dict[str, Any]:
     }
 
 
+AUGMENTED_VALUES = {
+    'augmented.time_offset.offset_s': '0.02', 'augmented.first_order_lag.tau_s': '0.08',
+    'augmented.speed_slip.k': '0.05', 'augmented.direction_asymmetry.k': '0.1',
+    'augmented.lateral_skid.k': '0.03', 'augmented.icr_offset.x_m': '0.05',
+    'augmented.ratio_yaw_slip.k': '0.2', 'augmented.terrain_regime.k': '0.1',
+    'augmented.terrain_regime.switch_s': '30.0',
+}
+CALIBRATED_LABEL = 'odom_node edd_symmetric, calibrated covariance'
+
+
 def augmented_params() -> tuple[str, dict[str, str]] | None:
     """Return the label and node parameters of the heaviest augmented model, None if absent."""
     try:
@@ -113,34 +124,90 @@ def augmented_params() -> tuple[str, dict[str, str]] | None:
         return None
     extensions = [name for name in EXTENSION_NAMES if name != 'sparse_correction']
     label = f'{AUGMENTED_NAME}: edd_symmetric + {len(extensions)} extensions'
-    return label, {'model': AUGMENTED_NAME, 'augmented.base': 'edd_symmetric',
-                   'augmented.extensions': ','.join(extensions)}
+    params = {'model': AUGMENTED_NAME, 'augmented.base': 'edd_symmetric',
+              'augmented.extensions': ','.join(extensions)}
+    # Non-zero values, of the size the effects study finds, so no term is a no-op.
+    params.update({name: value for name, value in AUGMENTED_VALUES.items()
+                   if name.split('.')[1] in extensions})
+    return label, params
+
+
+def _sut_result(kind: str, label: str, params: Mapping[str, str] | None) -> dict[str, Any]:
+    return {'kind': kind, 'label': label, 'params': dict(params or {}), 'steps': [],
+            'reference_steps': [], 'error': None, 'max_held_hz': 0.0, 'stderr_tail': []}
+
+
+def _finish(result: dict[str, Any]) -> dict[str, Any]:
+    held_rates = [s['achieved_hz'] for s in result['steps'] if node_bench.held(s)]
+    result['max_held_hz'] = max(held_rates, default=0.0)
+    return result
 
 
 def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
-    """Measure the relay (first and last, to bracket drift) and the node with every model."""
-    suts: list[tuple[str, str, dict[str, str] | None]] = [('relay', 'bare rclpy relay', None)]
-    suts += [('odom', f'odom_node {model}', {'model': model}) for model in sizes.node_models]
+    """Measure every node model paired with one bare relay, then each one's rate ladder.
+
+    The relay runs for the whole benchmark; each node SUT starts in turn and alternates with it
+    in short blocks (node_bench.paired_steps), so each latency ratio compares runs made under
+    the same machine conditions.
+    """
+    suts: list[tuple[str, dict[str, str] | None]] = [
+        (f'odom_node {model}', {'model': model}) for model in sizes.node_models]
+    if not smoke:  # the covariance propagation of a calibrated parameters file, per sample
+        suts.append((CALIBRATED_LABEL, {'model': 'edd_symmetric',
+                                        'models.edd_symmetric.noise.calibrated': 'true'}))
     not_run = {}
     augmented = augmented_params() if sizes.node_augmented else None
     if augmented is not None:
-        suts.append(('odom', f'odom_node {augmented[0]}', augmented[1]))
+        suts.append((f'odom_node {augmented[0]}', augmented[1]))
     elif not smoke:
         not_run['odom_node augmented'] = 'n/a yet (augmented models not in the node schema)'
     if smoke:
         for model in MODEL_NAMES:
             if model not in sizes.node_models:
                 not_run[f'odom_node {model}'] = 'not run in the smoke run'
-    else:
-        suts.append(('relay', 'bare rclpy relay (again)', None))
-    results = []
-    for kind, label, params in suts:
-        print(f'  node: {label}', flush=True)
-        results.append(node_bench.measure_sut(kind, label, params, sizes.node_plan,
-                                              sizes.node_ladder_hz, sizes.node_ladder_s,
-                                              domain_id))
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else []
+    sut_cpu = node_bench.pin_driver(cpus)
+    relay_result = _sut_result('relay', 'bare rclpy relay', None)
+    results = [relay_result]
+    try:
+        relay = node_bench.Sut('relay', relay_result['label'], None, domain_id, sut_cpu)
+    except RuntimeError as err:
+        relay_result['error'] = str(err)
+        return {'suts': results, 'not_run': not_run, 'ladder_hz': list(sizes.node_ladder_hz),
+                'plan': [list(step) for step in sizes.node_plan], 'domain_id': domain_id,
+                'rounds': sizes.node_rounds}
+    try:
+        for label, params in suts:
+            print(f'  node: {label} (paired with the relay)', flush=True)
+            result = _sut_result('odom', label, params)
+            results.append(result)
+            try:
+                sut = node_bench.Sut('odom', label, params, domain_id, sut_cpu)
+            except RuntimeError as err:
+                result['error'] = str(err)
+                continue
+            try:
+                result['steps'], result['reference_steps'] = node_bench.paired_steps(
+                    relay, sut, sizes.node_plan, sizes.node_rounds)
+                relay_result['steps'] += result['reference_steps']
+                result['steps'] += sut.ladder(sizes.node_ladder_hz, sizes.node_ladder_s)
+            except RuntimeError as err:
+                result['error'] = str(err)
+            finally:
+                tail = sut.close()
+                if result['error']:
+                    result['stderr_tail'] = tail
+            _finish(result)
+        print('  node: bare rclpy relay (ladder)', flush=True)
+        relay_result['steps'] += relay.ladder(sizes.node_ladder_hz, sizes.node_ladder_s)
+    finally:
+        relay.close()
+        if cpus and hasattr(os, 'sched_setaffinity'):
+            os.sched_setaffinity(0, set(cpus))
+    _finish(relay_result)
     return {'suts': results, 'not_run': not_run, 'ladder_hz': list(sizes.node_ladder_hz),
-            'plan': [list(step) for step in sizes.node_plan], 'domain_id': domain_id}
+            'plan': [list(step) for step in sizes.node_plan], 'domain_id': domain_id,
+            'rounds': sizes.node_rounds}
 
 
 def _empty(part: str) -> dict[str, Any]:

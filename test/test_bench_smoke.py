@@ -40,6 +40,11 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
             assert _finite(step['p99_latency_us'])
             assert step['p99_latency_us'] >= step['p50_latency_us']
             assert _finite(step['cpu_us_per_msg']) and step['cpu_us_per_msg'] > 0
+    # The node's blocks are paired with the relay's, round by round.
+    node = suts['odom_node full_linear']
+    assert [(s['rate_hz'], s['round']) for s in node['reference_steps']] == [
+        (s['rate_hz'], s['round']) for s in node['steps']]
+    assert 'ratio 1 kHz' in (out / 'results.md').read_text()
 
     # Calibration: one row per size, growing data, finite times.
     rows = results['calibration']['rows']

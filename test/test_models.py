@@ -148,3 +148,33 @@ def test_unknown_parameter_is_rejected():
 def test_geometry_rejects_nonpositive_radius():
     with pytest.raises(ParameterError, match='wheel_radius'):
         Geometry(0.0, 0.5)
+
+
+SCALAR_CASES = {
+    'ideal_dd': {},
+    'edd_symmetric': {'alpha': 0.9, 'b_hat': 1.7},
+    'edd_asymmetric': {'alpha_l': 0.9, 'alpha_r': 0.8, 'x_v': -0.2, 'y_l': 0.8, 'y_r': -0.7},
+    'roc': {'alpha': 0.85, 'beta_1': 1.3, 'beta_2': 0.4},
+    'full_linear': {'gamma_11': 0.14, 'gamma_12': 0.16, 'gamma_21': 0.01, 'gamma_22': -0.02,
+                    'gamma_31': -0.2, 'gamma_32': 0.21},
+}
+
+
+@pytest.mark.parametrize('name', MODEL_NAMES)
+def test_scalar_twist_is_the_vectorized_twist_bit_for_bit(name):
+    """The node's plain-float path must give exactly what fitting and predict compute."""
+    bound = get_model(name).bind(SCALAR_CASES[name], GEOM)
+    rng = np.random.default_rng(5)
+    pairs = [(0.0, 0.0), (2.0, 2.0), (-2.0, 2.0), (3.0, -3.0), (-1.5, -1.5), (0.0, 4.0)]
+    pairs += [tuple(p) for p in rng.uniform(-10, 10, (200, 2))]
+    for wl, wr in pairs:
+        assert bound.scalar_twist(wl, wr) == tuple(bound.twist(wl, wr).tolist()), (wl, wr)
+
+
+@pytest.mark.parametrize('beta', [(0.0, 0.0), (1.0, 0.0), (-0.4, 0.0), (1.0, -1.0), (-0.5, -2.0),
+                                  (2.0, 3.0)])
+def test_roc_scalar_icr_distance_matches_at_singular_points(beta):
+    k = np.array([1.0, *beta])
+    for wl, wr in [(0.0, 0.0), (1.0, 1.0), (-1.0, 1.0), (1.0, -1.0), (2.0, 1.0), (0.5, 3.0)]:
+        vector = float(RocModel.icr_distance(k, GEOM, np.array(wl), np.array(wr)))
+        assert RocModel.icr_distance_scalar(k, GEOM, wl, wr) == vector, (beta, wl, wr)

@@ -70,3 +70,24 @@ def test_to_6x6_places_yaw_in_the_last_row_and_column():
     cov3 = np.array([[1.0, 0.1, 0.2], [0.1, 2.0, 0.3], [0.2, 0.3, 3.0]])
     full = to_6x6(cov3)
     assert full[5, 5] == 3.0 and full[0, 5] == 0.2 and full[1, 5] == 0.3 and full[2, 2] > 1e3
+
+
+def test_plain_math_step_equals_the_matrix_form():
+    """propagate_step writes F P F^T + G Q G^T out by hand; check it against numpy's products."""
+    from skidkin_ros.core.propagation import propagate_step, step_jacobians
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        pose = rng.normal(size=3) * [5.0, 5.0, 3.0]
+        root = rng.normal(size=(3, 3))
+        cov = root @ root.T
+        twist = rng.normal(size=3)
+        dt = float(rng.uniform(0.001, 0.2))
+        jac_in = rng.normal(size=(3, 2))
+        new_pose, new_cov = propagate_step(pose, cov, twist, dt, NOISE, jac_in, 0.3)
+        dx, dy, dth = body_increment(*twist, dt)
+        np.testing.assert_allclose(new_pose, compose(*pose, dx, dy, dth), atol=1e-12)
+        jac_pose, jac_incr = step_jacobians(pose[2], dx, dy)
+        q_body = NOISE.step_covariance(np.hypot(dx, dy), dth) + 0.3 * jac_in @ jac_in.T
+        expected = jac_pose @ cov @ jac_pose.T + jac_incr @ q_body @ jac_incr.T
+        np.testing.assert_allclose(new_cov, expected, rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(new_cov, new_cov.T)

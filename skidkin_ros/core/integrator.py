@@ -29,6 +29,7 @@ __all__ = [
     'SMALL_ANGLE_RAD',
     'body_increment',
     'compose',
+    'step_scalar',
     'rollout',
     'rollout_segments',
     'wrap_angle',
@@ -57,6 +58,36 @@ def _sinc_terms(dtheta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     cos_a = np.where(small, a / 2.0 - a * a2 / 24.0 + a * a2 * a2 / 720.0,
                      (1.0 - np.cos(safe)) / safe)
     return sin_a, cos_a
+
+
+def _sinc_scalar(a: float) -> tuple[float, float]:
+    """Scalar form of :func:`_sinc_terms`: the same operations in the same order."""
+    if abs(a) < SMALL_ANGLE_RAD:
+        a2 = a * a
+        return (1.0 - a2 / 6.0 + a2 * a2 / 120.0,
+                a / 2.0 - a * a2 / 24.0 + a * a2 * a2 / 720.0)
+    # numpy's sin/cos (not math's): the batch rollout uses them, and libm may differ by an ulp.
+    return float(np.sin(a)) / a, (1.0 - float(np.cos(a))) / a
+
+
+def step_scalar(x: float, y: float, theta: float, v_x: float, v_y: float, omega: float,
+                dt_s: float) -> tuple[float, float, float, float, float]:
+    """One integrator step on plain floats: returns (x', y', theta', dx, dy).
+
+    The same operations in the same order as :func:`body_increment` and :func:`compose` (and as
+    :func:`rollout_segments`' cumulative sums), so a stream of these steps reproduces the batch
+    rollout bit for bit, at a fraction of the cost of numpy on scalars (the node's hot path).
+    """
+    dtheta = omega * dt_s
+    sin_a, cos_a = _sinc_scalar(dtheta)
+    s = sin_a * dt_s
+    c = cos_a * dt_s
+    dx = v_x * s - v_y * c
+    dy = v_x * c + v_y * s
+    cos_t = float(np.cos(theta))
+    sin_t = float(np.sin(theta))
+    return (x + (cos_t * dx - sin_t * dy), y + (sin_t * dx + cos_t * dy), theta + dtheta,
+            dx, dy)
 
 
 def body_increment(v_x, v_y, omega, dt_s):
@@ -146,6 +177,16 @@ class StatefulTwistSource(Protocol):
     def intervals(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
                   dt_s: np.ndarray, restart: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ...
+
+
+def _scalar_twist(source: TwistSource, omega_l: float, omega_r: float
+                  ) -> tuple[float, float, float]:
+    """Return the twist of one sample as floats, by the source's scalar path when it has one."""
+    scalar = getattr(source, 'scalar_twist', None)
+    if scalar is not None:
+        return scalar(omega_l, omega_r)
+    vx, vy, w = np.asarray(source.twist(omega_l, omega_r), dtype=float).tolist()
+    return vx, vy, w
 
 
 def is_stateful(source: Any) -> bool:
@@ -265,7 +306,7 @@ class StreamingIntegrator:
             self.state, twist = source.begin(None, self.last_t_ns, *self.held_speeds, True)
             self.held_twist = np.asarray(twist, dtype=float)
             return
-        self.held_twist = np.asarray(source.twist(*self.held_speeds), dtype=float)
+        self.held_twist = np.array(_scalar_twist(source, *self.held_speeds))
 
     def _reject(self, status: SampleStatus, detail: str) -> StepResult:
         return StepResult(status, self.pose.copy(), self.held_twist.copy(), 0.0, detail)
@@ -277,7 +318,7 @@ class StreamingIntegrator:
             self.state, twist = self.source.begin(self.state, t_ns, omega_l, omega_r, restart)
             self.held_twist = np.asarray(twist, dtype=float)
             return
-        self.held_twist = np.asarray(self.source.twist(omega_l, omega_r), dtype=float)
+        self.held_twist = np.array(_scalar_twist(self.source, omega_l, omega_r))
 
     def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
         omega_l = float(omega_l)
@@ -308,21 +349,23 @@ class StreamingIntegrator:
             return StepResult(SampleStatus.GAP, self.pose.copy(), self.held_twist.copy(), dt_s,
                               f'gap of {dt_s:.3f} s > max_dt {self.limits.max_dt_s:g} s: '
                               'not integrated across')
-        vx, vy, w = self.held_twist
+        vx, vy, w = self.held_twist.tolist()
         new_state = self.state
         if is_stateful(self.source):
             new_state, mean = self.source.advance(self.state, dt_s)
-            vx, vy, w = mean
-        with np.errstate(all='ignore'):  # a non-finite result is caught just below
-            dx, dy, dth = body_increment(vx, vy, w, dt_s)
-            new_pose = np.array(compose(self.pose[0], self.pose[1], self.pose[2], dx, dy, dth),
-                                dtype=float)
-        if not np.all(np.isfinite(new_pose)):
+            vx, vy, w = np.asarray(mean, dtype=float).tolist()
+        x, y, theta = self.pose.tolist()
+        if math.isfinite(w * dt_s):  # else numpy's sin would warn; caught just below anyway
+            x, y, theta, _, _ = step_scalar(x, y, theta, vx, vy, w, dt_s)
+        else:
+            theta = math.nan
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
             self._hold(t_ns, omega_l, omega_r, restart=True)
             return StepResult(SampleStatus.NON_FINITE_STATE, self.pose.copy(),
                               self.held_twist.copy(), dt_s,
                               'integration produced a non-finite pose; kept the last finite one')
-        self.pose = new_pose
+        # A new array every step, never changed in place: callers may keep references.
+        self.pose = np.array((x, y, theta))
         self.state = new_state
         self._hold(t_ns, omega_l, omega_r)
         return StepResult(SampleStatus.INTEGRATED, self.pose.copy(), self.held_twist.copy(),

@@ -11,6 +11,8 @@ default parameters predicts exactly what ``ideal_dd`` predicts.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import functools
+import math
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -89,6 +91,14 @@ class KinematicModel:
         if rows is None:
             raise NotImplementedError
         return np.broadcast_to(rows, np.broadcast(omega_l, omega_r).shape + (3, 2)).copy()
+
+    def scalar_jacobian(self, k: np.ndarray, geometry: Geometry, omega_l: float,
+                        omega_r: float) -> tuple[float, ...] | None:
+        """J(k) of one wheel-speed pair as 6 floats (row-major) for a speed-dependent model.
+
+        None (the default): the model has no plain-math form, or is linear (see :meth:`rows`).
+        """
+        return None
 
     def twist(self, k: np.ndarray, geometry: Geometry,
               omega_l: np.ndarray, omega_r: np.ndarray) -> np.ndarray:
@@ -226,6 +236,32 @@ class RocModel(KinematicModel):
         y0 = np.where(np.isnan(y0), b / 2, y0)
         return np.clip(y0, b * Y0_MIN_FACTOR, b * Y0_MAX_FACTOR)
 
+    @staticmethod
+    def icr_distance_scalar(k: Sequence[float], geometry: Geometry, omega_l: float,
+                            omega_r: float) -> float:
+        """Return :meth:`icr_distance` of one wheel-speed pair on plain floats, bit for bit."""
+        _, beta_1, beta_2 = (float(v) for v in k)
+        b = geometry.track_width
+        root_d = math.sqrt(abs(omega_r - omega_l))
+        root_s = math.sqrt(abs(omega_r + omega_l))
+        den = root_d + beta_2 * root_s
+        if den != 0.0:
+            gain = beta_1 * root_d / den
+        elif beta_2 == 0.0 or root_s == 0.0 or beta_1 == 0.0:
+            gain = beta_1
+        else:
+            gain = math.copysign(math.inf, beta_1)
+        y0 = b / 2 * (1.0 + gain)
+        if math.isnan(y0):
+            y0 = b / 2
+        return min(max(y0, b * Y0_MIN_FACTOR), b * Y0_MAX_FACTOR)
+
+    def scalar_jacobian(self, k, geometry, omega_l, omega_r):
+        half = geometry.wheel_radius * float(k[0]) / 2
+        y0 = self.icr_distance_scalar(k, geometry, omega_l, omega_r)
+        scale = geometry.wheel_radius * float(k[0])
+        return half, half, 0.0, 0.0, -scale / (2 * y0), scale / (2 * y0)
+
     def jacobian(self, k, geometry, omega_l, omega_r):
         alpha = k[0]
         r = geometry.wheel_radius
@@ -282,6 +318,26 @@ class BoundModel:
 
     def twist(self, omega_l, omega_r) -> np.ndarray:
         return self.model.twist(self.k, self.geometry, omega_l, omega_r)
+
+    @functools.cached_property
+    def _linear_rows(self) -> tuple[float, ...] | None:
+        rows = self.model.rows(self.k, self.geometry)
+        return None if rows is None else tuple(np.asarray(rows, dtype=float).ravel().tolist())
+
+    def scalar_twist(self, omega_l: float, omega_r: float) -> tuple[float, float, float]:
+        """Twist of one sample as floats: the node's hot path, equal to :meth:`twist` bit for bit.
+
+        For a linear model it performs :meth:`KinematicModel.twist`'s operations in its order
+        (left column times omega_l plus right column times omega_r) on plain floats.
+        """
+        rows = self._linear_rows
+        if rows is None:
+            rows = self.model.scalar_jacobian(self.k, self.geometry, omega_l, omega_r)
+        if rows is None:
+            vx, vy, w = np.asarray(self.twist(omega_l, omega_r), dtype=float).tolist()
+            return vx, vy, w
+        a, b, c, d, e, f = rows
+        return omega_l * a + omega_r * b, omega_l * c + omega_r * d, omega_l * e + omega_r * f
 
 
 MODELS: dict[str, KinematicModel] = {

@@ -66,6 +66,13 @@ class NoiseModel:
         cov[..., 2, 2] = self.var_yaw_per_m * ds + self.var_yaw_per_rad * dth
         return cov
 
+    def step_variances(self, distance_m: float, rotation_rad: float
+                       ) -> tuple[float, float, float]:
+        """Diagonal of :meth:`step_covariance` for one step, as floats (the node's hot path)."""
+        ds = abs(distance_m)
+        return (self.var_x_per_m * ds, self.var_y_per_m * ds,
+                self.var_yaw_per_m * ds + self.var_yaw_per_rad * abs(rotation_rad))
+
     def twist_variances(self, speed_m_s: float, yaw_rate_rad_s: float,
                         period_s: float) -> tuple[float, float, float]:
         """Variances of (v_x, v_y, omega) for one sample of ``period_s``.

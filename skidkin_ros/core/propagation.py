@@ -25,11 +25,12 @@ Example, for a filter author (one prediction over a batch of wheel samples)::
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
 
-from skidkin_ros.core.integrator import body_increment, compose, TwistSource
+from skidkin_ros.core.integrator import body_increment, step_scalar, TwistSource
 from skidkin_ros.core.noise import NoiseModel
 
 __all__ = [
@@ -79,17 +80,57 @@ def propagate_step(pose: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt_s: f
                    noise: NoiseModel | None,
                    input_jacobian: np.ndarray | None = None,
                    input_variance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Advance (pose, cov) by one held twist over dt_s; same step as the integrator."""
-    dx, dy, dth = body_increment(twist[0], twist[1], twist[2], dt_s)
-    new_pose = np.array(compose(pose[0], pose[1], pose[2], dx, dy, dth), dtype=float)
-    jac_pose, jac_incr = step_jacobians(pose[2], float(dx), float(dy))
-    q_body = np.zeros((3, 3))
+    """Advance (pose, cov) by one held twist over dt_s; same step as the integrator.
+
+    P' = F P F^T + G Q G^T (see :func:`step_jacobians`), written out on plain floats: F differs
+    from the identity in its last column only and G is a rotation, so the products are a few
+    dozen multiplications; numpy's 3 x 3 products would cost more in overhead than in arithmetic,
+    and this step runs once per wheel sample in the node.
+    """
+    x, y, yaw = (float(v) for v in pose)
+    vx, vy, w = (float(v) for v in twist)
+    new_x, new_y, new_yaw, dx, dy = step_scalar(x, y, yaw, vx, vy, w, dt_s)
+    dth = w * dt_s
+    q00 = q01 = q02 = q11 = q12 = q22 = 0.0
     if noise is not None:
-        q_body = noise.step_covariance(float(np.hypot(dx, dy)), float(dth))
+        q00, q11, q22 = noise.step_variances(math.hypot(dx, dy), dth)
     if input_jacobian is not None and input_variance > 0.0:
-        q_body = q_body + input_variance * input_jacobian @ input_jacobian.T
-    new_cov = jac_pose @ cov @ jac_pose.T + jac_incr @ q_body @ jac_incr.T
-    return new_pose, 0.5 * (new_cov + new_cov.T)
+        extra = input_variance * input_jacobian @ input_jacobian.T
+        (e00, e01, e02), (_, e11, e12), (_, _, e22) = extra.tolist()
+        q00, q01, q02, q11, q12, q22 = (q00 + e00, q01 + e01, q02 + e02, q11 + e11,
+                                        q12 + e12, q22 + e22)
+    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = cov.tolist()
+    # Symmetrize the input as the matrix form did its output.
+    p01 = 0.5 * (p01 + p10)
+    p02 = 0.5 * (p02 + p20)
+    p12 = 0.5 * (p12 + p21)
+    cos_t = float(np.cos(yaw))
+    sin_t = float(np.sin(yaw))
+    a = -sin_t * dx - cos_t * dy  # F[0, 2]
+    b = cos_t * dx - sin_t * dy   # F[1, 2]
+    # F P F^T
+    r02 = p02 + a * p22
+    r12 = p12 + b * p22
+    m00 = p00 + a * p02 + a * r02
+    m01 = p01 + a * p12 + b * r02
+    m11 = p11 + b * p12 + b * r12
+    # G Q G^T, G the rotation by yaw
+    g00 = cos_t * q00 - sin_t * q01
+    g01 = cos_t * q01 - sin_t * q11
+    g10 = sin_t * q00 + cos_t * q01
+    g11 = sin_t * q01 + cos_t * q11
+    n00 = g00 * cos_t - g01 * sin_t
+    n01 = g00 * sin_t + g01 * cos_t
+    n11 = g10 * sin_t + g11 * cos_t
+    n02 = cos_t * q02 - sin_t * q12
+    n12 = sin_t * q02 + cos_t * q12
+    c01 = m01 + n01
+    c02 = r02 + n02
+    c12 = r12 + n12
+    new_cov = np.array([[m00 + n00, c01, c02],
+                        [c01, m11 + n11, c12],
+                        [c02, c12, p22 + q22]])
+    return np.array((new_x, new_y, new_yaw)), new_cov
 
 
 def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
@@ -122,12 +163,21 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
 
 def to_6x6(cov3: np.ndarray, unobserved: float = UNOBSERVED_VARIANCE) -> np.ndarray:
     """Embed a planar (x, y, yaw) covariance into ROS's 6x6 (x, y, z, roll, pitch, yaw) layout."""
-    full = np.diag([0.0, 0.0, unobserved, unobserved, unobserved, 0.0])
-    idx = [0, 1, 5]
-    for a, i in enumerate(idx):
-        for b, j in enumerate(idx):
-            full[i, j] = cov3[a, b]
-    return full
+    (a, b, c), (d, e, f), (g, h, i) = np.asarray(cov3, dtype=float).tolist()
+    u = unobserved
+    return np.array([a, b, 0.0, 0.0, 0.0, c,
+                     d, e, 0.0, 0.0, 0.0, f,
+                     0.0, 0.0, u, 0.0, 0.0, 0.0,
+                     0.0, 0.0, 0.0, u, 0.0, 0.0,
+                     0.0, 0.0, 0.0, 0.0, u, 0.0,
+                     g, h, 0.0, 0.0, 0.0, i]).reshape(6, 6)
+
+
+def _diagonal_6x6(values: Sequence[float]) -> np.ndarray:
+    """Return a 6x6 diagonal matrix (a list-built array: cheaper than np.diag per message)."""
+    flat = [0.0] * 36
+    flat[::7] = values
+    return np.array(flat).reshape(6, 6)
 
 
 class PoseCovariancePropagator:
@@ -166,9 +216,8 @@ class PoseCovariancePropagator:
     def twist_covariance_6x6(self, twist: np.ndarray, period_s: float) -> np.ndarray:
         if self.noise is None or period_s <= 0.0:
             return self.fallback_twist.copy()
-        speed = float(np.hypot(twist[0], twist[1]))
+        speed = math.hypot(twist[0], twist[1])
         var_vx, var_vy, var_w = self.noise.twist_variances(speed, float(twist[2]), period_s)
         floor = TWIST_VARIANCE_FLOOR
-        full = np.diag([max(var_vx, floor[0]), max(var_vy, floor[1]), UNOBSERVED_VARIANCE,
-                        UNOBSERVED_VARIANCE, UNOBSERVED_VARIANCE, max(var_w, floor[2])])
-        return full
+        return _diagonal_6x6([max(var_vx, floor[0]), max(var_vy, floor[1]), UNOBSERVED_VARIANCE,
+                              UNOBSERVED_VARIANCE, UNOBSERVED_VARIANCE, max(var_w, floor[2])])

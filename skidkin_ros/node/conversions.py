@@ -20,7 +20,9 @@ __all__ = [
     'stamp_to_ns',
     'ns_to_stamp',
     'side_speed',
-    'joint_state_speeds',
+    'check_velocity_count',
+    'joint_indices',
+    'speeds_at',
     'yaw_to_quaternion',
     'quaternion_to_yaw',
     'planar_pose_from_msg',
@@ -62,28 +64,35 @@ def side_speed(values: Sequence[float]) -> float:
     return math.fsum(float(v) for v in values) / len(values)
 
 
-def joint_state_speeds(names: Sequence[str], velocity: Sequence[float],
-                       left_joints: Sequence[str],
-                       right_joints: Sequence[str]) -> tuple[float, float]:
-    """Return (omega_left, omega_right) in rad/s from the fields of a sensor_msgs/JointState.
+def joint_indices(names: Sequence[str], left_joints: Sequence[str],
+                  right_joints: Sequence[str]) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Return where the left and right wheel joints are in a JointState's ``name`` list.
 
-    A side's speed is the mean of the velocities of its joints. Raises MalformedMessageError when
-    the message carries fewer velocities than names, MissingJointError when a configured joint
-    is absent.
+    Raises MissingJointError when a configured joint is absent. Drivers send the same name list
+    every time, so the node looks the indices up once per distinct list.
     """
-    if len(velocity) < len(names):
-        raise MalformedMessageError(
-            f'JointState has {len(names)} names but only {len(velocity)} velocities; expected '
-            'one velocity (rad/s) per joint name')
     index = {name: i for i, name in enumerate(names)}
     missing = [joint for joint in (*left_joints, *right_joints) if joint not in index]
     if missing:
         raise MissingJointError(
             f'JointState lacks wheel joint(s) {missing} (it has {list(names)}); check '
             'left_wheel_joints / right_wheel_joints')
-    left = side_speed([velocity[index[joint]] for joint in left_joints])
-    right = side_speed([velocity[index[joint]] for joint in right_joints])
-    return left, right
+    return (tuple(index[joint] for joint in left_joints),
+            tuple(index[joint] for joint in right_joints))
+
+
+def check_velocity_count(n_names: int, n_velocities: int) -> None:
+    """Raise MalformedMessageError when a JointState has fewer velocities than names."""
+    if n_velocities < n_names:
+        raise MalformedMessageError(
+            f'JointState has {n_names} names but only {n_velocities} velocities; expected '
+            'one velocity (rad/s) per joint name')
+
+
+def speeds_at(velocity: Sequence[float], left: Sequence[int],
+              right: Sequence[int]) -> tuple[float, float]:
+    """Return (omega_left, omega_right) in rad/s: each the mean of its joints' velocities."""
+    return side_speed([velocity[i] for i in left]), side_speed([velocity[i] for i in right])
 
 
 def yaw_to_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:

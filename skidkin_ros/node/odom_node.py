@@ -57,9 +57,10 @@ from skidkin_ros.core.integrator import (IntegratorLimits, SampleStatus, StepRes
 from skidkin_ros.core.propagation import PoseCovariancePropagator
 from skidkin_ros.core.specs import Geometry, GEOMETRY_SPECS
 from skidkin_ros.errors import ConfigError
-from skidkin_ros.node.conversions import (joint_state_speeds, MissingJointError, ns_to_stamp,
-                                          plain_value, planar_covariance_from_msg,
-                                          planar_pose_from_msg, stamp_to_ns, yaw_to_quaternion)
+from skidkin_ros.node.conversions import (check_velocity_count, joint_indices,
+                                          MissingJointError, ns_to_stamp, plain_value,
+                                          planar_covariance_from_msg, planar_pose_from_msg,
+                                          speeds_at, stamp_to_ns, yaw_to_quaternion)
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 import yaml
@@ -148,6 +149,9 @@ class OdomNode(Node):
         self._stale = True
         self._stale_reported = False
         self._pending: dict[str, tuple[int, float] | None] = {'left': None, 'right': None}
+        # The wheel joints' places in the last JointState name list (drivers repeat the list).
+        self._joint_names: list[str] | None = None
+        self._joint_index: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())
         self._side_seen_mono_ns: dict[str, int | None] = {'left': None, 'right': None}
         self._report_counters: collections.Counter[str] = collections.Counter()
         self._report_mono_ns = time.monotonic_ns()
@@ -260,6 +264,7 @@ class OdomNode(Node):
         covariance = self._new_propagator(config)
         covariance.cov = self._covariance.cov.copy()
         self._covariance = covariance
+        self._joint_names = None  # the wheel joints may have changed
         if config['publish_tf'] and self._tf_broadcaster is None:
             self._tf_broadcaster = self._make_tf_broadcaster(True)
         self._config = config
@@ -281,13 +286,18 @@ class OdomNode(Node):
         with self._lock:
             self.counters['received'] += 1
             config = self._config
-            try:
-                omega_l, omega_r = joint_state_speeds(
-                    msg.name, msg.velocity, config['left_wheel_joints'],
-                    config['right_wheel_joints'])
-            except MissingJointError as err:
-                self._reject('missing_joint', str(err))
-                return
+            names = msg.name
+            velocity = msg.velocity
+            check_velocity_count(len(names), len(velocity))  # raises: reported by _guarded
+            if names != self._joint_names:
+                try:
+                    self._joint_index = joint_indices(names, config['left_wheel_joints'],
+                                                      config['right_wheel_joints'])
+                except MissingJointError as err:
+                    self._reject('missing_joint', str(err))
+                    return
+                self._joint_names = list(names)
+            omega_l, omega_r = speeds_at(velocity, *self._joint_index)
             t_ns = stamp_to_ns(msg.header.stamp)
             now_ns = self._clock_now_ns()
             if now_ns is None:
@@ -347,8 +357,12 @@ class OdomNode(Node):
     def _clock_now_ns(self) -> int | None:
         """Return the node clock in ns, or None while use_sim_time waits for /clock (N13)."""
         clock = self.get_clock()
+        if not clock.ros_time_is_active:
+            # ROS time without /clock is the system clock (CLOCK_REALTIME, as time.time_ns);
+            # reading it directly skips rclpy's Time object: this runs once per wheel sample.
+            return time.time_ns()
         now_ns = clock.now().nanoseconds
-        if now_ns == 0 and getattr(clock, 'ros_time_is_active', False):
+        if now_ns == 0:
             self.counters['waiting_for_clock'] += 1
             if not self._clock_waiting_logged:
                 self._clock_waiting_logged = True
@@ -360,10 +374,10 @@ class OdomNode(Node):
 
     # ------------------------------------------------------------------ integration
     def _process(self, t_ns: int, omega_l: float, omega_r: float) -> None:
-        pose_before = self._integrator.pose.copy()
-        twist_before = self._integrator.held_twist.copy()
-        with np.errstate(all='ignore'):  # non-finite results are caught and reported below
-            result = self._integrator.step(t_ns, omega_l, omega_r)
+        # No copies needed: the integrator replaces these arrays, it never changes them in place.
+        pose_before = self._integrator.pose
+        twist_before = self._integrator.held_twist
+        result = self._integrator.step(t_ns, omega_l, omega_r)
         status = result.status
         self.counters[status.value] += 1
         if status is SampleStatus.NON_FINITE_STATE:
@@ -399,18 +413,18 @@ class OdomNode(Node):
             return
         pose_cov = self._covariance.pose_covariance_6x6()
         twist_cov = self._covariance.twist_covariance_6x6(result.twist, self._period_s)
-        # One reduction instead of four: a sum is finite only if every term is.
-        total = (float(np.sum(result.pose)) + float(np.sum(result.twist))
-                 + float(np.sum(pose_cov)) + float(np.sum(twist_cov)))
-        if not math.isfinite(total):
+        x, y, yaw = result.pose.tolist()
+        vx, vy, w = result.twist.tolist()
+        # A sum of finite terms may overflow to inf only far beyond any plausible value.
+        if not (math.isfinite(x + y + yaw + vx + vy + w)
+                and math.isfinite(float(pose_cov.sum()) + float(twist_cov.sum()))):
             self.counters['non_finite_output'] += 1
             self._warn('non_finite_output', 'odometry has a non-finite pose, twist or '
                        f'covariance (pose {result.pose}, twist {result.twist}); not published',
                        error=True)
             return
-        x, y, yaw = (float(v) for v in result.pose)
         msg = self._odom_msg  # reused: publish() serializes it before returning
-        msg.header.stamp = ns_to_stamp(t_ns)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, NS_PER_S)
         msg.header.frame_id = config['odom_frame_id']
         msg.child_frame_id = config['base_frame_id']
         msg.pose.pose.position.x = x
@@ -419,9 +433,9 @@ class OdomNode(Node):
         msg.pose.pose.orientation.z = qz
         msg.pose.pose.orientation.w = qw
         msg.pose.covariance = np.ascontiguousarray(pose_cov, dtype=np.float64).reshape(36)
-        msg.twist.twist.linear.x = float(result.twist[0])
-        msg.twist.twist.linear.y = float(result.twist[1])
-        msg.twist.twist.angular.z = float(result.twist[2])
+        msg.twist.twist.linear.x = vx
+        msg.twist.twist.linear.y = vy
+        msg.twist.twist.angular.z = w
         msg.twist.covariance = np.ascontiguousarray(twist_cov, dtype=np.float64).reshape(36)
         self._odom_pub.publish(msg)
         self.counters['published'] += 1
