@@ -103,7 +103,8 @@ def machine_facts() -> dict[str, Any]:
 
 
 AUGMENTED_VALUES = {
-    'augmented.time_offset.offset_s': '0.02', 'augmented.first_order_lag.tau_s': '0.08',
+    # time_offset stays 0: it shifts the output stamps, which the driver matches replies by.
+    'augmented.first_order_lag.tau_s': '0.08',
     'augmented.speed_slip.k': '0.05', 'augmented.direction_asymmetry.k': '0.1',
     'augmented.lateral_skid.k': '0.03', 'augmented.icr_offset.x_m': '0.05',
     'augmented.ratio_yaw_slip.k': '0.2', 'augmented.terrain_regime.k': '0.1',
