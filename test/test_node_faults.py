@@ -276,3 +276,23 @@ def test_max_rate_caps_publication(make_rig):
         rig.send_joint(t0 + i * DT, 1.0, 1.0)
     rig.drain()
     assert len(rig.odom) == 3 and rig.node.counters['integrated'] == 10
+
+
+def test_joint_order_may_change_between_messages(make_rig):
+    """The node caches where the wheel joints are; a new name order must be looked up again."""
+    rig = make_rig({'model': 'ideal_dd'})
+    t0 = start_ns()
+    order = ['front_left_wheel_joint', 'rear_left_wheel_joint', 'front_right_wheel_joint',
+             'rear_right_wheel_joint']
+    rig.send_joint(t0, 0.0, 0.0, names=order, velocity=[1.0, 1.0, 3.0, 3.0])
+    swapped = [order[2], order[3], order[0], order[1], 'caster_joint']
+    rig.send_joint(t0 + DT, 0.0, 0.0, names=swapped, velocity=[3.0, 3.0, 1.0, 1.0, 9.0])
+    rig.send_joint(t0 + 2 * DT, 0.0, 0.0, names=order[:3], velocity=[1.0, 1.0, 3.0])
+    rig.drain()
+    assert rig.node.counters['missing_joint'] == 1
+    # Both accepted samples read left 1 rad/s and right 3 rad/s, whatever the order.
+    geometry = rig.node.config.geometry
+    assert len(rig.odom) == 2
+    for msg in rig.odom:
+        assert msg.twist.twist.angular.z == pytest.approx(
+            geometry.wheel_radius * 2.0 / geometry.track_width)
