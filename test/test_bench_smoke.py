@@ -71,3 +71,16 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
                    '## Lidar pipeline', 'diagnosis: not run in the smoke run'):
         assert needle in text, needle
     assert (out / 'cost_vs_size.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+
+
+@pytest.mark.ros
+def test_callback_bench_times_every_case():
+    proc = subprocess.run([sys.executable, str(ROOT / 'bench' / 'callback_bench.py'),
+                           '--messages', '50', '--repeats', '1'], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [line for line in proc.stdout.splitlines() if line.startswith('| odom_node')]
+    assert len(rows) == 7
+    for row in rows:
+        cost = float(row.split('|')[2])
+        assert math.isfinite(cost) and cost > 0

@@ -1,0 +1,126 @@
+"""In-process cost of the node's JointState callback, without DDS or the executor.
+
+The latency benchmark (node_bench) measures the whole path; on one core at 1 kHz that path is
+dominated by rclpy and the middleware, whose queueing swamps small differences. This script
+isolates what skidkin_ros adds: it calls ``OdomNode._on_joint_state`` directly on a stream of
+JointState messages (1 kHz stamps, four wheel joints) and times it, next to what a bare relay does
+per message (build an Odometry, copy the stamp, publish). Nothing subscribes, so ``publish``
+costs only the serialization.
+
+Run: ``python bench/callback_bench.py`` (prints a Markdown table; about 20 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any, Sequence
+
+NS_PER_S = 1_000_000_000
+JOINTS = ('front_left_wheel_joint', 'rear_left_wheel_joint', 'front_right_wheel_joint',
+          'rear_right_wheel_joint')
+AUGMENTED = {
+    'model': 'augmented', 'augmented.base': 'edd_symmetric',
+    'augmented.extensions': ('first_order_lag,speed_slip,direction_asymmetry,lateral_skid,'
+                             'icr_offset,ratio_yaw_slip,terrain_regime'),
+    'augmented.first_order_lag.tau_s': 0.08, 'augmented.speed_slip.k': 0.05,
+    'augmented.direction_asymmetry.k': 0.1, 'augmented.lateral_skid.k': 0.03,
+    'augmented.icr_offset.x_m': 0.05, 'augmented.ratio_yaw_slip.k': 0.2,
+    'augmented.terrain_regime.k': 0.1, 'augmented.terrain_regime.switch_s': 30.0,
+}
+CASES: tuple[tuple[str, dict[str, Any]], ...] = (
+    ('ideal_dd', {'model': 'ideal_dd'}),
+    ('edd_symmetric', {'model': 'edd_symmetric'}),
+    ('edd_asymmetric', {'model': 'edd_asymmetric'}),
+    ('roc', {'model': 'roc', 'models.roc.beta_1': 0.5, 'models.roc.beta_2': 0.3}),
+    ('full_linear', {'model': 'full_linear'}),
+    ('edd_symmetric, calibrated covariance',
+     {'model': 'edd_symmetric', 'models.edd_symmetric.noise.calibrated': True}),
+    ('augmented: edd_symmetric + 7 extensions', AUGMENTED),
+)
+
+
+def _messages(n: int, start_ns: int) -> list[Any]:
+    from sensor_msgs.msg import JointState
+    out = []
+    for i in range(n):
+        msg = JointState()
+        t_ns = start_ns + i * 1_000_000
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, NS_PER_S)
+        msg.name = list(JOINTS)
+        w = 2.0 + (i % 100) * 0.01
+        msg.velocity = [w, w, 1.5 * w, 1.5 * w]
+        out.append(msg)
+    return out
+
+
+def time_node(params: dict[str, Any], n: int, repeats: int) -> float:
+    """Return the best mean µs per message of the node callback over ``repeats`` runs of n."""
+    import rclpy.parameter
+    from skidkin_ros.node.odom_node import OdomNode
+    overrides = [rclpy.parameter.Parameter(k, value=v) for k, v in params.items()]
+    node = OdomNode(parameter_overrides=overrides)
+    try:
+        best = float('inf')
+        start_ns = node.get_clock().now().nanoseconds - 600 * NS_PER_S
+        for _ in range(repeats):
+            messages = _messages(n, start_ns)
+            start_ns += (n + 10) * 1_000_000
+            tic = time.perf_counter()
+            for msg in messages:
+                node._on_joint_state(msg)
+            best = min(best, (time.perf_counter() - tic) / n * 1e6)
+        if node.counters['published'] < repeats * (n - 1):
+            raise RuntimeError(f'the node published {node.counters["published"]} of '
+                               f'{repeats * n} samples: {dict(node.counters)}')
+        return best
+    finally:
+        node.destroy_node()
+
+
+def time_relay(n: int, repeats: int) -> float:
+    """Return the best mean µs per message of a bare relay's callback body."""
+    from nav_msgs.msg import Odometry
+    import rclpy
+    node = rclpy.create_node('callback_bench_relay')
+    pub = node.create_publisher(Odometry, 'relay_odom', 10)
+    try:
+        best = float('inf')
+        for _ in range(repeats):
+            messages = _messages(n, 0)
+            tic = time.perf_counter()
+            for msg in messages:
+                out = Odometry()
+                out.header.stamp = msg.header.stamp
+                out.header.frame_id = 'odom'
+                out.child_frame_id = 'base_link'
+                pub.publish(out)
+            best = min(best, (time.perf_counter() - tic) / n * 1e6)
+        return best
+    finally:
+        node.destroy_node()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--messages', type=int, default=3000, help='messages per run')
+    parser.add_argument('--repeats', type=int, default=5, help='runs per case (best kept)')
+    args = parser.parse_args(argv)
+    import rclpy
+    rclpy.init(args=['--ros-args', '--log-level', 'warn'])
+    try:
+        relay_us = time_relay(args.messages, args.repeats)
+        print('| callback | µs per message (best of runs) | over the relay |')
+        print('|---|---|---|')
+        print(f'| bare relay (build Odometry, copy stamp, publish) | {relay_us:.1f} | |')
+        for label, params in CASES:
+            node_us = time_node(params, args.messages, args.repeats)
+            print(f'| odom_node {label} | {node_us:.1f} | +{node_us - relay_us:.1f} µs |')
+    finally:
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
