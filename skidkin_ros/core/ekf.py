@@ -28,7 +28,7 @@ import numpy as np
 
 from skidkin_ros.core.integrator import TwistSource, wrap_angle
 from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.propagation import _increment_input_jacobian, propagate_step
+from skidkin_ros.core.propagation import increment_input_jacobian, propagate_step
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['PoseFix', 'Innovation', 'PlanarEkf']
@@ -107,7 +107,7 @@ class PlanarEkf:
         if dt_s > 0.0:
             omega_l, omega_r = self.held_speeds
             twist = np.asarray(self.source.twist(omega_l, omega_r), dtype=float)
-            jac_in = (_increment_input_jacobian(self.source, omega_l, omega_r, dt_s)
+            jac_in = (increment_input_jacobian(self.source, omega_l, omega_r, dt_s)
                       if self.input_variance > 0.0 else None)
             self.pose, self.cov = propagate_step(self.pose, self.cov, twist, dt_s, self.noise,
                                                  jac_in, self.input_variance)

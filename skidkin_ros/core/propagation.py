@@ -37,6 +37,7 @@ __all__ = [
     'INITIAL_VARIANCE',
     'TWIST_VARIANCE_FLOOR',
     'step_jacobians',
+    'increment_input_jacobian',
     'propagate_step',
     'predict',
     'PoseCovariancePropagator',
@@ -65,7 +66,7 @@ def step_jacobians(yaw_rad: float, dx: float, dy: float) -> tuple[np.ndarray, np
     return jac_pose, jac_incr
 
 
-def _increment_input_jacobian(source: TwistSource, omega_l: float, omega_r: float,
+def increment_input_jacobian(source: TwistSource, omega_l: float, omega_r: float,
                               dt_s: float, eps: float = 1e-6) -> np.ndarray:
     """Numerical d(dx, dy, dyaw)/d(omega_l, omega_r) of one step (3 x 2)."""
     cols = []
@@ -154,7 +155,7 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
         if dt_s <= 0.0:
             continue
         twist = np.asarray(source.twist(wl[i], wr[i]), dtype=float)
-        jac_in = (_increment_input_jacobian(source, wl[i], wr[i], dt_s)
+        jac_in = (increment_input_jacobian(source, wl[i], wr[i], dt_s)
                   if input_variance > 0.0 else None)
         state, covariance = propagate_step(state, covariance, twist, dt_s, noise, jac_in,
                                            input_variance)
