@@ -67,7 +67,7 @@ def step_jacobians(yaw_rad: float, dx: float, dy: float) -> tuple[np.ndarray, np
 
 
 def increment_input_jacobian(source: TwistSource, omega_l: float, omega_r: float,
-                              dt_s: float, eps: float = 1e-6) -> np.ndarray:
+                             dt_s: float, eps: float = 1e-6) -> np.ndarray:
     """Numerical d(dx, dy, dyaw)/d(omega_l, omega_r) of one step (3 x 2)."""
     cols = []
     for d_l, d_r in ((eps, 0.0), (0.0, eps)):
