@@ -17,28 +17,32 @@ import sys
 import time
 from typing import Any, Sequence
 
-NS_PER_S = 1_000_000_000
-JOINTS = ('front_left_wheel_joint', 'rear_left_wheel_joint', 'front_right_wheel_joint',
-          'rear_right_wheel_joint')
-AUGMENTED = {
-    'model': 'augmented', 'augmented.base': 'edd_symmetric',
-    'augmented.extensions': ('first_order_lag,speed_slip,direction_asymmetry,lateral_skid,'
-                             'icr_offset,ratio_yaw_slip,terrain_regime'),
-    'augmented.first_order_lag.tau_s': 0.08, 'augmented.speed_slip.k': 0.05,
-    'augmented.direction_asymmetry.k': 0.1, 'augmented.lateral_skid.k': 0.03,
-    'augmented.icr_offset.x_m': 0.05, 'augmented.ratio_yaw_slip.k': 0.2,
-    'augmented.terrain_regime.k': 0.1, 'augmented.terrain_regime.switch_s': 30.0,
-}
-CASES: tuple[tuple[str, dict[str, Any]], ...] = (
-    ('ideal_dd', {'model': 'ideal_dd'}),
-    ('edd_symmetric', {'model': 'edd_symmetric'}),
-    ('edd_asymmetric', {'model': 'edd_asymmetric'}),
-    ('roc', {'model': 'roc', 'models.roc.beta_1': 0.5, 'models.roc.beta_2': 0.3}),
-    ('full_linear', {'model': 'full_linear'}),
-    ('edd_symmetric, calibrated covariance',
-     {'model': 'edd_symmetric', 'models.edd_symmetric.noise.calibrated': True}),
-    ('augmented: edd_symmetric + 7 extensions', AUGMENTED),
-)
+import node_bench
+
+NS_PER_S = node_bench.NS_PER_S
+JOINTS = node_bench.JOINTS
+
+
+def cases() -> list[tuple[str, dict[str, Any]]]:
+    """Return (label, node parameters) of each configuration the latency benchmark runs."""
+    from skidkin_ros.core.models import MODEL_NAMES
+    out = [(model, {'model': model}) for model in MODEL_NAMES]
+    out.append(node_bench.CALIBRATED_CASE)
+    augmented = node_bench.augmented_params()
+    if augmented is not None:
+        out.append(augmented)
+    return [(label, {name: _typed(value) for name, value in params.items()})
+            for label, params in out]
+
+
+def _typed(value: str) -> Any:
+    """Return a command-line parameter value as rclpy wants it (bool, float or str)."""
+    if value in ('true', 'false'):
+        return value == 'true'
+    try:
+        return float(value)
+    except ValueError:
+        return value
 
 
 def _messages(n: int, start_ns: int) -> list[Any]:
@@ -114,7 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print('| callback | µs per message (best of runs) | over the relay |')
         print('|---|---|---|')
         print(f'| bare relay (build Odometry, copy stamp, publish) | {relay_us:.1f} | |')
-        for label, params in CASES:
+        for label, params in cases():
             node_us = time_node(params, args.messages, args.repeats)
             print(f'| odom_node {label} | {node_us:.1f} | +{node_us - relay_us:.1f} µs |')
     finally:

@@ -50,6 +50,40 @@ DROP_TOLERANCE = 0.001  # a held step loses at most this fraction (scheduler hic
 _instance = itertools.count()
 
 
+# The node configurations measured besides the five models at their defaults (node parameters as
+# command-line strings). Shared by bench/run.py and bench/callback_bench.py.
+CALIBRATED_CASE = ('edd_symmetric, calibrated covariance',
+                   {'model': 'edd_symmetric', 'models.edd_symmetric.noise.calibrated': 'true'})
+AUGMENTED_VALUES = {
+    # time_offset stays 0: it shifts the output stamps, which the driver matches replies by.
+    'augmented.first_order_lag.tau_s': '0.08',
+    'augmented.speed_slip.k': '0.05', 'augmented.direction_asymmetry.k': '0.1',
+    'augmented.lateral_skid.k': '0.03', 'augmented.icr_offset.x_m': '0.05',
+    'augmented.ratio_yaw_slip.k': '0.2', 'augmented.terrain_regime.k': '0.1',
+    'augmented.terrain_regime.switch_s': '30.0',
+}
+
+
+def augmented_params() -> tuple[str, dict[str, str]] | None:
+    """Return the label and node parameters of the heaviest augmented model, None if absent."""
+    try:
+        from skidkin_ros.core.augmented import AUGMENTED_NAME
+        from skidkin_ros.core.config import parameter_schema
+        from skidkin_ros.core.extensions import EXTENSION_NAMES
+    except ImportError:
+        return None
+    if 'augmented.extensions' not in {entry.name for entry in parameter_schema()}:
+        return None
+    extensions = [name for name in EXTENSION_NAMES if name != 'sparse_correction']
+    label = f'{AUGMENTED_NAME}: edd_symmetric + {len(extensions)} extensions'
+    params = {'model': AUGMENTED_NAME, 'augmented.base': 'edd_symmetric',
+              'augmented.extensions': ','.join(extensions)}
+    # Non-zero values, of the size the effects study finds, so no term is a no-op.
+    params.update({name: value for name, value in AUGMENTED_VALUES.items()
+                   if name.split('.')[1] in extensions})
+    return label, params
+
+
 # ---------------------------------------------------------------------------------- the SUTs
 def run_relay(argv: Sequence[str]) -> int:
     """Spin the bare relay: JointState -> Odometry with the stamp copied, nothing computed."""
@@ -303,7 +337,12 @@ class Sut:
                                      text=True)
         if cpu is not None:
             pin(self.proc.pid, cpu)
-        self.driver = Driver(namespace, domain_id)
+        try:
+            self.driver = Driver(namespace, domain_id)
+        except BaseException:
+            self.proc.kill()
+            self.proc.communicate()
+            raise
         try:
             self.driver.wait_connected(30.0, self.proc)
             self.driver.paced(500.0, warmup_s)

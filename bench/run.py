@@ -102,37 +102,6 @@ def machine_facts() -> dict[str, Any]:
     }
 
 
-AUGMENTED_VALUES = {
-    # time_offset stays 0: it shifts the output stamps, which the driver matches replies by.
-    'augmented.first_order_lag.tau_s': '0.08',
-    'augmented.speed_slip.k': '0.05', 'augmented.direction_asymmetry.k': '0.1',
-    'augmented.lateral_skid.k': '0.03', 'augmented.icr_offset.x_m': '0.05',
-    'augmented.ratio_yaw_slip.k': '0.2', 'augmented.terrain_regime.k': '0.1',
-    'augmented.terrain_regime.switch_s': '30.0',
-}
-CALIBRATED_LABEL = 'odom_node edd_symmetric, calibrated covariance'
-
-
-def augmented_params() -> tuple[str, dict[str, str]] | None:
-    """Return the label and node parameters of the heaviest augmented model, None if absent."""
-    try:
-        from skidkin_ros.core.augmented import AUGMENTED_NAME
-        from skidkin_ros.core.config import parameter_schema
-        from skidkin_ros.core.extensions import EXTENSION_NAMES
-    except ImportError:
-        return None
-    if 'augmented.extensions' not in {entry.name for entry in parameter_schema()}:
-        return None
-    extensions = [name for name in EXTENSION_NAMES if name != 'sparse_correction']
-    label = f'{AUGMENTED_NAME}: edd_symmetric + {len(extensions)} extensions'
-    params = {'model': AUGMENTED_NAME, 'augmented.base': 'edd_symmetric',
-              'augmented.extensions': ','.join(extensions)}
-    # Non-zero values, of the size the effects study finds, so no term is a no-op.
-    params.update({name: value for name, value in AUGMENTED_VALUES.items()
-                   if name.split('.')[1] in extensions})
-    return label, params
-
-
 def _sut_result(kind: str, label: str, params: Mapping[str, str] | None) -> dict[str, Any]:
     return {'kind': kind, 'label': label, 'params': dict(params or {}), 'steps': [],
             'reference_steps': [], 'error': None, 'max_held_hz': 0.0, 'stderr_tail': []}
@@ -154,10 +123,10 @@ def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
     suts: list[tuple[str, dict[str, str] | None]] = [
         (f'odom_node {model}', {'model': model}) for model in sizes.node_models]
     if not smoke:  # the covariance propagation of a calibrated parameters file, per sample
-        suts.append((CALIBRATED_LABEL, {'model': 'edd_symmetric',
-                                        'models.edd_symmetric.noise.calibrated': 'true'}))
+        label, params = node_bench.CALIBRATED_CASE
+        suts.append((f'odom_node {label}', params))
     not_run = {}
-    augmented = augmented_params() if sizes.node_augmented else None
+    augmented = node_bench.augmented_params() if sizes.node_augmented else None
     if augmented is not None:
         suts.append((f'odom_node {augmented[0]}', augmented[1]))
     elif not smoke:

@@ -17,7 +17,8 @@ from skidkin_ros.adapters.bag_reader import (
     open_recording,
     POINTCLOUD2,
 )
-from skidkin_ros.adapters.bag_writer import BagWriter, yaw_to_quaternion_xyzw
+from skidkin_ros.adapters.bag_writer import BagWriter
+from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.errors import DataError, RecordingError
 
 T0_NS = 1_700_000_000_000_000_000
@@ -35,7 +36,7 @@ def _drive_bag(path, storage='sqlite3', n=50, clouds=5, cloud_points=100):
     rng = np.random.default_rng(7)
     with BagWriter(path, storage=storage) as bag:
         bag.write_tf_static(T0_NS, 'base_link', 'lidar_mount', [0.5, 0.0, 0.3],
-                            yaw_to_quaternion_xyzw(math.pi / 2))
+                            yaw_to_quaternion(math.pi / 2))
         bag.write_tf_static(T0_NS, 'os_lidar', 'lidar_mount', [0.0, 0.0, -0.1],
                             [0.0, 0.0, 0.0, 1.0])
         for i in range(n):

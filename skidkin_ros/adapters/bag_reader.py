@@ -59,6 +59,7 @@ from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
 from skidkin_ros.adapters.pointcloud import interpret_point_times, read_xyz_and_times
 from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.core.rotation import quaternion_to_yaw
 from skidkin_ros.errors import DataError, RecordingError
 
 __all__ = [
@@ -577,9 +578,7 @@ class BagRecording:
             raise RecordingError(f'wheel speeds: every message on {topic} was rejected '
                                  f'({self._reasons(topic)}); check the recording')
         t = self._header_or_receive(topic, np.array(stamps, np.int64), np.array(receive, np.int64))
-        keep = keep_monotonic(t)
-        self._drop(topic, 'stamp out of order or repeated', int(np.count_nonzero(~keep)))
-        self._note_drops(topic, int(np.count_nonzero(keep)))
+        keep = self._keep_in_order(topic, t)
         self.wheel_input = {'input': 'joint_state', 'topic': topic,
                             'left_wheel_joints': list(left), 'right_wheel_joints': list(right)}
         return WheelSamples(t[keep], np.array(omega_l)[keep], np.array(omega_r)[keep])
@@ -725,11 +724,16 @@ class BagRecording:
             raise RecordingError(f'imu: no valid message on {chosen} ({self._reasons(chosen)})')
         t = np.array([r[0] for r in rows], dtype=np.int64)
         values = np.array([r[1:] for r in rows], dtype=np.float64)
-        keep = keep_monotonic(t)
-        self._drop(chosen, 'stamp out of order or repeated', int(np.count_nonzero(~keep)))
-        self._note_drops(chosen, int(keep.sum()))
+        keep = self._keep_in_order(chosen, t)
         values = values[keep]
         return ImuSamples(t[keep], values[:, 0], values[:, 1], values[:, 2])
+
+    def _keep_in_order(self, topic: str, t: np.ndarray) -> np.ndarray:
+        """Return the mask of strictly increasing stamps; count what it drops on ``topic``."""
+        keep = keep_monotonic(t)
+        self._drop(topic, 'stamp out of order or repeated', int(np.count_nonzero(~keep)))
+        self._note_drops(topic, int(np.count_nonzero(keep)))
+        return keep
 
     # -- poses -----------------------------------------------------------------------------------
     def read_pose_track(self, topic: str | None = None) -> PoseTrack:
@@ -739,7 +743,7 @@ class BagRecording:
         for _, msg in self.messages(chosen):
             pose = msg.pose.pose if hasattr(msg, 'child_frame_id') else msg.pose
             q = pose.orientation
-            yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+            yaw = quaternion_to_yaw(q.x, q.y, q.z, q.w)
             row = (_stamp_ns(msg.header), float(pose.position.x), float(pose.position.y), yaw)
             if not all(math.isfinite(v) for v in row[1:]):
                 self._drop(chosen, 'non-finite pose')
@@ -750,9 +754,7 @@ class BagRecording:
                                  f'({self._reasons(chosen)})')
         t = np.array([r[0] for r in rows], dtype=np.int64)
         xyyaw = np.array([r[1:] for r in rows], dtype=np.float64)
-        keep = keep_monotonic(t)
-        self._drop(chosen, 'stamp out of order or repeated', int(np.count_nonzero(~keep)))
-        self._note_drops(chosen, int(keep.sum()))
+        keep = self._keep_in_order(chosen, t)
         xyyaw = xyyaw[keep]
         return PoseTrack(t[keep], xyyaw[:, 0], xyyaw[:, 1], np.unwrap(xyyaw[:, 2]))
 

@@ -14,7 +14,6 @@ Example::
 from __future__ import annotations
 
 import logging
-import math
 from pathlib import Path
 import shutil
 from types import TracebackType
@@ -35,9 +34,10 @@ from rosbags.rosbag2.errors import WriterError
 from rosbags.typesys import get_typestore, Stores
 
 from skidkin_ros.adapters.pointcloud import columns_from_mapping, pack_points
+from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.errors import OutputError, RecordingError
 
-__all__ = ['BagWriter', 'TF_STATIC_QOS', 'yaw_to_quaternion_xyzw']
+__all__ = ['BagWriter', 'TF_STATIC_QOS']
 
 _STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 # Files a rosbag2 folder may hold; overwrite refuses folders with anything else in them.
@@ -48,12 +48,6 @@ _UNSET = QosTime(0, 0)
 TF_STATIC_QOS = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE,
                     QosDurability.TRANSIENT_LOCAL, _UNSET, _UNSET, QosLiveliness.AUTOMATIC,
                     _UNSET, False)
-
-
-def yaw_to_quaternion_xyzw(yaw_rad: float) -> tuple[float, float, float, float]:
-    """Return the quaternion (x, y, z, w) of a rotation by ``yaw_rad`` about z."""
-    half = 0.5 * float(yaw_rad)
-    return 0.0, 0.0, math.sin(half), math.cos(half)
 
 
 def _check_time(t_ns: int, what: str) -> int:
@@ -190,7 +184,7 @@ class BagWriter:
     def _planar_pose(self, x: float, y: float, yaw: float) -> Any:
         point = self._types['geometry_msgs/msg/Point'](x=float(x), y=float(y), z=0.0)
         return self._types['geometry_msgs/msg/Pose'](
-            position=point, orientation=self._quaternion(yaw_to_quaternion_xyzw(yaw)))
+            position=point, orientation=self._quaternion(yaw_to_quaternion(yaw)))
 
     # -- typed writers ----------------------------------------------------------------------------
     def write_joint_state(self, topic: str, t_ns: int, names: Sequence[str],

@@ -13,6 +13,7 @@ from typing import Any, Sequence
 
 from builtin_interfaces.msg import Time
 import numpy as np
+from skidkin_ros.core.rotation import quaternion_to_yaw
 
 __all__ = [
     'MalformedMessageError',
@@ -23,8 +24,6 @@ __all__ = [
     'check_velocity_count',
     'joint_indices',
     'speeds_at',
-    'yaw_to_quaternion',
-    'quaternion_to_yaw',
     'planar_pose_from_msg',
     'planar_covariance_from_msg',
     'plain_value',
@@ -93,17 +92,6 @@ def speeds_at(velocity: Sequence[float], left: Sequence[int],
               right: Sequence[int]) -> tuple[float, float]:
     """Return (omega_left, omega_right) in rad/s: each the mean of its joints' velocities."""
     return side_speed([velocity[i] for i in left]), side_speed([velocity[i] for i in right])
-
-
-def yaw_to_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
-    """Return the (x, y, z, w) quaternion of a rotation about z."""
-    half = 0.5 * yaw_rad
-    return 0.0, 0.0, math.sin(half), math.cos(half)
-
-
-def quaternion_to_yaw(x: float, y: float, z: float, w: float) -> float:
-    """Return the yaw (rad, in [-pi, pi]) of a quaternion; roll and pitch are ignored."""
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 def planar_pose_from_msg(pose: Any) -> tuple[float, float, float]:

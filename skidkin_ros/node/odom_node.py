@@ -55,12 +55,13 @@ from skidkin_ros.core.config import OdometryConfig, parameter_schema, SchemaEntr
 from skidkin_ros.core.integrator import (IntegratorLimits, SampleStatus, StepResult,
                                          StreamingIntegrator)
 from skidkin_ros.core.propagation import PoseCovariancePropagator
+from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.core.specs import Geometry, GEOMETRY_SPECS
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.node.conversions import (check_velocity_count, joint_indices,
                                           MissingJointError, ns_to_stamp, plain_value,
                                           planar_covariance_from_msg, planar_pose_from_msg,
-                                          speeds_at, stamp_to_ns, yaw_to_quaternion)
+                                          speeds_at, stamp_to_ns)
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 import yaml

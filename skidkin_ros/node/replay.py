@@ -31,8 +31,9 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.core.rotation import quaternion_to_yaw
 from skidkin_ros.errors import SkidkinError
-from skidkin_ros.node.conversions import ns_to_stamp, quaternion_to_yaw, stamp_to_ns
+from skidkin_ros.node.conversions import ns_to_stamp, stamp_to_ns
 from skidkin_ros.node.odom_node import OdomNode
 
 __all__ = ['ReplayResult', 'ReplayError', 'replay_through_node']

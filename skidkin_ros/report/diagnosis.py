@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -16,7 +15,8 @@ from skidkin_ros.core.diagnosis import COMPONENTS, DiagnosisResult  # noqa: E402
 from skidkin_ros.core.extensions import (get_extension, SPARSE_FEATURES,  # noqa: E402
                                          sparse_features)
 from skidkin_ros.report.figures import save_figure  # noqa: E402
-from skidkin_ros.report.page import prepare_report  # noqa: E402
+from skidkin_ros.report.page import (figure_lines, prepare_report,  # noqa: E402
+                                     provenance_lines)
 
 __all__ = ['EXPLAINING_SIGNAL', 'residual_figure', 'error_figure', 'render_diagnosis_page',
            'write_diagnosis_report']
@@ -180,12 +180,9 @@ def render_diagnosis_page(result: DiagnosisResult, images: dict[str, str]) -> st
               '| residual | signal | r |', '|---|---|---|']
     lines += [f'| {c} | {s} | {r:+.3f} |' for c, s, r in result.trace.top(12)]
     lines += ['']
-    for key, title in (('residuals', 'Residual against the explaining signal'),
-                       ('errors', 'Error distributions')):
-        if key in images:
-            lines += [f'## {title}', '', f'![{title}]({images[key]})', '']
-    lines += ['## Provenance', '', '```', json.dumps(result.provenance, indent=1, default=str),
-              '```', '']
+    lines += figure_lines(images, [('residuals', 'Residual against the explaining signal'),
+                                   ('errors', 'Error distributions')], level='##')
+    lines += provenance_lines(result.provenance)
     return '\n'.join(lines)
 
 

@@ -12,7 +12,7 @@ from skidkin_ros.core.models import get_model
 from skidkin_ros.errors import OutputError
 from skidkin_ros.report import figures
 
-__all__ = ['write_report', 'render_page', 'prepare_report']
+__all__ = ['write_report', 'render_page', 'prepare_report', 'figure_lines', 'provenance_lines']
 
 
 def _num(value: float, digits: int = 4) -> str:
@@ -23,6 +23,21 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
     lines = ['| ' + ' | '.join(header) + ' |', '|' + '---|' * len(header)]
     lines += ['| ' + ' | '.join(row) + ' |' for row in rows]
     return lines
+
+
+def figure_lines(images: dict[str, str], titles: list[tuple[str, str]], level: str = '###'
+                 ) -> list[str]:
+    """Return a Markdown heading and image for each (key, title) whose figure was made."""
+    lines: list[str] = []
+    for key, title in titles:
+        if key in images:
+            lines += [f'{level} {title}', '', f'![{title}]({images[key]})', '']
+    return lines
+
+
+def provenance_lines(provenance: object) -> list[str]:
+    """Return the report's closing provenance section (JSON in a code block)."""
+    return ['## Provenance', '', '```', json.dumps(provenance, indent=1, default=str), '```', '']
 
 
 def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
@@ -85,15 +100,12 @@ def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
     if result.warnings:
         lines += ['', '## Warnings', ''] + [f'- {w}' for w in result.warnings]
     lines += ['', '## Figures', '']
-    for key, title in (('errors', 'Error distributions per model'),
-                       ('rotation', 'Actual vs commanded rotation per metre'),
-                       ('angular', 'Angular error against wheel speeds'),
-                       ('paths', 'Predicted vs ground-truth paths of a few segments'),
-                       ('horizons', 'h_t x h_e study')):
-        if key in images:
-            lines += [f'### {title}', '', f'![{title}]({images[key]})', '']
-    lines += ['## Provenance', '', '```', json.dumps(result.provenance, indent=1, default=str),
-              '```', '']
+    lines += figure_lines(images, [('errors', 'Error distributions per model'),
+                                   ('rotation', 'Actual vs commanded rotation per metre'),
+                                   ('angular', 'Angular error against wheel speeds'),
+                                   ('paths', 'Predicted vs ground-truth paths of a few segments'),
+                                   ('horizons', 'h_t x h_e study')])
+    lines += provenance_lines(result.provenance)
     return '\n'.join(lines)
 
 

@@ -312,7 +312,8 @@ def write_bag(sim: Simulation, path: Path, storage: str = 'sqlite3', overwrite: 
     received ``lidar_latency_s`` after the sweep ends; messages are written in receive-time
     order, one sweep at a time. The CSV defaults to ``<bag>_truth.csv`` beside the bag.
     """
-    from skidkin_ros.adapters.bag_writer import BagWriter, yaw_to_quaternion_xyzw
+    from skidkin_ros.adapters.bag_writer import BagWriter
+    from skidkin_ros.core.rotation import yaw_to_quaternion
 
     if point_time not in POINT_TIME_CONVENTIONS:
         raise ParameterError(f'point_time must be one of {sorted(POINT_TIME_CONVENTIONS)}, '
@@ -334,7 +335,7 @@ def write_bag(sim: Simulation, path: Path, storage: str = 'sqlite3', overwrite: 
     with BagWriter(path, storage=storage, overwrite=overwrite) as writer:
         writer.write_tf_static(sim.start_ns, 'base_link', lidar.frame_id,
                                list(lidar.mount_xyz_m),
-                               list(yaw_to_quaternion_xyzw(lidar.mount_yaw_rad)))
+                               list(yaw_to_quaternion(lidar.mount_yaw_rad)))
         for scan in sim.scans():
             receive_ns = scan.end_ns + latency_ns
             while cursor < len(small) and small[cursor][0] <= receive_ns:
