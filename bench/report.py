@@ -74,8 +74,9 @@ def _node_section(node: Mapping[str, Any]) -> list[str]:
              f'p50 / relay p50 of the paired block (goal <= {LATENCY_GOAL}); p50 and p99 = '
              'median over the blocks; CPU = SUT process CPU time (all threads) / messages '
              'sent, and its ratio to the paired relay blocks; max held = highest paced rate at '
-             f'which one block or ladder step lost <= 0.1 % of the messages (goal >= {RATE_GOAL_HZ:.0f} Hz; ladder '
-             f'{node["ladder_hz"]}). SUTs pinned to one core, driver on the other.', '',
+             'which one block or ladder step lost <= 0.1 % of the messages (goal >= '
+             f'{RATE_GOAL_HZ:.0f} Hz; ladder {node["ladder_hz"]}). SUTs pinned to one core, '
+             'driver on the other.', '',
              '| SUT | p50 µs 100 Hz | ratio 100 Hz | p50 µs 1 kHz | p99 µs 1 kHz | '
              'ratio 1 kHz | dropped 1 kHz | CPU µs/msg 1 kHz | CPU ratio 1 kHz | '
              'max held Hz |',
