@@ -6,7 +6,12 @@ Process layout (identical for every system under test, SUT):
   either the real odometry node (``odom_node.main``: ``rclpy.spin`` on a SingleThreadedExecutor)
   or a bare relay with the same structure (``rclpy.spin``, the same input QoS -- sensor data,
   best effort, depth 5 -- and the same output QoS -- reliable, depth 10) whose callback copies
-  the stamp into an Odometry and publishes it, with no computation;
+  the stamp into an Odometry and publishes it, with no computation (the issue's yardstick:
+  rclpy's standard path, which deserializes the JointState and serializes the Odometry);
+* a second reference, the serialized relay: the same relay subscribed raw, publishing a
+  pre-serialized Odometry with the stamp bytes patched in. It converts no message at all, which
+  is rclpy's floor; the node too reads and writes serialized messages (skidkin_ros.node.wire),
+  so the node against this relay is what the odometry itself costs;
 * the driver runs in the calling process (pinned to another core): it publishes JointState at a
   paced rate with ``header.stamp`` = the wall clock just before ``publish`` and takes the
   Odometry back; latency = wall clock at receipt - stamp (the same host clock on both sides).
@@ -48,6 +53,8 @@ SLEEP_ABOVE_NS = 400_000  # sleep between sends only when the next one is this f
 SLEEP_S = 0.0001
 DROP_TOLERANCE = 0.001  # a held step loses at most this fraction (scheduler hiccups)
 _instance = itertools.count()
+SUT_KINDS = ('relay', 'relay_serialized', 'odom')
+SERIALIZED_RELAY_LABEL = 'serialized rclpy relay (no message conversion)'
 
 
 # The node configurations measured besides the five models at their defaults (node parameters as
@@ -85,13 +92,18 @@ def augmented_params() -> tuple[str, dict[str, str]] | None:
 
 
 # ---------------------------------------------------------------------------------- the SUTs
-def run_relay(argv: Sequence[str]) -> int:
-    """Spin the bare relay: JointState -> Odometry with the stamp copied, nothing computed."""
+def run_relay(argv: Sequence[str], serialized: bool = False) -> int:
+    """Spin the bare relay: JointState -> Odometry with the stamp copied, nothing computed.
+
+    serialized: take the JointState serialized and publish a pre-serialized Odometry with the
+    stamp bytes patched in (rclpy's floor: no message conversion at all, as the node does).
+    """
     from nav_msgs.msg import Odometry
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
     from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+    from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
     class Relay(Node):
@@ -101,8 +113,14 @@ def run_relay(argv: Sequence[str]) -> int:
             super().__init__('relay')
             qos = QoSProfile(depth=OUTPUT_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
             self.pub = self.create_publisher(Odometry, 'odom', qos)
-            self.create_subscription(JointState, 'joint_states', self.on_joint_state,
-                                     qos_profile_sensor_data)
+            template = Odometry()
+            template.header.frame_id = 'odom'
+            template.child_frame_id = 'base_link'
+            self.buffer = bytearray(serialize_message(template))
+            self.create_subscription(
+                JointState, 'joint_states',
+                self.on_serialized if serialized else self.on_joint_state,
+                qos_profile_sensor_data, raw=serialized)
 
         def on_joint_state(self, msg: JointState) -> None:
             out = Odometry()
@@ -110,6 +128,11 @@ def run_relay(argv: Sequence[str]) -> int:
             out.header.frame_id = 'odom'
             out.child_frame_id = 'base_link'
             self.pub.publish(out)
+
+        def on_serialized(self, data: bytes) -> None:
+            # header.stamp opens both messages (the driver sends little-endian CDR).
+            self.buffer[4:12] = data[4:12]
+            self.pub.publish(bytes(self.buffer))
 
     rclpy.init(args=list(argv))
     node = None
@@ -319,7 +342,7 @@ def held(step: dict[str, Any], pace_tolerance: float = 0.95) -> bool:
 class Sut:
     """One system under test: its process (pinned to ``cpu``) and the driver that talks to it.
 
-    kind: 'relay' or 'odom'; label: the row name; params: node parameters (odom only). Raises
+    kind: one of SUT_KINDS; label: the row name; params: node parameters (odom only). Raises
     RuntimeError (after cleaning up) when the SUT does not start and match.
     """
 
@@ -411,12 +434,14 @@ def _main(argv: Sequence[str]) -> int:
                                      'benchmark (normally started by bench/run.py).')
     sub = parser.add_subparsers(dest='command', required=True)
     sut = sub.add_parser('sut', help='spin a relay or the odometry node')
-    sut.add_argument('kind', choices=('relay', 'odom'))
+    sut.add_argument('kind', choices=SUT_KINDS)
     sut.add_argument('ros_args', nargs=argparse.REMAINDER,
                      help='arguments for rclpy after --, e.g. -- --ros-args -p model:=roc')
     args = parser.parse_args(argv)
     ros_args = args.ros_args[1:] if args.ros_args[:1] == ['--'] else args.ros_args
-    return run_relay(ros_args) if args.kind == 'relay' else run_odom(ros_args)
+    if args.kind == 'odom':
+        return run_odom(ros_args)
+    return run_relay(ros_args, serialized=args.kind == 'relay_serialized')
 
 
 if __name__ == '__main__':

@@ -76,7 +76,10 @@ def _node_section(node: Mapping[str, Any]) -> list[str]:
              'sent, and its ratio to the paired relay blocks; max held = highest paced rate at '
              'which one block or ladder step lost <= 0.1 % of the messages (goal >= '
              f'{RATE_GOAL_HZ:.0f} Hz; ladder {node["ladder_hz"]}). SUTs pinned to one core, '
-             'driver on the other.', '',
+             'driver on the other. The serialized relay is paired like a node: it takes the '
+             'JointState serialized and publishes a pre-serialized Odometry, converting no '
+             'message (the floor of rclpy); the node also reads and writes serialized messages.',
+             '',
              '| SUT | p50 µs 100 Hz | ratio 100 Hz | p50 µs 1 kHz | p99 µs 1 kHz | '
              'ratio 1 kHz | dropped 1 kHz | CPU µs/msg 1 kHz | CPU ratio 1 kHz | '
              'max held Hz |',

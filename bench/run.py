@@ -120,15 +120,16 @@ def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
     in short blocks (node_bench.paired_steps), so each latency ratio compares runs made under
     the same machine conditions.
     """
-    suts: list[tuple[str, dict[str, str] | None]] = [
-        (f'odom_node {model}', {'model': model}) for model in sizes.node_models]
+    suts: list[tuple[str, str, dict[str, str] | None]] = [
+        ('relay_serialized', node_bench.SERIALIZED_RELAY_LABEL, None)]
+    suts += [('odom', f'odom_node {model}', {'model': model}) for model in sizes.node_models]
     if not smoke:  # the covariance propagation of a calibrated parameters file, per sample
         label, params = node_bench.CALIBRATED_CASE
-        suts.append((f'odom_node {label}', params))
+        suts.append(('odom', f'odom_node {label}', params))
     not_run = {}
     augmented = node_bench.augmented_params() if sizes.node_augmented else None
     if augmented is not None:
-        suts.append((f'odom_node {augmented[0]}', augmented[1]))
+        suts.append(('odom', f'odom_node {augmented[0]}', augmented[1]))
     elif not smoke:
         not_run['odom_node augmented'] = 'n/a yet (augmented models not in the node schema)'
     if smoke:
@@ -147,12 +148,12 @@ def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
                 'plan': [list(step) for step in sizes.node_plan], 'domain_id': domain_id,
                 'rounds': sizes.node_rounds}
     try:
-        for label, params in suts:
+        for kind, label, params in suts:
             print(f'  node: {label} (paired with the relay)', flush=True)
-            result = _sut_result('odom', label, params)
+            result = _sut_result(kind, label, params)
             results.append(result)
             try:
-                sut = node_bench.Sut('odom', label, params, domain_id, sut_cpu)
+                sut = node_bench.Sut(kind, label, params, domain_id, sut_cpu)
             except RuntimeError as err:
                 result['error'] = str(err)
                 continue

@@ -28,12 +28,15 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
     assert results['smoke'] is True
     assert results['machine']['cpus'] >= 1
 
-    # Node: the relay and the node both answered every rate step and were timed.
+    # Node: the relays and the node all answered every rate step and were timed.
     suts = {sut['label']: sut for sut in results['node']['suts']}
-    assert set(suts) == {'bare rclpy relay', 'odom_node full_linear'}
-    for sut in suts.values():
+    assert set(suts) == {'bare rclpy relay', 'serialized rclpy relay (no message conversion)',
+                         'odom_node full_linear'}
+    for label, sut in suts.items():
         assert sut['error'] is None, sut
-        assert [step['rate_hz'] for step in sut['steps']] == [100.0, 1000.0]
+        # the relay ran once next to each of the two others
+        paired = 2 if label == 'bare rclpy relay' else 1
+        assert [step['rate_hz'] for step in sut['steps']] == [100.0, 1000.0] * paired
         for step in sut['steps']:
             assert step['sent'] > 0 and step['received'] > 0.5 * step['sent']
             assert _finite(step['p50_latency_us']) and step['p50_latency_us'] > 0

@@ -42,6 +42,32 @@ def test_every_simulator_effect_has_an_extension_and_specs_are_complete():
                       np.zeros(3)), twist)
 
 
+def test_scalar_forms_equal_the_array_forms_bit_for_bit():
+    # The node runs the float forms once per sample; fitting and offline tools run the array
+    # forms: they must agree exactly, so a calibrated model behaves the same live.
+    rng = np.random.default_rng(11)
+    wl = np.concatenate([rng.uniform(-6, 6, 400), [0.0, 2.0, -2.0, 3.0, 0.0]])
+    wr = np.concatenate([rng.uniform(-6, 6, 400), [0.0, 2.0, 2.0, 0.0, 1.0]])
+    t_s = rng.uniform(0, 60, wl.size)
+    with_scalar = [n for n in EXTENSION_NAMES if get_extension(n).scalar_apply() is not None]
+    assert set(EXTENSION_NAMES) - set(with_scalar) == {'sparse_correction'}
+    for name in with_scalar:
+        ext = get_extension(name)
+        k = np.array([rng.uniform(spec.lower if math.isfinite(spec.lower) else -1, min(
+            spec.upper, 2.0)) for spec in ext.params]) if ext.params else np.zeros(0)
+        k = np.where(k == 0.0, 0.1, k)
+        array_form = ext.apply(k, BASE.twist(wl, wr), wl, wr, t_s)
+        scalar = ext.scalar_apply()
+        for i in range(wl.size):
+            vx, vy, w = BASE.scalar_twist(float(wl[i]), float(wr[i]))
+            got = scalar(tuple(k.tolist()), vx, vy, w, float(wl[i]), float(wr[i]), float(t_s[i]))
+            assert got == tuple(array_form[i].tolist()), (name, i)
+    model = augmented({n: ALL_VALUES[n] for n in ALL_VALUES if n != 'sparse_correction'})
+    for i in range(0, wl.size, 7):
+        assert model.scalar_memoryless(float(wl[i]), float(wr[i]), float(t_s[i])) == tuple(
+            model.memoryless(wl[i], wr[i], t_s[i]).tolist())
+
+
 @pytest.mark.parametrize('name,values,check', [
     ('speed_slip', {'k': 0.2}, lambda b, t: (b[0] * (1 - 0.2 * abs(b[0])), b[1], b[2])),
     ('lateral_skid', {'k': 0.05}, lambda b, t: (b[0], 0.05 * b[0] * b[2], b[2])),

@@ -25,7 +25,8 @@ step; this only matters together with a lag.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+import functools
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from scipy.signal import lfilter
@@ -49,8 +50,8 @@ class AugmentedState:
     """Streaming state: first stamp (ns), twist-stage output x and body twist y (held)."""
 
     t0_ns: int
-    x: np.ndarray
-    y: np.ndarray
+    x: tuple[float, float, float]
+    y: tuple[float, float, float]
 
 
 def lag_factors(dt_s, tau_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -115,26 +116,61 @@ class BoundAugmented:
         return self.memoryless(omega_l, omega_r, 0.0)
 
     # ---------------------------------------------------------------- streaming form
+    @functools.cached_property
+    def _scalar_chain(self) -> tuple[tuple[Callable, tuple[float, ...]], ...] | None:
+        """Return each extension's float form and values, None if one has no float form."""
+        chain = []
+        for name, k in zip(self.extensions, self.values):
+            function = get_extension(name).scalar_apply()
+            if function is None:
+                return None
+            chain.append((function, tuple(np.asarray(k, dtype=float).tolist())))
+        return tuple(chain)
+
+    @functools.cached_property
+    def _tau(self) -> float:
+        return self.tau_s
+
+    def scalar_memoryless(self, omega_l: float, omega_r: float,
+                          t_s: float) -> tuple[float, float, float]:
+        """:meth:`memoryless` for one sample on plain floats (equal to it bit for bit)."""
+        chain = self._scalar_chain
+        if chain is None:  # an extension without a float form (the sparse correction)
+            vx, vy, w = np.asarray(self.memoryless(omega_l, omega_r, t_s), dtype=float).tolist()
+            return vx, vy, w
+        vx, vy, w = self.base.scalar_twist(omega_l, omega_r)
+        for function, k in chain:
+            vx, vy, w = function(k, vx, vy, w, omega_l, omega_r, t_s)
+        return vx, vy, w
+
     def begin(self, state: AugmentedState | None, t_ns: int, omega_l: float, omega_r: float,
-              restart: bool) -> tuple[AugmentedState, np.ndarray]:
+              restart: bool) -> tuple[AugmentedState, tuple[float, float, float]]:
         """Take a new sample; return the new state and the body twist published now."""
         t0 = t_ns if state is None else state.t0_ns
-        x = np.asarray(self.memoryless(omega_l, omega_r, (t_ns - t0) * 1e-9), dtype=float)
-        if state is None or restart or not self.tau_s > 0.0:
+        x = self.scalar_memoryless(float(omega_l), float(omega_r), (t_ns - t0) * 1e-9)
+        if state is None or restart or not self._tau > 0.0:
             y = x
         else:
             y = state.y
         return AugmentedState(t0, x, y), y
 
-    def advance(self, state: AugmentedState, dt_s: float) -> tuple[AugmentedState, np.ndarray]:
-        """Return the state after holding for dt_s and the mean twist over that interval."""
-        tau = self.tau_s
+    def advance(self, state: AugmentedState, dt_s: float
+                ) -> tuple[AugmentedState, tuple[float, float, float]]:
+        """Return the state after holding for dt_s and the mean twist over that interval.
+
+        :func:`lag_factors` and :func:`lag_response`'s sample loop on plain floats.
+        """
+        tau = self._tau
         if not tau > 0.0:
             return state, state.x
-        d, g = lag_factors(dt_s, tau)
-        diff = state.y - state.x
-        return (AugmentedState(state.t0_ns, state.x, state.x + diff * d),
-                state.x + diff * g)
+        ratio = dt_s / tau
+        d = float(np.exp(-ratio))
+        g = -float(np.expm1(-ratio)) / ratio if dt_s > 0.0 else 1.0
+        (x0, x1, x2), (y0, y1, y2) = state.x, state.y
+        diff0, diff1, diff2 = y0 - x0, y1 - x1, y2 - x2
+        return (AugmentedState(state.t0_ns, state.x,
+                               (x0 + diff0 * d, x1 + diff1 * d, x2 + diff2 * d)),
+                (x0 + diff0 * g, x1 + diff1 * g, x2 + diff2 * g))
 
     # ---------------------------------------------------------------- batch form
     def intervals(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,

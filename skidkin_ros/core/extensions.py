@@ -19,7 +19,7 @@ so an augmented model with defaults predicts exactly what its base model predict
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -87,6 +87,18 @@ class Extension:
             return twist
         return _TWIST_FUNCTIONS[self.name](k, twist, omega_l, omega_r, t_s)
 
+    def scalar_apply(self) -> Callable[..., tuple[float, float, float]] | None:
+        """Return this extension on plain floats, or None if it has no such form.
+
+        The function takes ``(k, vx, vy, wz, omega_l, omega_r, t_s)`` (``k`` a tuple of floats)
+        and returns the new (vx, vy, wz): :meth:`apply`'s operations in its order, so the node's
+        per-sample path equals the batch form bit for bit. Stages other than the twist stage
+        return the twist unchanged.
+        """
+        if self.stage != 'twist':
+            return _scalar_identity
+        return _SCALAR_FUNCTIONS.get(self.name)
+
 
 def _spec(name: str, unit: str, default: float, lower: float, upper: float,
           text: str) -> ParamSpec:
@@ -145,6 +157,43 @@ def _terrain_regime(k, twist, omega_l, omega_r, t_s):
     return out
 
 
+# The same functions on plain floats (one sample): the node runs these once per wheel sample.
+# numpy's exp (not math's) where the array forms use it: libm may differ by an ulp.
+def _scalar_identity(k, vx, vy, w, omega_l, omega_r, t_s):
+    return vx, vy, w
+
+
+def _scalar_speed_slip(k, vx, vy, w, omega_l, omega_r, t_s):
+    return vx * (1.0 - min(k[0] * abs(vx), MAX_SPEED_SLIP)), vy, w
+
+
+def _scalar_direction_asymmetry(k, vx, vy, w, omega_l, omega_r, t_s):
+    reverse = min(max(-vx / k[1], 0.0), 1.0)
+    return vx * (1.0 - k[0] * reverse), vy, w
+
+
+def _scalar_lateral_skid(k, vx, vy, w, omega_l, omega_r, t_s):
+    return vx, vy + k[0] * vx * w, w
+
+
+def _scalar_icr_offset(k, vx, vy, w, omega_l, omega_r, t_s):
+    return vx, vy + k[0] * w, w
+
+
+def _scalar_ratio_yaw_slip(k, vx, vy, w, omega_l, omega_r, t_s):
+    big = max(abs(omega_l), abs(omega_r))
+    small = min(abs(omega_l), abs(omega_r))
+    ratio = small / big if (omega_l * omega_r) > 0.0 and big > 0.0 else -1.0
+    q = (ratio - k[1]) / k[2]
+    bump = float(np.exp(-(q * q)))
+    return vx, vy, w * (1.0 - k[0] * bump)
+
+
+def _scalar_terrain_regime(k, vx, vy, w, omega_l, omega_r, t_s):
+    scale = 1.0 - k[0] if t_s >= k[1] else 1.0
+    return vx * scale, vy, w * scale
+
+
 # The sparse fallback: a library of candidate terms of the base twist (v = v_x, w = omega).
 SPARSE_FEATURES: tuple[tuple[str, str], ...] = (
     ('v', 'm/s'), ('w', 'rad/s'), ('v_abs_v', 'm^2/s^2'), ('w_abs_w', 'rad^2/s^2'),
@@ -183,6 +232,15 @@ _TWIST_FUNCTIONS = {
     'ratio_yaw_slip': _ratio_yaw_slip,
     'terrain_regime': _terrain_regime,
     'sparse_correction': _sparse_correction,
+}
+
+_SCALAR_FUNCTIONS = {
+    'speed_slip': _scalar_speed_slip,
+    'direction_asymmetry': _scalar_direction_asymmetry,
+    'lateral_skid': _scalar_lateral_skid,
+    'icr_offset': _scalar_icr_offset,
+    'ratio_yaw_slip': _scalar_ratio_yaw_slip,
+    'terrain_regime': _scalar_terrain_regime,
 }
 
 _ALL: tuple[Extension, ...] = (

@@ -18,7 +18,7 @@ streaming integrator does, so offline fitting and the live node run one pipeline
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import enum
 import math
 from typing import Any, Protocol
@@ -259,28 +259,54 @@ class IntegratorLimits:
 
 @dataclass
 class StepResult:
+    """What one sample did. Poses and twists are plain float triples (the node's hot path).
+
+    ``pose``: (x, y, yaw) after this sample, yaw unwrapped; ``twist``: the body twist now held
+    (from this sample's speeds, what is published); ``start_pose`` and ``step_twist``: where the
+    integrated step started and the twist integrated over it (for a stateful source, its mean
+    over the interval), equal to ``pose`` and ``twist`` when nothing was integrated.
+    """
+
     status: SampleStatus
-    pose: np.ndarray           # (x, y, yaw) after this sample, yaw unwrapped
-    twist: np.ndarray          # body twist now held (from this sample's speeds)
+    pose: tuple[float, float, float]
+    twist: tuple[float, float, float]
     dt_s: float = 0.0
     detail: str = ''
+    start_pose: tuple[float, float, float] | None = None
+    step_twist: tuple[float, float, float] | None = None
 
 
-@dataclass
+Triple = tuple[float, float, float]
+
+
 class StreamingIntegrator:
     """Sample-by-sample form of :func:`rollout`, with the plausibility checks of the node.
 
     ``step(t_ns, omega_l, omega_r)`` integrates the previously held speeds from the previous
-    stamp to ``t_ns`` and then holds the new speeds. Stamps are integer nanoseconds.
+    stamp to ``t_ns`` and then holds the new speeds. Stamps are integer nanoseconds. The state is
+    kept in plain floats: numpy on three numbers costs more than the arithmetic, and this runs
+    once per wheel sample in the node.
     """
 
-    source: TwistSource
-    limits: IntegratorLimits = field(default_factory=IntegratorLimits)
-    pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    last_t_ns: int | None = None
-    held_twist: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    held_speeds: tuple[float, float] = (0.0, 0.0)
-    state: Any = None
+    def __init__(self, source: TwistSource, limits: IntegratorLimits | None = None) -> None:
+        self.source = source
+        self.limits = limits or IntegratorLimits()
+        self._stateful = is_stateful(source)
+        self._pose: Triple = (0.0, 0.0, 0.0)
+        self._twist: Triple = (0.0, 0.0, 0.0)
+        self.last_t_ns: int | None = None
+        self.held_speeds: tuple[float, float] = (0.0, 0.0)
+        self.state: Any = None
+
+    @property
+    def pose(self) -> np.ndarray:
+        """Return the current (x, y, yaw), yaw unwrapped (a new array)."""
+        return np.array(self._pose)
+
+    @property
+    def held_twist(self) -> np.ndarray:
+        """Return the body twist now held (a new array)."""
+        return np.array(self._twist)
 
     @property
     def output_offset_ns(self) -> int:
@@ -289,9 +315,10 @@ class StreamingIntegrator:
 
     def reset(self, pose=(0.0, 0.0, 0.0)) -> None:
         """Zero (or set) the pose and forget the held speeds and the last stamp."""
-        self.pose = np.array(pose, dtype=float)
+        x, y, yaw = (float(v) for v in pose)
+        self._pose = (x, y, yaw)
         self.last_t_ns = None
-        self.held_twist = np.zeros(3)
+        self._twist = (0.0, 0.0, 0.0)
         self.held_speeds = (0.0, 0.0)
         self.state = None
 
@@ -301,72 +328,81 @@ class StreamingIntegrator:
         A stateful source starts afresh from the held speeds (its state is not carried over).
         """
         self.source = source
+        self._stateful = is_stateful(source)
         self.state = None
-        if is_stateful(source) and self.last_t_ns is not None:
+        if self._stateful and self.last_t_ns is not None:
             self.state, twist = source.begin(None, self.last_t_ns, *self.held_speeds, True)
-            self.held_twist = np.asarray(twist, dtype=float)
+            self._twist = _triple(twist)
             return
-        self.held_twist = np.array(_scalar_twist(source, *self.held_speeds))
+        self._twist = _scalar_twist(source, *self.held_speeds)
 
-    def _reject(self, status: SampleStatus, detail: str) -> StepResult:
-        return StepResult(status, self.pose.copy(), self.held_twist.copy(), 0.0, detail)
+    def _result(self, status: SampleStatus, dt_s: float = 0.0, detail: str = '') -> StepResult:
+        return StepResult(status, self._pose, self._twist, dt_s, detail, self._pose,
+                          self._twist)
 
     def _hold(self, t_ns: int, omega_l: float, omega_r: float, restart: bool = False) -> None:
         self.last_t_ns = t_ns
         self.held_speeds = (omega_l, omega_r)
-        if is_stateful(self.source):
+        if self._stateful:
             self.state, twist = self.source.begin(self.state, t_ns, omega_l, omega_r, restart)
-            self.held_twist = np.asarray(twist, dtype=float)
+            self._twist = _triple(twist)
             return
-        self.held_twist = np.array(_scalar_twist(self.source, omega_l, omega_r))
+        self._twist = _scalar_twist(self.source, omega_l, omega_r)
 
     def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
         omega_l = float(omega_l)
         omega_r = float(omega_r)
-        for side, value in (('left', omega_l), ('right', omega_r)):
-            if not math.isfinite(value):
-                return self._reject(SampleStatus.NON_FINITE_SPEED,
-                                    f'{side} wheel speed is {value} (expected a finite rad/s)')
-            if abs(value) > self.limits.max_wheel_speed_rad_s:
-                return self._reject(
-                    SampleStatus.IMPLAUSIBLE_SPEED,
-                    f'{side} wheel speed {value:.3g} rad/s exceeds max_wheel_speed '
-                    f'{self.limits.max_wheel_speed_rad_s:g} rad/s')
+        max_speed = self.limits.max_wheel_speed_rad_s
+        if not (abs(omega_l) <= max_speed and abs(omega_r) <= max_speed):  # NaN fails too
+            for side, value in (('left', omega_l), ('right', omega_r)):
+                if not math.isfinite(value):
+                    return self._result(SampleStatus.NON_FINITE_SPEED, detail=(
+                        f'{side} wheel speed is {value} (expected a finite rad/s)'))
+                if abs(value) > max_speed:
+                    return self._result(SampleStatus.IMPLAUSIBLE_SPEED, detail=(
+                        f'{side} wheel speed {value:.3g} rad/s exceeds max_wheel_speed '
+                        f'{max_speed:g} rad/s'))
         if self.last_t_ns is None:
             self._hold(t_ns, omega_l, omega_r)
-            return StepResult(SampleStatus.FIRST, self.pose.copy(), self.held_twist.copy())
+            return self._result(SampleStatus.FIRST)
         dt_ns = t_ns - self.last_t_ns
         if dt_ns < 0:
-            return self._reject(SampleStatus.OLDER_STAMP,
-                                f'stamp older than previous by {-dt_ns / 1e9:.6f} s')
+            return self._result(SampleStatus.OLDER_STAMP,
+                                detail=f'stamp older than previous by {-dt_ns / 1e9:.6f} s')
         if dt_ns == 0:
             self._hold(t_ns, omega_l, omega_r)
-            return StepResult(SampleStatus.DUPLICATE_STAMP, self.pose.copy(),
-                              self.held_twist.copy(), 0.0, 'duplicate stamp (dt = 0)')
+            return self._result(SampleStatus.DUPLICATE_STAMP,
+                                detail='duplicate stamp (dt = 0)')
         dt_s = dt_ns * 1e-9
         if dt_s > self.limits.max_dt_s:
             self._hold(t_ns, omega_l, omega_r, restart=True)
-            return StepResult(SampleStatus.GAP, self.pose.copy(), self.held_twist.copy(), dt_s,
-                              f'gap of {dt_s:.3f} s > max_dt {self.limits.max_dt_s:g} s: '
-                              'not integrated across')
-        vx, vy, w = self.held_twist.tolist()
+            return self._result(SampleStatus.GAP, dt_s,
+                                f'gap of {dt_s:.3f} s > max_dt {self.limits.max_dt_s:g} s: '
+                                'not integrated across')
+        step_twist = self._twist
         new_state = self.state
-        if is_stateful(self.source):
+        if self._stateful:
             new_state, mean = self.source.advance(self.state, dt_s)
-            vx, vy, w = np.asarray(mean, dtype=float).tolist()
-        x, y, theta = self.pose.tolist()
+            step_twist = _triple(mean)
+        vx, vy, w = step_twist
+        start = self._pose
+        x, y, theta = start
         if math.isfinite(w * dt_s):  # else numpy's sin would warn; caught just below anyway
             x, y, theta, _, _ = step_scalar(x, y, theta, vx, vy, w, dt_s)
         else:
             theta = math.nan
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
             self._hold(t_ns, omega_l, omega_r, restart=True)
-            return StepResult(SampleStatus.NON_FINITE_STATE, self.pose.copy(),
-                              self.held_twist.copy(), dt_s,
-                              'integration produced a non-finite pose; kept the last finite one')
-        # A new array every step, never changed in place: callers may keep references.
-        self.pose = np.array((x, y, theta))
+            return self._result(SampleStatus.NON_FINITE_STATE, dt_s,
+                                'integration produced a non-finite pose; kept the last finite one')
+        self._pose = (x, y, theta)
         self.state = new_state
         self._hold(t_ns, omega_l, omega_r)
-        return StepResult(SampleStatus.INTEGRATED, self.pose.copy(), self.held_twist.copy(),
-                          dt_s)
+        return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
+                          step_twist)
+
+
+def _triple(values: Any) -> Triple:
+    """Return three numbers (an array or a sequence) as a tuple of floats."""
+    a, b, c = values
+    return float(a), float(b), float(c)

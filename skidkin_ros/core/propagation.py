@@ -39,6 +39,9 @@ __all__ = [
     'step_jacobians',
     'increment_input_jacobian',
     'propagate_step',
+    'propagate_scalar',
+    'upper_to_3x3',
+    'flat_6x6',
     'predict',
     'PoseCovariancePropagator',
     'to_6x6',
@@ -83,28 +86,51 @@ def propagate_step(pose: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt_s: f
                    input_variance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Advance (pose, cov) by one held twist over dt_s; same step as the integrator.
 
-    P' = F P F^T + G Q G^T (see :func:`step_jacobians`), written out on plain floats: F differs
-    from the identity in its last column only and G is a rotation, so the products are a few
-    dozen multiplications; numpy's 3 x 3 products would cost more in overhead than in arithmetic,
-    and this step runs once per wheel sample in the node.
+    P' = F P F^T + G Q G^T (see :func:`step_jacobians`); the arithmetic is
+    :func:`propagate_scalar`'s.
     """
     x, y, yaw = (float(v) for v in pose)
     vx, vy, w = (float(v) for v in twist)
+    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = np.asarray(cov, dtype=float).tolist()
+    # Symmetrize the input as the matrix form did its output.
+    upper = (p00, 0.5 * (p01 + p10), 0.5 * (p02 + p20), p11, 0.5 * (p12 + p21), p22)
+    extra = None
+    if input_jacobian is not None and input_variance > 0.0:
+        (e00, e01, e02), (_, e11, e12), (_, _, e22) = (
+            input_variance * input_jacobian @ input_jacobian.T).tolist()
+        extra = (e00, e01, e02, e11, e12, e22)
+    new_x, new_y, new_yaw, c = propagate_scalar(x, y, yaw, vx, vy, w, dt_s, upper, noise,
+                                                extra)
+    return np.array((new_x, new_y, new_yaw)), upper_to_3x3(c)
+
+
+def upper_to_3x3(upper: Sequence[float]) -> np.ndarray:
+    """Return the symmetric 3 x 3 matrix of an upper triangle (c00, c01, c02, c11, c12, c22)."""
+    c00, c01, c02, c11, c12, c22 = upper
+    return np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]])
+
+
+def propagate_scalar(x: float, y: float, yaw: float, vx: float, vy: float, w: float,
+                     dt_s: float, upper: Sequence[float], noise: NoiseModel | None,
+                     extra: Sequence[float] | None = None
+                     ) -> tuple[float, float, float, tuple[float, ...]]:
+    """:func:`propagate_step` on plain floats: returns (x', y', yaw', upper triangle of P').
+
+    ``upper`` and the result hold (p00, p01, p02, p11, p12, p22) of the symmetric covariance;
+    ``extra`` is an additional step noise in the same layout (the input noise). F differs from
+    the identity in its last column only and G is a rotation, so the products are a few dozen
+    multiplications; numpy's 3 x 3 products would cost more in overhead than in arithmetic,
+    and this step runs once per wheel sample in the node.
+    """
     new_x, new_y, new_yaw, dx, dy = step_scalar(x, y, yaw, vx, vy, w, dt_s)
-    dth = w * dt_s
     q00 = q01 = q02 = q11 = q12 = q22 = 0.0
     if noise is not None:
-        q00, q11, q22 = noise.step_variances(math.hypot(dx, dy), dth)
-    if input_jacobian is not None and input_variance > 0.0:
-        extra = input_variance * input_jacobian @ input_jacobian.T
-        (e00, e01, e02), (_, e11, e12), (_, _, e22) = extra.tolist()
+        q00, q11, q22 = noise.step_variances(math.hypot(dx, dy), w * dt_s)
+    if extra is not None:
+        e00, e01, e02, e11, e12, e22 = extra
         q00, q01, q02, q11, q12, q22 = (q00 + e00, q01 + e01, q02 + e02, q11 + e11,
                                         q12 + e12, q22 + e22)
-    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = cov.tolist()
-    # Symmetrize the input as the matrix form did its output.
-    p01 = 0.5 * (p01 + p10)
-    p02 = 0.5 * (p02 + p20)
-    p12 = 0.5 * (p12 + p21)
+    p00, p01, p02, p11, p12, p22 = upper
     cos_t = float(np.cos(yaw))
     sin_t = float(np.sin(yaw))
     a = -sin_t * dx - cos_t * dy  # F[0, 2]
@@ -125,13 +151,8 @@ def propagate_step(pose: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt_s: f
     n11 = g10 * sin_t + g11 * cos_t
     n02 = cos_t * q02 - sin_t * q12
     n12 = sin_t * q02 + cos_t * q12
-    c01 = m01 + n01
-    c02 = r02 + n02
-    c12 = r12 + n12
-    new_cov = np.array([[m00 + n00, c01, c02],
-                        [c01, m11 + n11, c12],
-                        [c02, c12, p22 + q22]])
-    return np.array((new_x, new_y, new_yaw)), new_cov
+    return new_x, new_y, new_yaw, (m00 + n00, m01 + n01, r02 + n02, m11 + n11, r12 + n12,
+                                   p22 + q22)
 
 
 def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
@@ -162,6 +183,22 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
     return state, covariance
 
 
+def flat_6x6(upper: Sequence[float], unobserved: float = UNOBSERVED_VARIANCE) -> list[float]:
+    """Return a planar covariance in ROS's 6x6 layout, row-major, as a list of 36 floats.
+
+    ``upper``: (c00, c01, c02, c11, c12, c22) of (x, y, yaw); the 6x6 is (x, y, z, roll, pitch,
+    yaw), with ``unobserved`` on the diagonal of z, roll and pitch.
+    """
+    a, b, c, e, f, i = upper
+    u = unobserved
+    return [a, b, 0.0, 0.0, 0.0, c,
+            b, e, 0.0, 0.0, 0.0, f,
+            0.0, 0.0, u, 0.0, 0.0, 0.0,
+            0.0, 0.0, 0.0, u, 0.0, 0.0,
+            0.0, 0.0, 0.0, 0.0, u, 0.0,
+            c, f, 0.0, 0.0, 0.0, i]
+
+
 def to_6x6(cov3: np.ndarray, unobserved: float = UNOBSERVED_VARIANCE) -> np.ndarray:
     """Embed a planar (x, y, yaw) covariance into ROS's 6x6 (x, y, z, roll, pitch, yaw) layout."""
     (a, b, c), (d, e, f), (g, h, i) = np.asarray(cov3, dtype=float).tolist()
@@ -174,11 +211,20 @@ def to_6x6(cov3: np.ndarray, unobserved: float = UNOBSERVED_VARIANCE) -> np.ndar
                      g, h, 0.0, 0.0, 0.0, i]).reshape(6, 6)
 
 
-def _diagonal_6x6(values: Sequence[float]) -> np.ndarray:
-    """Return a 6x6 diagonal matrix (a list-built array: cheaper than np.diag per message)."""
+def _diagonal_flat(values: Sequence[float]) -> list[float]:
+    """Return a row-major 6x6 diagonal matrix as a list of 36 floats."""
     flat = [0.0] * 36
-    flat[::7] = values
-    return np.array(flat).reshape(6, 6)
+    flat[::7] = [float(v) for v in values]
+    return flat
+
+
+def _upper_of(cov3: np.ndarray) -> tuple[float, ...]:
+    """Return the upper triangle of the symmetric part of a 3 x 3 matrix."""
+    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = np.asarray(cov3, dtype=float).tolist()
+    return (p00, 0.5 * (p01 + p10), 0.5 * (p02 + p20), p11, 0.5 * (p12 + p21), p22)
+
+
+_INITIAL_UPPER = (INITIAL_VARIANCE, 0.0, 0.0, INITIAL_VARIANCE, 0.0, INITIAL_VARIANCE)
 
 
 class PoseCovariancePropagator:
@@ -186,39 +232,60 @@ class PoseCovariancePropagator:
 
     With a calibrated ``noise`` the pose covariance grows with the motion as propagated and the
     twist covariance follows the rate model; without one, the fixed fallback diagonals are
-    published.
+    published. The ``*_flat`` methods return row-major lists of 36 floats (what a message
+    carries); the ``*_6x6`` ones the same as arrays.
     """
 
     def __init__(self, noise: NoiseModel | None, fallback_pose_diag: Sequence[float],
                  fallback_twist_diag: Sequence[float]) -> None:
         self.noise = noise
-        self.fallback_pose = np.diag(np.asarray(fallback_pose_diag, dtype=float))
-        self.fallback_twist = np.diag(np.asarray(fallback_twist_diag, dtype=float))
-        self.cov = np.eye(3) * INITIAL_VARIANCE
+        self._fallback_pose = _diagonal_flat(fallback_pose_diag)
+        self._fallback_twist = _diagonal_flat(fallback_twist_diag)
+        self._upper = _INITIAL_UPPER
 
     @property
     def calibrated(self) -> bool:
         return self.noise is not None
 
-    def reset(self) -> None:
-        self.cov = np.eye(3) * INITIAL_VARIANCE
+    @property
+    def cov(self) -> np.ndarray:
+        """Return the planar (x, y, yaw) covariance, 3 x 3 (a new array)."""
+        return upper_to_3x3(self._upper)
 
-    def step(self, pose_before: np.ndarray, twist: np.ndarray, dt_s: float) -> None:
+    @cov.setter
+    def cov(self, value: np.ndarray) -> None:
+        self._upper = _upper_of(value)
+
+    def reset(self) -> None:
+        self._upper = _INITIAL_UPPER
+
+    def step(self, pose_before: Sequence[float], twist: Sequence[float], dt_s: float) -> None:
+        """Propagate over one held step from ``pose_before`` (x, y, yaw) with ``twist``."""
         if self.noise is None:
             return
-        _, self.cov = propagate_step(np.asarray(pose_before, dtype=float), self.cov,
-                                     np.asarray(twist, dtype=float), dt_s, self.noise)
+        x, y, yaw = pose_before
+        vx, vy, w = twist
+        *_, self._upper = propagate_scalar(float(x), float(y), float(yaw), float(vx),
+                                           float(vy), float(w), dt_s, self._upper, self.noise)
+
+    def pose_covariance_flat(self) -> list[float]:
+        if self.noise is None:
+            return list(self._fallback_pose)
+        return flat_6x6(self._upper)
+
+    def twist_covariance_flat(self, twist: Sequence[float], period_s: float) -> list[float]:
+        if self.noise is None or period_s <= 0.0:
+            return list(self._fallback_twist)
+        vx, vy, w = twist
+        var_vx, var_vy, var_w = self.noise.twist_variances(math.hypot(vx, vy), float(w),
+                                                           period_s)
+        floor = TWIST_VARIANCE_FLOOR
+        return _diagonal_flat([max(var_vx, floor[0]), max(var_vy, floor[1]),
+                               UNOBSERVED_VARIANCE, UNOBSERVED_VARIANCE, UNOBSERVED_VARIANCE,
+                               max(var_w, floor[2])])
 
     def pose_covariance_6x6(self) -> np.ndarray:
-        if self.noise is None:
-            return self.fallback_pose.copy()
-        return to_6x6(self.cov)
+        return np.array(self.pose_covariance_flat()).reshape(6, 6)
 
-    def twist_covariance_6x6(self, twist: np.ndarray, period_s: float) -> np.ndarray:
-        if self.noise is None or period_s <= 0.0:
-            return self.fallback_twist.copy()
-        speed = math.hypot(twist[0], twist[1])
-        var_vx, var_vy, var_w = self.noise.twist_variances(speed, float(twist[2]), period_s)
-        floor = TWIST_VARIANCE_FLOOR
-        return _diagonal_6x6([max(var_vx, floor[0]), max(var_vy, floor[1]), UNOBSERVED_VARIANCE,
-                              UNOBSERVED_VARIANCE, UNOBSERVED_VARIANCE, max(var_w, floor[2])])
+    def twist_covariance_6x6(self, twist: Sequence[float], period_s: float) -> np.ndarray:
+        return np.array(self.twist_covariance_flat(twist, period_s)).reshape(6, 6)

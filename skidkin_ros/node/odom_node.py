@@ -50,6 +50,7 @@ import rclpy.logging
 from rclpy.node import Node
 from rclpy.qos import (qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from skidkin_ros.core.config import OdometryConfig, parameter_schema, SchemaEntry
 from skidkin_ros.core.integrator import (IntegratorLimits, SampleStatus, StepResult,
@@ -62,6 +63,7 @@ from skidkin_ros.node.conversions import (check_velocity_count, joint_indices,
                                           MissingJointError, ns_to_stamp, plain_value,
                                           planar_covariance_from_msg, planar_pose_from_msg,
                                           speeds_at, stamp_to_ns)
+from skidkin_ros.node.wire import JointStateReader, OdometryWriter, WireFormatError
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 import yaml
@@ -150,8 +152,10 @@ class OdomNode(Node):
         self._stale = True
         self._stale_reported = False
         self._pending: dict[str, tuple[int, float] | None] = {'left': None, 'right': None}
-        # The wheel joints' places in the last JointState name list (drivers repeat the list).
-        self._joint_names: list[str] | None = None
+        # The wheel joints' places in the last JointState name list (drivers repeat the list),
+        # keyed by that list (its serialized bytes when the message came serialized).
+        self._joint_key: Any = None
+        self._joint_reader = JointStateReader()
         self._joint_index: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())
         self._side_seen_mono_ns: dict[str, int | None] = {'left': None, 'right': None}
         self._report_counters: collections.Counter[str] = collections.Counter()
@@ -162,12 +166,17 @@ class OdomNode(Node):
         self._odom_pub = self.create_publisher(Odometry, 'odom', output_qos,
                                                qos_overriding_options=overridable)
         self._odom_msg = Odometry()
+        # Serializer of the output for the frames in force (None: publish message objects).
+        self._odom_writer: OdometryWriter | None = None
+        self._writer_frames: tuple[str, str] | None = None
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', output_qos)
         self._tf_broadcaster = self._make_tf_broadcaster(config['publish_tf'])
         self._input = config['input']
         if self._input == 'joint_state':
+            # Serialized (raw): the node reads the few fields it needs itself (see node.wire).
             self.create_subscription(JointState, 'joint_states', self._on_joint_state,
-                                     qos_profile_sensor_data, qos_overriding_options=overridable)
+                                     qos_profile_sensor_data, qos_overriding_options=overridable,
+                                     raw=True)
         else:
             self.create_subscription(Float64, 'wheel/left/velocity', self._on_left_wheel,
                                      qos_profile_sensor_data, qos_overriding_options=overridable)
@@ -179,10 +188,10 @@ class OdomNode(Node):
                                             reliability=ReliabilityPolicy.RELIABLE))
         # Watchdogs on a steady clock: a paused /clock or a stepped wall clock cannot stall them.
         self.steady_clock = Clock(clock_type=ClockType.STEADY_TIME)
-        self.watchdog_timer = self.create_timer(WATCHDOG_PERIOD_S, self._on_watchdog,
-                                                clock=self.steady_clock)
-        self.diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_diagnostics,
-                                                   clock=self.steady_clock)
+        # One timer for both (each entity in the wait set costs the executor on every message).
+        self.timer = self.create_timer(WATCHDOG_PERIOD_S, self._on_timer,
+                                       clock=self.steady_clock)
+        self._next_diagnostics_ns = time.monotonic_ns() + int(DIAGNOSTICS_PERIOD_S * NS_PER_S)
         self._jump_handle = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
                           on_clock_change=True),
@@ -265,7 +274,7 @@ class OdomNode(Node):
         covariance = self._new_propagator(config)
         covariance.cov = self._covariance.cov.copy()
         self._covariance = covariance
-        self._joint_names = None  # the wheel joints may have changed
+        self._joint_key = None  # the wheel joints may have changed
         if config['publish_tf'] and self._tf_broadcaster is None:
             self._tf_broadcaster = self._make_tf_broadcaster(True)
         self._config = config
@@ -283,23 +292,32 @@ class OdomNode(Node):
 
     # ------------------------------------------------------------------ inputs
     @_guarded
-    def _on_joint_state(self, msg: JointState) -> None:
+    def _on_joint_state(self, msg: bytes | JointState) -> None:
+        """Take a JointState, serialized (the subscription's form) or as a message."""
+        if isinstance(msg, bytes):
+            try:
+                t_ns, n_names, key, velocity = self._joint_reader.read(msg)
+                names = None
+            except WireFormatError:  # not plain CDR: rclpy's deserialization decides
+                msg = deserialize_message(msg, JointState)
+        if not isinstance(msg, bytes):
+            t_ns, names, velocity = stamp_to_ns(msg.header.stamp), list(msg.name), msg.velocity
+            n_names, key = len(names), tuple(names)
         with self._lock:
             self.counters['received'] += 1
             config = self._config
-            names = msg.name
-            velocity = msg.velocity
-            check_velocity_count(len(names), len(velocity))  # raises: reported by _guarded
-            if names != self._joint_names:
+            check_velocity_count(n_names, len(velocity))  # raises: reported by _guarded
+            if key != self._joint_key:
+                if names is None:
+                    names = self._joint_reader.names(key)
                 try:
                     self._joint_index = joint_indices(names, config['left_wheel_joints'],
                                                       config['right_wheel_joints'])
                 except MissingJointError as err:
                     self._reject('missing_joint', str(err))
                     return
-                self._joint_names = list(names)
+                self._joint_key = key
             omega_l, omega_r = speeds_at(velocity, *self._joint_index)
-            t_ns = stamp_to_ns(msg.header.stamp)
             now_ns = self._clock_now_ns()
             if now_ns is None:
                 return
@@ -375,9 +393,6 @@ class OdomNode(Node):
 
     # ------------------------------------------------------------------ integration
     def _process(self, t_ns: int, omega_l: float, omega_r: float) -> None:
-        # No copies needed: the integrator replaces these arrays, it never changes them in place.
-        pose_before = self._integrator.pose
-        twist_before = self._integrator.held_twist
         result = self._integrator.step(t_ns, omega_l, omega_r)
         status = result.status
         self.counters[status.value] += 1
@@ -388,7 +403,7 @@ class OdomNode(Node):
             self._warn(status.value, f'wheel sample rejected: {result.detail}')
             return
         if status is SampleStatus.INTEGRATED:
-            self._covariance.step(pose_before, twist_before, result.dt_s)
+            self._covariance.step(result.start_pose, result.step_twist, result.dt_s)
             self._period_s = result.dt_s
         elif status is SampleStatus.GAP:
             self._warn('gap', result.detail)
@@ -412,43 +427,69 @@ class OdomNode(Node):
                 and t_ns - self._last_published_t_ns < NS_PER_S / max_rate):
             self.counters['rate_limited'] += 1
             return
-        pose_cov = self._covariance.pose_covariance_6x6()
-        twist_cov = self._covariance.twist_covariance_6x6(result.twist, self._period_s)
-        x, y, yaw = result.pose.tolist()
-        vx, vy, w = result.twist.tolist()
+        pose_cov = self._covariance.pose_covariance_flat()
+        twist_cov = self._covariance.twist_covariance_flat(result.twist, self._period_s)
+        x, y, yaw = result.pose
+        vx, vy, w = result.twist
         # A sum of finite terms may overflow to inf only far beyond any plausible value.
-        if not (math.isfinite(x + y + yaw + vx + vy + w)
-                and math.isfinite(float(pose_cov.sum()) + float(twist_cov.sum()))):
+        if not math.isfinite(x + y + yaw + vx + vy + w + sum(pose_cov) + sum(twist_cov)):
             self.counters['non_finite_output'] += 1
             self._warn('non_finite_output', 'odometry has a non-finite pose, twist or '
                        f'covariance (pose {result.pose}, twist {result.twist}); not published',
                        error=True)
             return
+        qx, qy, qz, qw = yaw_to_quaternion(yaw)
+        writer = self._writer(config)
+        if writer is not None:
+            self._odom_pub.publish(writer.pack(t_ns, x, y, qz, qw, pose_cov, vx, vy, w,
+                                               twist_cov))
+        else:
+            self._odom_pub.publish(self._odometry_msg(t_ns, x, y, qz, qw, pose_cov, vx, vy, w,
+                                                      twist_cov))
+        self.counters['published'] += 1
+        self._last_published_t_ns = t_ns
+        if self._tf_broadcaster is not None and config['publish_tf']:
+            transform = TransformStamped()
+            transform.header.stamp = ns_to_stamp(t_ns)
+            transform.header.frame_id = config['odom_frame_id']
+            transform.child_frame_id = config['base_frame_id']
+            transform.transform.translation.x = x
+            transform.transform.translation.y = y
+            transform.transform.rotation.z = qz
+            transform.transform.rotation.w = qw
+            self._tf_broadcaster.sendTransform(transform)
+
+    def _writer(self, config: OdometryConfig) -> OdometryWriter | None:
+        """Return the serializer for the configured frames (None: publish messages instead)."""
+        frames = (config['odom_frame_id'], config['base_frame_id'])
+        if frames != self._writer_frames:
+            writer: OdometryWriter | None = OdometryWriter(*frames)
+            if not writer.agrees_with(deserialize_message, Odometry):
+                self.get_logger().warning(
+                    'the Odometry serializer disagrees with rclpy on this middleware: '
+                    'publishing message objects instead (slower)')
+                writer = None
+            self._odom_writer, self._writer_frames = writer, frames
+        return self._odom_writer
+
+    def _odometry_msg(self, t_ns: int, x: float, y: float, qz: float, qw: float,
+                      pose_cov: Sequence[float], vx: float, vy: float, w: float,
+                      twist_cov: Sequence[float]) -> Odometry:
         msg = self._odom_msg  # reused: publish() serializes it before returning
+        config = self._config
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, NS_PER_S)
         msg.header.frame_id = config['odom_frame_id']
         msg.child_frame_id = config['base_frame_id']
         msg.pose.pose.position.x = x
         msg.pose.pose.position.y = y
-        qx, qy, qz, qw = yaw_to_quaternion(yaw)
         msg.pose.pose.orientation.z = qz
         msg.pose.pose.orientation.w = qw
-        msg.pose.covariance = np.ascontiguousarray(pose_cov, dtype=np.float64).reshape(36)
+        msg.pose.covariance = np.array(pose_cov)
         msg.twist.twist.linear.x = vx
         msg.twist.twist.linear.y = vy
         msg.twist.twist.angular.z = w
-        msg.twist.covariance = np.ascontiguousarray(twist_cov, dtype=np.float64).reshape(36)
-        self._odom_pub.publish(msg)
-        self.counters['published'] += 1
-        self._last_published_t_ns = t_ns
-        if self._tf_broadcaster is not None and config['publish_tf']:
-            transform = TransformStamped()
-            transform.header = msg.header
-            transform.child_frame_id = msg.child_frame_id
-            transform.transform.translation.x = x
-            transform.transform.translation.y = y
-            transform.transform.rotation = msg.pose.pose.orientation
-            self._tf_broadcaster.sendTransform(transform)
+        msg.twist.covariance = np.array(twist_cov)
+        return msg
 
     def _make_tf_broadcaster(self, wanted: bool) -> Any:
         if not wanted:
@@ -545,6 +586,17 @@ class OdomNode(Node):
             self.get_logger().error(text)
         else:
             self._warn('callback_error', text, error=True)
+
+    def _on_timer(self) -> None:
+        """Run the input watchdog every tick and publish /diagnostics every second."""
+        self._on_watchdog()
+        now_ns = time.monotonic_ns()
+        if now_ns >= self._next_diagnostics_ns:
+            period_ns = int(DIAGNOSTICS_PERIOD_S * NS_PER_S)
+            # Keep the cadence; after a long stall, restart it instead of catching up.
+            self._next_diagnostics_ns = max(self._next_diagnostics_ns + period_ns,
+                                            now_ns + period_ns // 2)
+            self._on_diagnostics()
 
     @_guarded
     def _on_watchdog(self) -> None:
