@@ -37,7 +37,7 @@ from typing import Sequence
 import numpy as np
 from scipy import optimize, stats
 
-from skidkin_ros.core.integrator import rollout_segments
+from skidkin_ros.core.integrator import rollout_columns
 from skidkin_ros.core.models import get_model, KinematicModel, MODEL_NAMES
 from skidkin_ros.core.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.specs import Geometry
@@ -168,8 +168,10 @@ def predict_end_poses(model: KinematicModel, k: np.ndarray, geometry: Geometry,
     for idx, width in segments.batches():
         omega_l = segments.omega_l[idx, :width]
         omega_r = segments.omega_r[idx, :width]
-        twist = model.twist(k, geometry, omega_l, omega_r)
-        end[idx] = rollout_segments(twist, segments.dt_s[idx, :width], segments.start[idx])[:, -1]
+        v_x, v_y, omega = model.twist_components(k, geometry, omega_l, omega_r)
+        x, y, yaw = rollout_columns(v_x, v_y, omega, segments.dt_s[idx, :width],
+                                    segments.start[idx])
+        end[idx, 0], end[idx, 1], end[idx, 2] = x[:, -1], y[:, -1], yaw[:, -1]
     return end
 
 

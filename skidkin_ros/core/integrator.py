@@ -32,6 +32,7 @@ __all__ = [
     'step_scalar',
     'rollout',
     'rollout_segments',
+    'rollout_columns',
     'wrap_angle',
     'TwistSource',
     'StatefulTwistSource',
@@ -49,15 +50,24 @@ SMALL_ANGLE_RAD = 1e-3
 
 
 def _sinc_terms(dtheta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return sin(a)/a and (1 - cos a)/a, continuous through a = 0."""
-    a = np.asarray(dtheta, dtype=float)
+    """Return sin(a)/a and (1 - cos a)/a, continuous through a = 0.
+
+    The closed form everywhere, then the series where |a| is small (rare at usual sampling
+    rates, so the series is evaluated on those elements only).
+    """
+    given = np.asarray(dtheta, dtype=float)
+    a = np.atleast_1d(given)
     small = np.abs(a) < SMALL_ANGLE_RAD
-    safe = np.where(small, 1.0, a)
-    a2 = a * a
-    sin_a = np.where(small, 1.0 - a2 / 6.0 + a2 * a2 / 120.0, np.sin(safe) / safe)
-    cos_a = np.where(small, a / 2.0 - a * a2 / 24.0 + a * a2 * a2 / 720.0,
-                     (1.0 - np.cos(safe)) / safe)
-    return sin_a, cos_a
+    any_small = bool(small.any())
+    safe = np.where(small, 1.0, a) if any_small else a
+    sin_a = np.sin(safe) / safe
+    cos_a = (1.0 - np.cos(safe)) / safe
+    if any_small:
+        s = a[small]
+        s2 = s * s
+        sin_a[small] = 1.0 - s2 / 6.0 + s2 * s2 / 120.0
+        cos_a[small] = s / 2.0 - s * s2 / 24.0 + s * s2 * s2 / 720.0
+    return sin_a.reshape(given.shape), cos_a.reshape(given.shape)
 
 
 def _sinc_scalar(a: float) -> tuple[float, float]:
@@ -124,9 +134,20 @@ def rollout_segments(twist: np.ndarray, dt_s: np.ndarray, start: np.ndarray) -> 
     whole rollout is three cumulative sums; no Python loop over time.
     """
     twist = np.asarray(twist, dtype=float)
+    x, y, theta = rollout_columns(twist[..., 0], twist[..., 1], twist[..., 2], dt_s, start)
+    return np.stack([x, y, theta], axis=-1)
+
+
+def rollout_columns(v_x: np.ndarray, v_y: np.ndarray, omega: np.ndarray, dt_s: np.ndarray,
+                    start: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`rollout_segments` on the twist components, each (N, L); returns x, y, yaw (N, L+1).
+
+    The fitting calls this with contiguous components (cheaper than strided views of an
+    (N, L, 3) array); the arithmetic is the same, element for element.
+    """
     dt_s = np.asarray(dt_s, dtype=float)
     start = np.asarray(start, dtype=float)
-    dx, dy, dtheta = body_increment(twist[..., 0], twist[..., 1], twist[..., 2], dt_s)
+    dx, dy, dtheta = body_increment(v_x, v_y, omega, dt_s)
     theta = np.cumsum(np.concatenate([start[:, 2:3], dtheta], axis=1), axis=1)
     cos_t = np.cos(theta[:, :-1])
     sin_t = np.sin(theta[:, :-1])
@@ -134,7 +155,7 @@ def rollout_segments(twist: np.ndarray, dt_s: np.ndarray, start: np.ndarray) -> 
     step_y = sin_t * dx + cos_t * dy
     x = np.cumsum(np.concatenate([start[:, 0:1], step_x], axis=1), axis=1)
     y = np.cumsum(np.concatenate([start[:, 1:2], step_y], axis=1), axis=1)
-    return np.stack([x, y, theta], axis=-1)
+    return x, y, theta
 
 
 def rollout(twist: np.ndarray, dt_s: np.ndarray, start=(0.0, 0.0, 0.0)) -> np.ndarray:

@@ -111,6 +111,22 @@ class KinematicModel:
         jac = self.jacobian(k, geometry, omega_l, omega_r)
         return jac[..., 0] * omega_l[..., None] + jac[..., 1] * omega_r[..., None]
 
+    def twist_components(self, k: np.ndarray, geometry: Geometry, omega_l: np.ndarray,
+                         omega_r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`twist` as three separate arrays (v_x, v_y, omega), each shaped like omega_l.
+
+        For a linear model each component is computed on its own (contiguous, cheaper to roll
+        out); the arithmetic is :meth:`twist`'s, element for element.
+        """
+        rows = self.rows(k, geometry)
+        if rows is None:
+            twist = self.twist(k, geometry, omega_l, omega_r)
+            return twist[..., 0], twist[..., 1], twist[..., 2]
+        omega_l = np.asarray(omega_l, dtype=float)
+        omega_r = np.asarray(omega_r, dtype=float)
+        (a, b), (c, d), (e, f) = np.asarray(rows, dtype=float)
+        return omega_l * a + omega_r * b, omega_l * c + omega_r * d, omega_l * e + omega_r * f
+
     def bind(self, values: Mapping[str, float], geometry: Geometry) -> 'BoundModel':
         return BoundModel(self, geometry, self.vector(values, geometry))
 

@@ -160,7 +160,14 @@ class SegmentSet:
 
         Padding every segment to the longest one wastes most of the work when a few segments are
         long (slow driving); widths grow geometrically so the waste stays below ``growth``.
+        Computed once per set and growth (a fit rolls the same set out hundreds of times).
         """
+        cache = self.__dict__.setdefault('_batches', {})
+        if growth not in cache:
+            cache[growth] = self._group(growth)
+        return cache[growth]
+
+    def _group(self, growth: float) -> list[tuple[np.ndarray, int]]:
         counts = self.step_counts
         order = np.argsort(counts, kind='stable')
         groups = []
