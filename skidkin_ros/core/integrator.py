@@ -310,14 +310,20 @@ class StreamingIntegrator:
     """
 
     def __init__(self, source: TwistSource, limits: IntegratorLimits | None = None) -> None:
-        self.source = source
+        self._source = source
         self.limits = limits or IntegratorLimits()
         self._stateful = is_stateful(source)
+        self._offset_ns = _offset_ns(source)
         self._pose: Triple = (0.0, 0.0, 0.0)
         self._twist: Triple = (0.0, 0.0, 0.0)
         self.last_t_ns: int | None = None
         self.held_speeds: tuple[float, float] = (0.0, 0.0)
         self.state: Any = None
+
+    @property
+    def source(self) -> TwistSource:
+        """Return the twist source in use (change it with :meth:`set_source`)."""
+        return self._source
 
     @property
     def pose(self) -> np.ndarray:
@@ -332,7 +338,7 @@ class StreamingIntegrator:
     @property
     def output_offset_ns(self) -> int:
         """Return the offset (ns) to add to a sample stamp for what is published."""
-        return int(getattr(self.source, 'output_offset_ns', 0))
+        return self._offset_ns
 
     def reset(self, pose=(0.0, 0.0, 0.0)) -> None:
         """Zero (or set) the pose and forget the held speeds and the last stamp."""
@@ -348,8 +354,9 @@ class StreamingIntegrator:
 
         A stateful source starts afresh from the held speeds (its state is not carried over).
         """
-        self.source = source
+        self._source = source
         self._stateful = is_stateful(source)
+        self._offset_ns = _offset_ns(source)
         self.state = None
         if self._stateful and self.last_t_ns is not None:
             self.state, twist = source.begin(None, self.last_t_ns, *self.held_speeds, True)
@@ -421,6 +428,11 @@ class StreamingIntegrator:
         self._hold(t_ns, omega_l, omega_r)
         return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
                           step_twist)
+
+
+def _offset_ns(source: TwistSource) -> int:
+    """Return a source's output offset in ns (0 for a source without one)."""
+    return int(getattr(source, 'output_offset_ns', 0))
 
 
 def _triple(values: Any) -> Triple:
