@@ -128,8 +128,8 @@ def test_frame_ids_changed_at_runtime_reach_the_output(make_rig):
 
 
 def test_joint_state_in_another_encapsulation_goes_through_rclpy(make_rig):
-    # Data the node's reader does not take (here: a header that is not plain CDR) is handed to
-    # rclpy's deserialization; what that cannot read is counted as a callback error.
+    # Data the node's reader does not take (here: a frame_id length that runs past the end) is
+    # handed to rclpy's deserialization; what that cannot read is counted as a callback error.
     from rclpy.serialization import serialize_message
     rig = make_rig()
     t0 = wall_ns() - NS_PER_S

@@ -85,8 +85,9 @@ class BoundAugmented:
         index = self.extensions.index(ext)
         return float(self.values[index][get_extension(ext).param_names.index(param)])
 
-    @property
+    @functools.cached_property
     def tau_s(self) -> float:
+        """Return the first-order lag in s, 0 without one (read once: used on every sample)."""
         return self._param('first_order_lag', 'tau_s')
 
     @property
@@ -127,10 +128,6 @@ class BoundAugmented:
             chain.append((function, tuple(np.asarray(k, dtype=float).tolist())))
         return tuple(chain)
 
-    @functools.cached_property
-    def _tau(self) -> float:
-        return self.tau_s
-
     def scalar_memoryless(self, omega_l: float, omega_r: float,
                           t_s: float) -> tuple[float, float, float]:
         """:meth:`memoryless` for one sample on plain floats (equal to it bit for bit)."""
@@ -148,7 +145,7 @@ class BoundAugmented:
         """Take a new sample; return the new state and the body twist published now."""
         t0 = t_ns if state is None else state.t0_ns
         x = self.scalar_memoryless(float(omega_l), float(omega_r), (t_ns - t0) * 1e-9)
-        if state is None or restart or not self._tau > 0.0:
+        if state is None or restart or not self.tau_s > 0.0:
             y = x
         else:
             y = state.y
@@ -160,7 +157,7 @@ class BoundAugmented:
 
         :func:`lag_factors` and :func:`lag_response`'s sample loop on plain floats.
         """
-        tau = self._tau
+        tau = self.tau_s
         if not tau > 0.0:
             return state, state.x
         ratio = dt_s / tau

@@ -278,6 +278,9 @@ class IntegratorLimits:
     max_wheel_speed_rad_s: float = 100.0
 
 
+Triple = tuple[float, float, float]
+
+
 @dataclass
 class StepResult:
     """What one sample did. Poses and twists are plain float triples (the node's hot path).
@@ -289,15 +292,12 @@ class StepResult:
     """
 
     status: SampleStatus
-    pose: tuple[float, float, float]
-    twist: tuple[float, float, float]
+    pose: Triple
+    twist: Triple
     dt_s: float = 0.0
     detail: str = ''
-    start_pose: tuple[float, float, float] | None = None
-    step_twist: tuple[float, float, float] | None = None
-
-
-Triple = tuple[float, float, float]
+    start_pose: Triple | None = None
+    step_twist: Triple | None = None
 
 
 class StreamingIntegrator:

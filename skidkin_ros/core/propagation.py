@@ -91,9 +91,7 @@ def propagate_step(pose: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt_s: f
     """
     x, y, yaw = (float(v) for v in pose)
     vx, vy, w = (float(v) for v in twist)
-    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = np.asarray(cov, dtype=float).tolist()
-    # Symmetrize the input as the matrix form did its output.
-    upper = (p00, 0.5 * (p01 + p10), 0.5 * (p02 + p20), p11, 0.5 * (p12 + p21), p22)
+    upper = _upper_of(cov)  # symmetrized, as the matrix form did its output
     extra = None
     if input_jacobian is not None and input_variance > 0.0:
         (e00, e01, e02), (_, e11, e12), (_, _, e22) = (
@@ -190,25 +188,26 @@ def flat_6x6(upper: Sequence[float], unobserved: float = UNOBSERVED_VARIANCE) ->
     yaw), with ``unobserved`` on the diagonal of z, roll and pitch.
     """
     a, b, c, e, f, i = upper
-    u = unobserved
-    return [a, b, 0.0, 0.0, 0.0, c,
-            b, e, 0.0, 0.0, 0.0, f,
-            0.0, 0.0, u, 0.0, 0.0, 0.0,
-            0.0, 0.0, 0.0, u, 0.0, 0.0,
-            0.0, 0.0, 0.0, 0.0, u, 0.0,
-            c, f, 0.0, 0.0, 0.0, i]
+    return _embed((a, b, c), (b, e, f), (c, f, i), unobserved)
 
 
 def to_6x6(cov3: np.ndarray, unobserved: float = UNOBSERVED_VARIANCE) -> np.ndarray:
     """Embed a planar (x, y, yaw) covariance into ROS's 6x6 (x, y, z, roll, pitch, yaw) layout."""
-    (a, b, c), (d, e, f), (g, h, i) = np.asarray(cov3, dtype=float).tolist()
+    rows = np.asarray(cov3, dtype=float).tolist()
+    return np.array(_embed(*rows, unobserved)).reshape(6, 6)
+
+
+def _embed(row_x: Sequence[float], row_y: Sequence[float], row_yaw: Sequence[float],
+           unobserved: float) -> list[float]:
+    """Return the row-major 6x6 (x, y, z, roll, pitch, yaw) holding a 3 x 3 (x, y, yaw) block."""
+    (a, b, c), (d, e, f), (g, h, i) = row_x, row_y, row_yaw
     u = unobserved
-    return np.array([a, b, 0.0, 0.0, 0.0, c,
-                     d, e, 0.0, 0.0, 0.0, f,
-                     0.0, 0.0, u, 0.0, 0.0, 0.0,
-                     0.0, 0.0, 0.0, u, 0.0, 0.0,
-                     0.0, 0.0, 0.0, 0.0, u, 0.0,
-                     g, h, 0.0, 0.0, 0.0, i]).reshape(6, 6)
+    return [a, b, 0.0, 0.0, 0.0, c,
+            d, e, 0.0, 0.0, 0.0, f,
+            0.0, 0.0, u, 0.0, 0.0, 0.0,
+            0.0, 0.0, 0.0, u, 0.0, 0.0,
+            0.0, 0.0, 0.0, 0.0, u, 0.0,
+            g, h, 0.0, 0.0, 0.0, i]
 
 
 def _diagonal_flat(values: Sequence[float]) -> list[float]:

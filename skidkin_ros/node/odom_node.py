@@ -294,15 +294,7 @@ class OdomNode(Node):
     @_guarded
     def _on_joint_state(self, msg: bytes | JointState) -> None:
         """Take a JointState, serialized (the subscription's form) or as a message."""
-        if isinstance(msg, bytes):
-            try:
-                t_ns, n_names, key, velocity = self._joint_reader.read(msg)
-                names = None
-            except WireFormatError:  # not plain CDR: rclpy's deserialization decides
-                msg = deserialize_message(msg, JointState)
-        if not isinstance(msg, bytes):
-            t_ns, names, velocity = stamp_to_ns(msg.header.stamp), list(msg.name), msg.velocity
-            n_names, key = len(names), tuple(names)
+        t_ns, n_names, key, names, velocity = self._joint_state_fields(msg)
         with self._lock:
             self.counters['received'] += 1
             config = self._config
@@ -336,6 +328,22 @@ class OdomNode(Node):
                              'sample rejected: check the clocks of the driver and this machine')
                 return
             self._process(t_ns, omega_l, omega_r)
+
+    def _joint_state_fields(self, msg: bytes | JointState
+                            ) -> tuple[int, int, Any, list[str] | None, Sequence[float]]:
+        """Return (stamp ns, name count, name-list key, names or None, velocities).
+
+        Serialized input is read by node.wire (names decoded later, only when the key changes);
+        what it cannot read is deserialized by rclpy, like a message object.
+        """
+        if isinstance(msg, bytes):
+            try:
+                t_ns, n_names, key, velocity = self._joint_reader.read(msg)
+                return t_ns, n_names, key, None, velocity
+            except WireFormatError:  # not plain CDR: rclpy's deserialization decides
+                msg = deserialize_message(msg, JointState)
+        names = list(msg.name)
+        return stamp_to_ns(msg.header.stamp), len(names), tuple(names), names, msg.velocity
 
     @_guarded
     def _on_left_wheel(self, msg: Float64) -> None:
