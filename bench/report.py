@@ -148,11 +148,14 @@ def _diag_section(diag: Mapping[str, Any]) -> list[str]:
     lines = ['## Diagnosis against the distance driven', '']
     if not diag['available']:
         return lines + [f'diagnosis: {diag["reason"]}', '']
-    lines += ['| km | drives | diagnose s | s/km | extensions accepted |', '|---|---|---|---|---|']
+    lines += ['| km | drives | 1 process s | s/km | processes | s | s/km | speed-up | '
+              'same result | extensions accepted |', '|---|---|---|---|---|---|---|---|---|---|']
     for r in diag['rows']:
         accepted = ', '.join(r['accepted']) if r['accepted'] else 'none'
-        lines.append(f'| {r["km"]:.2f} | {r["drives"]} | {r["diagnose_s"]:.2f} | '
-                     f'{r["s_per_km"]:.2f} | {accepted} |')
+        lines.append(f'| {r["km"]:.2f} | {r["drives"]} | {r["serial_s"]:.2f} | '
+                     f'{r["serial_s_per_km"]:.1f} | {r["jobs"]} | {r["diagnose_s"]:.2f} | '
+                     f'{r["s_per_km"]:.1f} | {r["speedup"]:.2f} | '
+                     f'{"yes" if r["same_result"] else "NO"} | {accepted} |')
     return lines + ['']
 
 
@@ -189,8 +192,10 @@ def write_plot(results: Mapping[str, Any], path: Path) -> None:
         left.plot(km, [r['fit_s'] for r in calib], 's--', label='five fits')
     diag = results['diagnosis']
     if diag['available'] and diag['rows']:
-        left.plot([r['km'] for r in diag['rows']], [r['diagnose_s'] for r in diag['rows']],
-                  '^-.', label='diagnose')
+        km = [r['km'] for r in diag['rows']]
+        left.plot(km, [r['serial_s'] for r in diag['rows']], '^-.', label='diagnose, 1 process')
+        left.plot(km, [r['diagnose_s'] for r in diag['rows']], 'v:',
+                  label=f'diagnose, {diag["rows"][0]["jobs"]} processes')
     left.set_xlabel('distance driven (km)')
     left.set_ylabel('time (s)')
     left.set_title('Calibration cost')

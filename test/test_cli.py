@@ -153,3 +153,40 @@ def test_demo_pipeline_sized_down(tmp_path):
     node_t, _ = summary['node_eps']
     ideal_t, _ = summary['ideal_eps']
     assert np.median(node_t) < 0.25 * np.median(ideal_t)
+
+
+def test_diagnose_from_the_command_line_on_two_cores(tmp_path, capsys):
+    """Calibrate, then diagnose a drive with an undeclared skid: the file names it, both ways."""
+    from skidkin_ros.sim.effects import make_effect
+    tables = []
+    for seed in (8, 9, 10):
+        sim = simulate(SimConfig(duration_s=90.0, seed=seed, true_model='edd_symmetric',
+                                 true_params={'alpha': 0.9, 'b_hat': 0.85},
+                                 effects=(make_effect('lateral_skid', 0.1),)))
+        tables.append(str(write_truth_csv(sim, tmp_path / f'skid{seed}.csv')))
+    train, evaluate = tables[:2], tables[2]
+    params = tmp_path / 'params.yaml'
+    assert main(['calibrate', *train, '--out', str(params), '--models', 'edd_symmetric']) == 0
+    outputs = {}
+    for jobs in ('2', '1'):
+        out = tmp_path / f'augmented_{jobs}.yaml'
+        assert main(['diagnose', *train, '--eval', evaluate, '--params', str(params),
+                     '--out', str(out), '--candidates', 'time_offset', 'lateral_skid',
+                     'speed_slip', '--jobs', jobs, '--no-progress']) == 0
+        outputs[jobs] = read_params_file(out)
+        assert 'added lateral_skid' in capsys.readouterr().out
+    config = OdometryConfig.from_flat(outputs['2'])
+    assert config.model == 'augmented' and 'lateral_skid' in config.augmented_extensions
+    # The number of processes does not change the result (only when it ran, and how long).
+    stamps = ('provenance.date', 'provenance.seconds')
+    assert {k: v for k, v in outputs['2'].items() if k not in stamps} == {
+        k: v for k, v in outputs['1'].items() if k not in stamps}
+    # An existing output is kept without --force (C18), and a bad --jobs is refused up front.
+    before = (tmp_path / 'augmented_2.yaml').read_bytes()
+    assert main(['diagnose', *train, '--params', str(params), '--out',
+                 str(tmp_path / 'augmented_2.yaml')]) == 5
+    assert (tmp_path / 'augmented_2.yaml').read_bytes() == before
+    with pytest.raises(SystemExit):
+        main(['diagnose', *train, '--params', str(params), '--out', str(tmp_path / 'x.yaml'),
+              '--jobs', '0'])
+    assert 'expected a whole number of processes >= 1' in capsys.readouterr().err

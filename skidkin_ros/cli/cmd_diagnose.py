@@ -8,10 +8,12 @@ from pathlib import Path
 from skidkin_ros.adapters.sources import load_sources
 from skidkin_ros.atomic import check_writable
 from skidkin_ros.cli.cmd_calibrate import check_report_dir
-from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
+from skidkin_ros.cli.common import (add_source_args, jobs_arg, print_notes, RoundBars, say,
+                                    source_options)
 from skidkin_ros.core.config import OdometryConfig, read_params_file, write_params_file
 from skidkin_ros.core.diagnosis import diagnose, DiagnosisOptions
 from skidkin_ros.core.extensions import EXTENSIONS
+from skidkin_ros.core.parallel import usable_cpus
 from skidkin_ros.report.diagnosis import write_diagnosis_report
 
 __all__ = ['add_parser']
@@ -33,9 +35,14 @@ def run(args: argparse.Namespace) -> int:
         candidates=tuple(args.candidates) if args.candidates else DiagnosisOptions().candidates,
         holdout_every=2 if args.split_by else 3, holdout_key=args.split_by, trim=args.trim,
         h_t=args.h_t, h_e=args.h_e)
-    result = diagnose([d for s in train for d in s.drives],
-                      [d for s in evaluate for d in s.drives] or None, config.geometry,
-                      config.model_values, base, options)
+    bars = RoundBars() if src_opts.progress else None
+    try:
+        result = diagnose([d for s in train for d in s.drives],
+                          [d for s in evaluate for d in s.drives] or None, config.geometry,
+                          config.model_values, base, options, jobs=args.jobs, progress=bars)
+    finally:
+        if bars is not None:
+            bars.close()
     for line in result.summary_lines():
         say(line)
     written = write_params_file(args.out, result.to_parameters(flat), result.provenance,
@@ -71,6 +78,9 @@ def add_parser(subparsers) -> None:
                         help='tables without --eval: even values of COLUMN train, odd evaluate')
     parser.add_argument('--trim', action='store_true',
                         help='trim outlier segments before selecting (can hide real effects)')
+    parser.add_argument('--jobs', type=jobs_arg, default=usable_cpus(), metavar='N',
+                        help='processes fitting the candidates (default: every usable CPU, '
+                        '%(default)s here); the result does not depend on it')
     parser.add_argument('--h-t', type=float, default=2.0, metavar='M')
     parser.add_argument('--h-e', type=float, default=2.0, metavar='M')
     add_source_args(parser)

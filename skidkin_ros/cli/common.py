@@ -13,7 +13,7 @@ from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, LoadedSource, S
 from skidkin_ros.core.specs import Geometry
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
-           'say', 'print_notes', 'default_cache_dir']
+           'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'RoundBars']
 
 
 def say(*parts: object) -> None:
@@ -25,6 +25,44 @@ def print_notes(sources: Iterable[LoadedSource]) -> None:
     for source in sources:
         for note in source.notes:
             print(f'  note: {note}', file=sys.stderr, flush=True)
+
+
+def jobs_arg(text: str) -> int:
+    """Parse --jobs: a whole number of processes, at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(
+            f'expected a whole number of processes >= 1, got {text!r}')
+    return value
+
+
+class RoundBars:
+    """Progress bars (tqdm, on stderr) for a diagnosis: one per batch of fits of a round.
+
+    Called as ``bars(round, done, total)``; a new bar starts when the round changes or the count
+    starts over (the sparse fallback's fits, after the named extensions').
+    """
+
+    def __init__(self) -> None:
+        self._bar = None
+        self._key: tuple[int, int] | None = None
+
+    def __call__(self, round_no: int, done: int, total: int) -> None:
+        if self._bar is None or self._key != (round_no, total) or done < self._bar.n:
+            from tqdm import tqdm
+            self.close()
+            self._bar = tqdm(total=total, desc=f'diagnose, round {round_no}', unit='fit')
+            self._key = (round_no, total)
+        self._bar.update(done - self._bar.n)
+
+    def close(self) -> None:
+        """Close the bar in use, if any."""
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
 
 def default_cache_dir() -> Path:

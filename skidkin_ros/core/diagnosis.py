@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass, field
 import logging
 import math
 import time
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from scipy import optimize, stats
@@ -52,6 +52,7 @@ from skidkin_ros.core.extensions import (EXTENSION_NAMES, get_extension, ordered
 from skidkin_ros.core.fitting import _trim_mask, FitOptions
 from skidkin_ros.core.integrator import rollout_stream
 from skidkin_ros.core.models import BoundModel, get_model
+from skidkin_ros.core.parallel import fork_map
 from skidkin_ros.core.segments import cut_segments, HorizonOptions, SegmentOptions, SegmentSet
 from skidkin_ros.core.specs import Geometry
 from skidkin_ros.errors import DataError, ParameterError
@@ -64,6 +65,8 @@ NAMED = tuple(n for n in EXTENSION_NAMES if n != 'sparse_correction')
 SPARSE = 'sparse_correction'
 # Two passing candidates whose held-out losses differ with p >= this are called a tie.
 TIE_SIGNIFICANCE = 0.05
+# progress(round, fits done, fits in the round): how a caller follows a long selection.
+Progress = Callable[[int, int, int], None]
 
 
 @dataclass(frozen=True)
@@ -644,21 +647,6 @@ def _fold_labels(drives: Sequence[Drive], segments: SegmentSet, folds: int) -> n
     return labels
 
 
-def _cv_losses(predictor: SegmentPredictor, base_name: str, geometry: Geometry,
-               state: ModelState, labels: np.ndarray, options: DiagnosisOptions,
-               prepare) -> np.ndarray:
-    """Held-out per-segment loss: for each fold, fit on the others and score it."""
-    losses = np.zeros(len(predictor))
-    for fold in range(options.folds):
-        test = np.nonzero(labels == fold)[0]
-        train = np.nonzero(labels != fold)[0]
-        if test.size == 0 or train.size == 0:
-            continue
-        fitted = prepare(state, train)
-        losses[test] = _loss(predictor, fitted.bind(base_name, geometry), options, test)
-    return losses
-
-
 def _significance(null: np.ndarray, cand: np.ndarray) -> tuple[float, float]:
     total = float(null.sum())
     gain = 1.0 - float(cand.sum()) / total if total > 0 else 0.0
@@ -677,8 +665,11 @@ class _Diagnoser:
 
     def __init__(self, drives: Sequence[Drive], segments: SegmentSet, base_name: str,
                  geometry: Geometry, options: DiagnosisOptions, samples: _PoseSamples,
-                 lag_s: float, convention_s: float) -> None:
+                 lag_s: float, convention_s: float, jobs: int = 1,
+                 progress: Progress | None = None) -> None:
         self.convention_s = convention_s
+        self.jobs = jobs
+        self.progress = progress
         self.period_s = _wheel_period_s(drives)
         self.drives = drives
         self.predictor = SegmentPredictor(drives, segments, options.max_dt_s)
@@ -776,28 +767,76 @@ class _Diagnoser:
             return self.fit(state, keep, scan=name)
         return run
 
+    def _task(self, task: tuple[ModelState, str | None, int | None]) -> tuple[Any, float]:
+        """Run one unit of the selection; return (its value, seconds).
+
+        (state, name, fold): the state (plus the candidate ``name``, None for the current model
+        alone) fitted without ``fold`` and scored on it, giving that fold's per-segment held-out
+        losses (None when the fold or the rest is empty); fold None: the candidate fitted on all
+        training segments, giving its state.
+        """
+        tic = time.perf_counter()
+        state, name, fold = task
+        if fold is None:
+            value: Any = self.fit(self.with_extension(state, name), scan=name)
+        else:
+            test = np.nonzero(self.labels == fold)[0]
+            train = np.nonzero(self.labels != fold)[0]
+            value = None
+            if test.size and train.size:
+                fitted = self.prepare(name)(state, train)
+                value = _loss(self.predictor, fitted.bind(self.base_name, self.geometry),
+                              self.options, test)
+        return value, time.perf_counter() - tic
+
+    def _held_out(self, values: Mapping[int, Any]) -> np.ndarray:
+        """Assemble the per-segment held-out losses from the fold results."""
+        losses = np.zeros(len(self.predictor))
+        for fold, value in values.items():
+            if value is not None:
+                losses[self.labels == fold] = value
+        return losses
+
+    def _run_round(self, state: ModelState, names: Sequence[str], with_null: bool,
+                   round_index: int) -> dict[tuple[str | None, int | None], tuple[Any, float]]:
+        """Run every task of a round (on ``jobs`` cores); results keyed by (name, fold)."""
+        folds: tuple[int | None, ...] = tuple(range(self.options.folds))
+        keys = [(None, fold) for fold in folds] if with_null else []
+        # The grid-searched candidates are the longest: started first, they finish with the rest.
+        by_cost = sorted(names, key=lambda n: not get_extension(n).scan)
+        keys += [(name, fold) for name in by_cost for fold in folds + (None,)]
+        progress = self.progress
+        on_done = (None if progress is None
+                   else lambda done, total: progress(round_index, done, total))
+        values = fork_map(self._task, [(state, name, fold) for name, fold in keys], self.jobs,
+                          on_done)
+        return dict(zip(keys, values))
+
     def select(self, start: ModelState) -> tuple[ModelState, list[CandidateScore],
                                                  list[ModelState]]:
         options = self.options
         current = start
         scores: list[CandidateScore] = []
         accepted_states: list[ModelState] = []
+        folds = range(options.folds)
         for round_index in range(1, options.max_extensions + 1):
-            null = _cv_losses(self.predictor, self.base_name, self.geometry, current,
-                              self.labels, options, self.prepare(None))
             pool = [n for n in options.candidates if n not in current.found]
             named = [n for n in pool if n != SPARSE]
             round_scores = []
+            null = None
             for group in (named, [n for n in pool if n == SPARSE]):
+                if not group:
+                    continue
+                results = self._run_round(current, group, null is None, round_index)
+                if null is None:
+                    null = self._held_out({f: results[None, f][0] for f in folds})
                 for name in group:
-                    tic = time.perf_counter()
-                    losses = _cv_losses(self.predictor, self.base_name, self.geometry, current,
-                                        self.labels, options, self.prepare(name))
+                    losses = self._held_out({f: results[name, f][0] for f in folds})
+                    full, seconds = results[name, None]
+                    seconds += sum(results[name, f][1] for f in folds)
                     gain, p_value = _significance(null, losses)
-                    full = self.fit(self.with_extension(current, name), scan=name)
                     passes = gain > options.min_relative_gain and p_value < options.significance
-                    round_scores.append((passes, gain, name, losses, full, p_value,
-                                         time.perf_counter() - tic))
+                    round_scores.append((passes, gain, name, losses, full, p_value, seconds))
                     LOG.info('round %d %s: held-out gain %.3f p %.3g', round_index, name, gain,
                              p_value)
                 if any(item[0] for item in round_scores):
@@ -906,8 +945,13 @@ def _stamp_convention(drives: Sequence[Drive], options: DiagnosisOptions) -> flo
 
 def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry: Geometry,
              base_values_by_model: Mapping[str, Mapping[str, float]], base_model_name: str,
-             options: DiagnosisOptions | None = None) -> DiagnosisResult:
-    """Run the diagnosis recipe of the module docstring and return its result."""
+             options: DiagnosisOptions | None = None, jobs: int = 1,
+             progress: Progress | None = None) -> DiagnosisResult:
+    """Run the diagnosis recipe of the module docstring and return its result.
+
+    ``jobs``: how many processes fit the candidates (the result does not depend on it);
+    ``progress(round, done, total)`` is called as each fit of a selection round finishes.
+    """
     options = options or DiagnosisOptions()
     model = get_model(base_model_name)
     given = dict(base_values_by_model.get(base_model_name, {}))
@@ -946,7 +990,7 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
     trace = Trace(residual, samples.signals, _correlations(residual, valid, samples.signals),
                   lag_s, curve, predictor.errors(null.bind(base_model_name, geometry)))
     diagnoser = _Diagnoser(train, train_seg, base_model_name, geometry, options, samples, lag_s,
-                           convention_s)
+                           convention_s, jobs, progress)
     final, scores, accepted = diagnoser.select(null)
     eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s)
     steps = [_evaluate(eval_predictor, f'{base_model_name} (given)', given_state,

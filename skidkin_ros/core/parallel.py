@@ -1,0 +1,70 @@
+"""Run independent tasks on several cores by forking: the workers see this process's memory.
+
+The diagnosis fits dozens of independent candidate/fold combinations over the same (large)
+segment arrays. Forked workers inherit those arrays instead of receiving a pickled copy per
+task; only the task arguments and the results cross process boundaries. Where ``fork`` is not
+available (Windows), inside a worker, or with ``jobs <= 1``, the tasks run here, one after the
+other. The results are the same either way: each task runs the same code on the same inputs.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from typing import Any, Callable, Sequence
+
+__all__ = ['fork_map', 'usable_cpus']
+
+# What the forked workers run: set just before the pool forks, cleared after it closes.
+_TASK: Callable[[Any], Any] | None = None
+_ITEMS: Sequence[Any] = ()
+
+
+def usable_cpus() -> int:
+    """Return the number of CPUs this process may run on."""
+    if hasattr(os, 'sched_getaffinity'):
+        return max(len(os.sched_getaffinity(0)), 1)
+    return max(os.cpu_count() or 1, 1)
+
+
+def _run(index: int) -> tuple[int, Any]:
+    assert _TASK is not None
+    return index, _TASK(_ITEMS[index])
+
+
+def _can_fork() -> bool:
+    return ('fork' in multiprocessing.get_all_start_methods()
+            and not multiprocessing.current_process().daemon)
+
+
+def fork_map(task: Callable[[Any], Any], items: Sequence[Any], jobs: int,
+             on_done: Callable[[int, int], None] | None = None) -> list[Any]:
+    """Return ``[task(item) for item in items]``, computed by up to ``jobs`` forked workers.
+
+    ``task`` may be any callable (a bound method, a closure): the workers inherit it by fork.
+    Its results must pickle. ``on_done(done, total)`` is called here as each task finishes.
+    An exception in a task is raised here, after the workers are stopped.
+    """
+    global _TASK, _ITEMS
+    items = list(items)
+    total = len(items)
+    jobs = min(int(jobs), total)
+    if jobs <= 1 or not _can_fork() or _TASK is not None:
+        results = []
+        for done, item in enumerate(items, 1):
+            results.append(task(item))
+            if on_done is not None:
+                on_done(done, total)
+        return results
+    results = [None] * total
+    _TASK, _ITEMS = task, items
+    try:
+        with multiprocessing.get_context('fork').Pool(jobs) as pool:
+            finished = pool.imap_unordered(_run, range(total), chunksize=1)
+            for done, (index, value) in enumerate(finished, 1):
+                results[index] = value
+                if on_done is not None:
+                    on_done(done, total)
+    finally:
+        _TASK, _ITEMS = None, ()
+    return results

@@ -1,0 +1,62 @@
+"""fork_map: the diagnosis's candidate fits on several cores, with the serial result."""
+
+import os
+
+import numpy as np
+import pytest
+from skidkin_ros.cli.common import RoundBars
+from skidkin_ros.core.parallel import fork_map, usable_cpus
+
+
+def test_forked_results_equal_the_serial_ones_in_order():
+    data = np.random.default_rng(0).normal(size=(200, 50))  # inherited, not pickled per task
+
+    def task(row):  # a closure: only a fork can hand it to a worker
+        return float(np.linalg.norm(data[row] @ data.T)), os.getpid()
+
+    rows = list(range(40))
+    serial = fork_map(task, rows, jobs=1)
+    forked = fork_map(task, rows, jobs=2)
+    assert [value for value, _ in forked] == [value for value, _ in serial]
+    assert {pid for _, pid in serial} == {os.getpid()}
+    assert os.getpid() not in {pid for _, pid in forked}  # the workers did the work
+
+
+def test_progress_counts_every_task_and_errors_reach_the_caller():
+    seen = []
+    assert fork_map(lambda x: x * x, [3, 1, 2], jobs=2,
+                    on_done=lambda done, total: seen.append((done, total))) == [9, 1, 4]
+    assert seen == [(1, 3), (2, 3), (3, 3)]
+
+    def fails(x):
+        if x == 2:
+            raise ValueError(f'bad item {x}')
+        return x
+
+    with pytest.raises(ValueError, match='bad item 2'):
+        fork_map(fails, [1, 2, 3], jobs=2)
+    assert fork_map(fails, [1, 3], jobs=2) == [1, 3]  # and the next map still works
+
+
+def test_a_task_that_maps_again_runs_its_inner_map_in_place():
+    def outer(x):
+        return os.getpid(), fork_map(lambda y: (y, os.getpid()), [x, x + 1], jobs=2)
+
+    for worker, inner in fork_map(outer, [0, 10], jobs=2):
+        assert worker != os.getpid()
+        assert {pid for _, pid in inner} == {worker}  # no pool inside a worker: run in place
+    assert usable_cpus() >= 1
+
+
+def test_round_bars_restart_per_round_and_reach_their_totals(capsys):
+    bars = RoundBars()
+    for done in range(1, 4):
+        bars(1, done, 3)
+    first = bars._bar
+    assert first.n == first.total == 3
+    bars(1, 1, 4)  # the sparse fallback's fits: a new batch in the same round
+    assert bars._bar is not first and bars._bar.total == 4
+    bars(2, 1, 2)
+    assert bars._bar.desc.startswith('diagnose, round 2')
+    bars.close()
+    assert 'diagnose, round 1' in capsys.readouterr().err
