@@ -68,7 +68,7 @@ FULL = Sizes(
     calib_km=(0.5, 1.0, 2.0, 4.0), calib_drive_s=600.0, holdout_block_s=60.0,
     calib_n_starts=None,
     lidar_durations_s=(20.0, 40.0, 80.0), lidar_azimuth_deg=0.5, lidar_horizon_m=2.0,
-    diag_km=(0.05, 0.1), diag_drive_s=60.0)
+    diag_km=(0.05, 0.1, 0.2), diag_drive_s=60.0)
 SMOKE = Sizes(
     node_plan=((100.0, 0.5), (1000.0, 0.5)), node_ladder_hz=(), node_ladder_s=0.3, node_rounds=1,
     node_models=('full_linear',), node_augmented=False,

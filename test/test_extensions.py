@@ -189,6 +189,54 @@ def _drive_with_truth(seed):
                  PoseTrack(t_ns[keep], *truth[keep].T))
 
 
+def _window_by_steps(stamps, twists, s_a, s_b, start):
+    """Integrate one window step by step: each piece holds the last sample stamped before it."""
+    inside = stamps[(stamps > s_a) & (stamps < s_b)]
+    breaks = np.concatenate([[s_a], inside, [s_b]])
+    pose = np.asarray(start, dtype=float)
+    for lo, hi in zip(breaks[:-1], breaks[1:]):
+        held = max(int(np.searchsorted(stamps, lo, side='right')) - 1, 0)
+        pose = rollout(twists[held][None], [(hi - lo) * 1e-9], pose)[-1]
+    return pose
+
+
+def test_segment_predictor_windows_agree_with_step_by_step_integration():
+    """Windows inside one interval, on stamps, before the first and after the last, over a gap."""
+    from skidkin_ros.core.segments import SegmentSet
+    drives = []
+    for seed in (11, 12):
+        t_ns, wl, wr = _random_drive(seed, 120)
+        t_ns = np.unique(t_ns)
+        drives.append(Drive(f'd{seed}', WheelSamples(t_ns, wl[:t_ns.size], wr[:t_ns.size]),
+                            PoseTrack(t_ns, *np.zeros((3, t_ns.size)))))
+    rng = np.random.default_rng(5)
+    rows = []
+    for d, drive in enumerate(drives):
+        t = drive.wheels.t_ns
+        gap = int(np.argmax(np.diff(t)))
+        rows += [(d, t[3] + 1_000_000, t[3] + 2_000_000),  # inside one interval
+                 (d, t[5], t[9]),                          # exactly on stamps
+                 (d, t[0] - 80_000_000, t[4] + 7),          # starts before the first stamp
+                 (d, t[-3] - 5, t[-1] + 90_000_000),        # ends after the last
+                 (d, t[gap - 2] + 3, t[gap + 3] - 3),       # across the gap
+                 (d, t[0], t[-1])]                          # the whole drive
+    drive_ix, t_a, t_b = (np.array(col) for col in zip(*rows))
+    start = rng.normal(size=(len(rows), 3))
+    empty = np.zeros((len(rows), 1))
+    segments = SegmentSet(drive_ix, t_a, t_b, start, start.copy(), empty, empty, empty,
+                          np.ones(len(rows)))
+    predictor = SegmentPredictor(drives, segments)
+    for source in (BASE, augmented({'time_offset': {'offset_s': 0.0123}})):
+        offset = int(getattr(source, 'output_offset_ns', 0))
+        twists = predictor.mean_twists(source).reshape(len(drives), -1, 3)
+        expected = [_window_by_steps(drives[d].wheels.t_ns, twists[d], a - offset, b - offset,
+                                     start[i]) for i, (d, a, b) in enumerate(rows)]
+        np.testing.assert_allclose(predictor.predict_ends(source), expected, atol=1e-9)
+        keep = np.array([1, 4, 7])
+        np.testing.assert_allclose(predictor.predict_ends(source, keep),
+                                   np.asarray(expected)[keep], atol=1e-9)
+
+
 def test_segment_predictor_matches_the_fitting_code_and_shifts_windows():
     drives = [_drive_with_truth(5), _drive_with_truth(6)]
     segments = cut_segments(drives, SegmentOptions(horizon_m=1.0))

@@ -33,7 +33,7 @@ from scipy.signal import lfilter
 
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.extensions import get_extension, ordered
-from skidkin_ros.core.integrator import is_stateful, rollout_columns
+from skidkin_ros.core.integrator import body_increment, compose, is_stateful, rollout_columns
 from skidkin_ros.core.models import BoundModel, get_model
 from skidkin_ros.core.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.specs import Geometry
@@ -286,47 +286,67 @@ class SegmentPredictor:
         self.restart[:, 1:] = dt[:, :-1] > max_dt_s
         dt[dt > max_dt_s] = 0.0
         self.dt_s = dt
-        self._windows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._steady: dict[int, Any] = {}
+        self.step_s = np.diff(self.t_ns, axis=1) * 1e-9  # between stamps, gaps included
+        self._plans: dict[int, dict[str, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.segments)
 
-    def windows(self, offset_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return (flat sample index (S, W), step durations (S, W)) for a time offset."""
-        cached = self._windows.get(offset_ns)
+    def plan(self, offset_ns: int) -> dict[str, np.ndarray]:
+        """Return how each segment's window [t_a - offset, t_b - offset] meets the samples.
+
+        Flat sample indices (into the padded (D, L) arrays) and durations, one per segment:
+        ``first``/``first_s``: the sample held from the window start to the first stamp inside
+        it (to the window end when none is inside); ``a``/``b``: the first and last stamps inside
+        (equal when none is: no whole interval); ``last``/``last_s``: the sample held from the
+        last stamp inside to the window end (0 s when none is inside).
+        """
+        cached = self._plans.get(offset_ns)
         if cached is not None:
             return cached
         width = self.t_ns.shape[1]
         seg = self.segments
-        parts = []
+        count = len(seg)
+        plan = {key: np.zeros(count, dtype=np.int64) for key in ('first', 'a', 'b', 'last')}
+        plan.update(first_s=np.zeros(count), last_s=np.zeros(count))
         for d in np.unique(seg.drive):
             rows = np.nonzero(seg.drive == d)[0]
             stamps = self.t_ns[d, :self.sizes[d]]
+            top = stamps.size - 1
             s_a = seg.t_a_ns[rows].astype(np.int64) - offset_ns
             s_b = seg.t_b_ns[rows].astype(np.int64) - offset_ns
             lo = np.searchsorted(stamps, s_a, side='right')
-            hi = np.searchsorted(stamps, s_b, side='left')
-            parts.append((rows, d, stamps, s_a, s_b, lo, np.maximum(hi, lo)))
-        steps = max([int((p[6] - p[5]).max()) + 1 for p in parts if p[0].size] or [1])
-        index = np.zeros((len(seg), steps), dtype=np.int64)
-        dt_s = np.zeros((len(seg), steps))
-        k = np.arange(steps)[None, :]
-        for rows, d, stamps, s_a, s_b, lo, hi in parts:
-            inner = (hi - lo)[:, None]
-            # breaks: s_a, the stamps lo..hi-1 strictly inside, s_b; step k holds sample lo-1+k
-            held = lo[:, None] - 1 + k
-            at = np.clip(held, 0, stamps.size - 1)
-            step_start = np.where(k == 0, s_a[:, None], stamps[at])
-            step_end = np.where(k < inner, stamps[np.clip(held + 1, 0, stamps.size - 1)],
-                                s_b[:, None])
-            real = k <= inner
-            index[rows] = np.where(real, at, 0) + d * width
-            dt_s[rows] = np.where(real, (step_end - step_start) * 1e-9, 0.0)
-        if len(self._windows) > 64:
-            self._windows.clear()
-        self._windows[offset_ns] = (index, dt_s)
-        return index, dt_s
+            hi = np.maximum(np.searchsorted(stamps, s_b, side='left'), lo)
+            inner = hi > lo
+            a = np.clip(lo, 0, top)
+            b = np.where(inner, hi - 1, a)
+            plan['first'][rows] = np.clip(lo - 1, 0, top) + d * width
+            plan['a'][rows] = a + d * width
+            plan['b'][rows] = b + d * width
+            plan['last'][rows] = b + d * width
+            plan['first_s'][rows] = np.where(inner, stamps[a] - s_a, s_b - s_a) * 1e-9
+            plan['last_s'][rows] = np.where(inner, s_b - stamps[b], 0) * 1e-9
+        if len(self._plans) > 64:
+            self._plans.clear()
+        self._plans[offset_ns] = plan
+        return plan
+
+    def cumulative_poses(self, mean: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the dead-reckoned pose at every stamp of every drive, flat (D * L,) each.
+
+        Each drive starts at the origin and integrates every sample interval with its mean
+        twist, for the time between the stamps (as a segment does, gaps included).
+        """
+        count, width = self.t_ns.shape
+        if width < 2:
+            zeros = np.zeros(count * width)
+            return zeros, zeros.copy(), zeros.copy()
+        rows = mean.reshape(count, width, 3)
+        x, y, yaw = rollout_columns(np.ascontiguousarray(rows[:, :-1, 0]),
+                                    np.ascontiguousarray(rows[:, :-1, 1]),
+                                    np.ascontiguousarray(rows[:, :-1, 2]), self.step_s,
+                                    np.zeros((count, 3)))
+        return x.ravel(), y.ravel(), yaw.ravel()
 
     def mean_twists(self, source: Any) -> np.ndarray:
         """Return the mean twist over every sample interval of every drive, flat (D * L, 3)."""
@@ -338,16 +358,31 @@ class SegmentPredictor:
         return mean.reshape(-1, 3)
 
     def predict_ends(self, source: Any, keep: np.ndarray | None = None) -> np.ndarray:
-        """Return the predicted end pose (S, 3) of every segment (or of ``keep`` indices)."""
-        index, dt_s = self.windows(int(getattr(source, 'output_offset_ns', 0)))
+        """Return the predicted end pose (S, 3) of every segment (or of ``keep`` indices).
+
+        The end pose is the start pose composed with three moves: the partial interval up to
+        the first stamp inside the window, the dead-reckoned motion between the first and last
+        stamps inside it (from the drive's cumulative poses: one rollout per drive, shared by
+        every segment), and the partial interval to the window end. The same steps as
+        integrating each window on its own, in O(samples + segments).
+        """
+        plan = self.plan(int(getattr(source, 'output_offset_ns', 0)))
         start = self.segments.start
         if keep is not None:
-            index, dt_s, start = index[keep], dt_s[keep], start[keep]
+            plan = {key: value[keep] for key, value in plan.items()}
+            start = start[keep]
         mean = self.mean_twists(source)
-        # One contiguous (S, W) array per component: cheaper to roll out than (S, W, 3) views.
-        x, y, yaw = rollout_columns(mean[:, 0][index], mean[:, 1][index], mean[:, 2][index],
-                                    dt_s, start)
-        return np.stack([x[:, -1], y[:, -1], yaw[:, -1]], axis=-1)
+        cx, cy, cyaw = self.cumulative_poses(mean)
+        a, b = plan['a'], plan['b']
+        dx, dy = cx[b] - cx[a], cy[b] - cy[a]
+        cos_a, sin_a = np.cos(cyaw[a]), np.sin(cyaw[a])
+        moves = (body_increment(*mean[plan['first']].T, plan['first_s']),
+                 (cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx, cyaw[b] - cyaw[a]),
+                 body_increment(*mean[plan['last']].T, plan['last_s']))
+        x, y, yaw = start[:, 0], start[:, 1], start[:, 2]
+        for move in moves:
+            x, y, yaw = compose(x, y, yaw, *move)
+        return np.stack([x, y, yaw], axis=-1)
 
     def errors(self, source: Any, keep: np.ndarray | None = None) -> np.ndarray:
         """Return the end-pose error of every segment in its start frame (true - predicted)."""
