@@ -1,6 +1,8 @@
 """fork_map: the diagnosis's candidate fits on several cores, with the serial result."""
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -60,3 +62,34 @@ def test_round_bars_restart_per_round_and_reach_their_totals(capsys):
     assert bars._bar.desc.startswith('diagnose, round 2')
     bars.close()
     assert 'diagnose, round 1' in capsys.readouterr().err
+
+
+HANG_SCRIPT = """
+import rclpy
+from skidkin_ros.core.parallel import fork_map
+rclpy.init()  # installs rclpy's SIGINT/SIGTERM handlers, which forked workers inherit
+
+
+def fails(x):
+    if x == 2:
+        raise ValueError('bad')
+    return x
+
+
+for _ in range(3):
+    try:
+        fork_map(fails, [1, 2, 3, 4, 5], jobs=2)  # the pool is terminated on the error
+    except ValueError:
+        pass
+    assert fork_map(lambda x: x + 1, list(range(6)), jobs=2) == [1, 2, 3, 4, 5, 6]
+rclpy.shutdown()
+print('ok')
+"""
+
+
+@pytest.mark.ros
+def test_workers_stop_in_a_process_that_runs_rclpy():
+    """A worker inherits rclpy's signal handlers; it once lived through terminate() (a hang)."""
+    proc = subprocess.run([sys.executable, '-c', HANG_SCRIPT], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == 'ok', proc.stderr[-2000:]

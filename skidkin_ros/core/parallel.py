@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 from typing import Any, Callable, Sequence
 
 __all__ = ['fork_map', 'usable_cpus']
@@ -30,6 +31,17 @@ def usable_cpus() -> int:
 def _run(index: int) -> tuple[int, Any]:
     assert _TASK is not None
     return index, _TASK(_ITEMS[index])
+
+
+def _worker_signals() -> None:
+    """Give a worker the default SIGTERM and no SIGINT, whatever the parent installed.
+
+    A parent that runs rclpy has its own SIGTERM/SIGINT handlers, and a forked worker inherits
+    them: it would then survive the pool's terminate() and the join would wait forever. Ctrl-C
+    is the parent's to handle (it stops the workers).
+    """
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _can_fork() -> bool:
@@ -58,13 +70,18 @@ def fork_map(task: Callable[[Any], Any], items: Sequence[Any], jobs: int,
         return results
     results = [None] * total
     _TASK, _ITEMS = task, items
+    pool = multiprocessing.get_context('fork').Pool(jobs, initializer=_worker_signals)
     try:
-        with multiprocessing.get_context('fork').Pool(jobs) as pool:
-            finished = pool.imap_unordered(_run, range(total), chunksize=1)
-            for done, (index, value) in enumerate(finished, 1):
-                results[index] = value
-                if on_done is not None:
-                    on_done(done, total)
+        finished = pool.imap_unordered(_run, range(total), chunksize=1)
+        for done, (index, value) in enumerate(finished, 1):
+            results[index] = value
+            if on_done is not None:
+                on_done(done, total)
+        pool.close()  # done: the workers leave on their own
+    except BaseException:
+        pool.terminate()  # an error or Ctrl-C: stop the workers still running
+        raise
     finally:
+        pool.join()
         _TASK, _ITEMS = None, ()
     return results
