@@ -23,7 +23,7 @@ def error_table(evaluation: Mapping[str, ModelEvaluation],
     header = (f'{"model":<15} {"eps_t m/m  median [q25, q75]   p90":<38}'
               f'{"eps_theta deg/m  median [q25, q75]   p90":<44}{"segs":>5}')
     if noise is not None:
-        header += '  in 95%'
+        header += '  in 95%  cov x'
     if fits is not None:
         header += '  fit'
     lines = [header, '-' * (len(header) + 10)]
@@ -35,8 +35,9 @@ def error_table(evaluation: Mapping[str, ModelEvaluation],
                + f'{t.count:>5}')
         if noise is not None:
             fitted = noise.get(name)
-            row += (f'  {fitted.consistency.inside_95_3dof * 100:5.1f}%' if fitted is not None
-                    else '      -')
+            row += ('      -       -' if fitted is None else
+                    f'  {fitted.consistency.inside_95_3dof * 100:5.1f}%'
+                    f'  {fitted.coverage_scale:5.2f}')
         if fits is not None and name in fits:
             row += '  ok' if fits[name].valid else '  INVALID'
         if name == best:

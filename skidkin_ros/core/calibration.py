@@ -169,6 +169,7 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
         'train_drives': len(train), 'evaluate_drives': len(evaluate),
         'train_segments': len(train_seg), 'evaluate_segments': len(eval_seg),
         'holdout': holdout, 'options': options.as_dict(),
+        'noise_coverage_scale': {name: round(nf.coverage_scale, 4) for name, nf in noise.items()},
     }
     return CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
                              tuple(warnings), train_seg, eval_seg, holdout, provenance)
