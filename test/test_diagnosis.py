@@ -58,6 +58,28 @@ def test_options_are_validated():
         DiagnosisOptions(significance=0.0)
 
 
+def test_sparse_fallback_keeps_the_fewest_terms_that_are_as_good_as_the_best():
+    from skidkin_ros.core.diagnosis import _sparsest, ModelState
+    rng = np.random.default_rng(0)
+    base = rng.gamma(2.0, 1.0, 300)
+
+    def outcome(terms, losses):
+        state = ModelState(('sparse_correction',), {}, {}, tuple(f't{i}' for i in range(terms)))
+        return losses, state, 1.0
+
+    outcomes = {'sparse_correction@0.1': outcome(10, base),
+                'sparse_correction@0.2': outcome(6, base * rng.uniform(0.97, 1.03, 300)),
+                'sparse_correction@0.4': outcome(2, base * 1.3)}  # clearly worse
+    kept, note = _sparsest(outcomes)
+    losses, state, seconds = kept['sparse_correction']
+    assert len(state.sparse_terms) == 6 and seconds == 3.0
+    assert 'threshold 0.2 kept' in note and '0.1: 10' in note
+    outcomes['sparse_correction@0.2'] = outcome(6, base * 1.2)  # now significantly worse too
+    assert len(_sparsest(outcomes)[0]['sparse_correction'][1].sparse_terms) == 10
+    with pytest.raises(ParameterError, match='sparse_thresholds'):
+        DiagnosisOptions(sparse_thresholds=())
+
+
 def test_found_effect_goes_into_a_parameters_file_and_a_report(tmp_path):
     """A short run with a strong skid; candidates narrowed so it stays quick."""
     options = DiagnosisOptions(candidates=('time_offset', 'lateral_skid', 'speed_slip'),

@@ -26,7 +26,10 @@
    Parsimony: a candidate is accepted only when it lowers the held-out loss by more than
    ``min_relative_gain`` AND a one-sided Wilcoxon signed-rank test of the per-segment differences
    gives p < ``significance``. Greedy forward selection, at most ``max_extensions``; the sparse
-   fallback is tried only when no named extension passes.
+   fallback is tried only when no named extension passes, at every STLSQ threshold of
+   ``sparse_thresholds``, and the variant with the fewest terms whose held-out loss is not
+   significantly above the best one's is the one scored. The fits of a round are independent
+   tasks, run on ``jobs`` processes (:mod:`skidkin_ros.core.parallel`).
 5. **Before/after.** eps_t and eps_theta on the evaluation drives (a deterministic hold-out when
    none are given) for the base model as given, refitted, and after each accepted extension.
 """
@@ -82,7 +85,7 @@ class DiagnosisOptions(HorizonOptions):
     max_nfev: int = 30
     smoothing_s: float = 0.35
     lag_range_s: float = 0.4
-    sparse_threshold: float = 0.1
+    sparse_thresholds: tuple[float, ...] = (0.1, 0.2, 0.4)
     scan_points: int = 12
     holdout_every: int = 3
     holdout_mode: str = 'auto'
@@ -108,6 +111,10 @@ class DiagnosisOptions(HorizonOptions):
         sigma = np.asarray(self.sigma_diag, dtype=float)
         if sigma.shape != (3,) or np.any(~np.isfinite(sigma)) or np.any(sigma <= 0):
             raise ParameterError('sigma_diag must be three variances > 0 (m^2, m^2, rad^2)')
+        if (not self.sparse_thresholds
+                or not all(isinstance(t, (int, float)) and t > 0 for t in self.sparse_thresholds)):
+            raise ParameterError('sparse_thresholds must be one or more coefficient thresholds '
+                                 f'> 0, got {self.sparse_thresholds!r}')
         if not self.smoothing_s > 0:
             raise ParameterError(f'smoothing_s must be > 0 s, got {self.smoothing_s!r}')
 
@@ -683,8 +690,13 @@ class _Diagnoser:
         self.max_time_s = max(durations) if durations else 0.0
 
     def with_extension(self, state: ModelState, name: str,
-                       keep: np.ndarray | None = None) -> ModelState:
-        """Return the state plus the extension at its start values (and sparse terms)."""
+                       keep: np.ndarray | None = None,
+                       threshold: float | None = None) -> ModelState:
+        """Return the state plus the extension at its start values (and sparse terms).
+
+        ``threshold``: the sparse fallback's STLSQ threshold (default: the smallest of the
+        options').
+        """
         ext = get_extension(name)
         values = dict(state.ext_values)
         start = ext.defaults()
@@ -694,14 +706,16 @@ class _Diagnoser:
         elif name == 'first_order_lag':
             start['tau_s'] = float(np.clip(abs(self.lag_s), 0.03, 1.5))
         elif name == SPARSE:
-            start, terms = self.sparse_start(state, keep)
+            start, terms = self.sparse_start(state, keep, threshold)
         values[name] = start
         structure = state.extensions if name in state.extensions else state.extensions + (name,)
         return ModelState(ordered(structure), dict(state.base_values), values, terms,
                           state.found + (name,))
 
-    def sparse_start(self, state: ModelState, keep: np.ndarray | None
-                     ) -> tuple[dict[str, float], tuple[str, ...]]:
+    def sparse_start(self, state: ModelState, keep: np.ndarray | None,
+                     threshold: float | None = None) -> tuple[dict[str, float], tuple[str, ...]]:
+        if threshold is None:
+            threshold = min(self.options.sparse_thresholds)
         source = state.bind(self.base_name, self.geometry)
         residual, valid = pose_residuals(self.drives, self.samples, source, self.options)
         if keep is not None:
@@ -711,7 +725,7 @@ class _Diagnoser:
         values = {}
         terms = []
         for c, out in enumerate(('vx', 'vy', 'wz')):
-            coef = stlsq(features, residual[valid, c], self.options.sparse_threshold)
+            coef = stlsq(features, residual[valid, c], threshold)
             for (feat, _), value in zip(SPARSE_FEATURES, coef):
                 if value != 0.0:
                     name = f'{out}_{feat}'
@@ -760,11 +774,17 @@ class _Diagnoser:
         return min(candidates, key=lambda item: item[1])[0]
 
     def prepare(self, name: str | None):
-        """Return a function (state, keep) -> fitted state for the CV of one candidate."""
-        def run(state: ModelState, keep: np.ndarray) -> ModelState:
-            if name is not None:
-                state = self.with_extension(state, name, keep)
-            return self.fit(state, keep, scan=name)
+        """Return a function (state, keep) -> fitted state for the CV of one candidate.
+
+        ``name``: an extension, a sparse variant (``sparse_correction@THRESHOLD``), or None for
+        the current model alone.
+        """
+        ext, threshold = _variant(name)
+
+        def run(state: ModelState, keep: np.ndarray | None) -> ModelState:
+            if ext is not None:
+                state = self.with_extension(state, ext, keep, threshold)
+            return self.fit(state, keep, scan=ext)
         return run
 
     def _task(self, task: tuple[ModelState, str | None, int | None]) -> tuple[Any, float]:
@@ -778,7 +798,7 @@ class _Diagnoser:
         tic = time.perf_counter()
         state, name, fold = task
         if fold is None:
-            value: Any = self.fit(self.with_extension(state, name), scan=name)
+            value: Any = self.prepare(name)(state, None)
         else:
             test = np.nonzero(self.labels == fold)[0]
             train = np.nonzero(self.labels != fold)[0]
@@ -803,7 +823,7 @@ class _Diagnoser:
         folds: tuple[int | None, ...] = tuple(range(self.options.folds))
         keys = [(None, fold) for fold in folds] if with_null else []
         # The grid-searched candidates are the longest: started first, they finish with the rest.
-        by_cost = sorted(names, key=lambda n: not get_extension(n).scan)
+        by_cost = sorted(names, key=lambda n: not get_extension(_variant(n)[0]).scan)
         keys += [(name, fold) for name in by_cost for fold in folds + (None,)]
         progress = self.progress
         on_done = (None if progress is None
@@ -823,17 +843,24 @@ class _Diagnoser:
             pool = [n for n in options.candidates if n not in current.found]
             named = [n for n in pool if n != SPARSE]
             round_scores = []
+            notes: dict[str, str] = {}
             null = None
-            for group in (named, [n for n in pool if n == SPARSE]):
+            sparse = [f'{SPARSE}@{t:g}' for t in sorted(set(options.sparse_thresholds))]
+            for group in (named, sparse if SPARSE in pool else []):
                 if not group:
                     continue
                 results = self._run_round(current, group, null is None, round_index)
                 if null is None:
                     null = self._held_out({f: results[None, f][0] for f in folds})
+                outcomes = {}
                 for name in group:
                     losses = self._held_out({f: results[name, f][0] for f in folds})
                     full, seconds = results[name, None]
                     seconds += sum(results[name, f][1] for f in folds)
+                    outcomes[name] = (losses, full, seconds)
+                if group is sparse:
+                    outcomes, notes[SPARSE] = _sparsest(outcomes)
+                for name, (losses, full, seconds) in outcomes.items():
                     gain, p_value = _significance(null, losses)
                     passes = gain > options.min_relative_gain and p_value < options.significance
                     round_scores.append((passes, gain, name, losses, full, p_value, seconds))
@@ -850,6 +877,7 @@ class _Diagnoser:
                 chosen = best is not None and name == best[2]
                 note = (f'indistinguishable from {", ".join(tied)} on this data; the simpler '
                         'explanation is kept' if chosen and tied else '')
+                note = '; '.join(part for part in (notes.get(name, ''), note) if part)
                 scores.append(CandidateScore(round_index, name, gain, p_value, chosen, values,
                                              terms, seconds, note))
             if best is None:
@@ -857,6 +885,45 @@ class _Diagnoser:
             current = best[4]
             accepted_states.append(current)
         return current, scores, accepted_states
+
+
+def _variant(name: str | None) -> tuple[str | None, float | None]:
+    """Split a candidate name into (extension, sparse threshold or None)."""
+    if name is None or '@' not in name:
+        return name, None
+    ext, _, threshold = name.partition('@')
+    return ext, float(threshold)
+
+
+def _sparsest(outcomes: Mapping[str, tuple[np.ndarray, ModelState, float]]
+              ) -> tuple[dict[str, tuple[np.ndarray, ModelState, float]], str]:
+    """Keep the sparse variant with the fewest terms among those as good as the best.
+
+    ``outcomes``: variant name -> (per-segment held-out losses, fitted state, seconds). A variant
+    is as good as the one with the lowest total held-out loss unless a one-sided Wilcoxon test
+    says its per-segment losses are higher (p < TIE_SIGNIFICANCE). Returns {SPARSE: the kept
+    outcome (its seconds: all variants')} and a note naming the threshold kept.
+    """
+    best = min(outcomes, key=lambda n: outcomes[n][0].sum())
+    as_good = []
+    for name, (losses, full, _) in outcomes.items():
+        diff = losses - outcomes[best][0]
+        p_value = 1.0
+        if name != best and np.count_nonzero(diff) >= 5:
+            try:
+                p_value = float(stats.wilcoxon(diff, alternative='greater').pvalue)
+            except ValueError:
+                p_value = 1.0
+        if p_value >= TIE_SIGNIFICANCE:
+            as_good.append((len(full.sparse_terms), -_variant(name)[1], name))
+    kept = min(as_good)[2]
+    losses, full, _ = outcomes[kept]
+    seconds = sum(item[2] for item in outcomes.values())
+    counts = ', '.join(f'{_variant(n)[1]:g}: {len(o[1].sparse_terms)}'
+                       for n, o in outcomes.items())
+    note = (f'STLSQ threshold {_variant(kept)[1]:g} kept (terms by threshold: {counts}); the '
+            'fewest terms whose held-out loss is not significantly above the best')
+    return {SPARSE: (losses, full, seconds)}, note
 
 
 def _complexity(name: str, item: tuple) -> tuple[int, int]:
