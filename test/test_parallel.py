@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from skidkin_ros.cli.common import RoundBars
 from skidkin_ros.core.parallel import fork_map, usable_cpus
+from skidkin_ros.errors import SkidkinError
 
 
 def test_forked_results_equal_the_serial_ones_in_order():
@@ -38,6 +39,17 @@ def test_progress_counts_every_task_and_errors_reach_the_caller():
     with pytest.raises(ValueError, match='bad item 2'):
         fork_map(fails, [1, 2, 3], jobs=2)
     assert fork_map(fails, [1, 3], jobs=2) == [1, 3]  # and the next map still works
+
+
+def test_a_worker_that_dies_is_a_clear_error_not_a_hang():
+    def dies(x):
+        if x == 3:
+            os._exit(9)  # what the out-of-memory killer leaves behind
+        return x
+
+    with pytest.raises(SkidkinError, match='worker process died.*--jobs 1'):
+        fork_map(dies, list(range(6)), jobs=2)
+    assert fork_map(dies, [1, 2], jobs=2) == [1, 2]
 
 
 def test_a_task_that_maps_again_runs_its_inner_map_in_place():

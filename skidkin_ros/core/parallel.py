@@ -9,10 +9,14 @@ other. The results are the same either way: each task runs the same code on the 
 
 from __future__ import annotations
 
+from concurrent.futures import as_completed, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 import multiprocessing
 import os
 import signal
 from typing import Any, Callable, Sequence
+
+from skidkin_ros.errors import SkidkinError
 
 __all__ = ['fork_map', 'usable_cpus']
 
@@ -37,8 +41,8 @@ def _worker_signals() -> None:
     """Give a worker the default SIGTERM and no SIGINT, whatever the parent installed.
 
     A parent that runs rclpy has its own SIGTERM/SIGINT handlers, and a forked worker inherits
-    them: it would then survive the pool's terminate() and the join would wait forever. Ctrl-C
-    is the parent's to handle (it stops the workers).
+    them: it would then survive being terminated, and waiting for it would never end. Ctrl-C is
+    the parent's to handle.
     """
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -55,7 +59,8 @@ def fork_map(task: Callable[[Any], Any], items: Sequence[Any], jobs: int,
 
     ``task`` may be any callable (a bound method, a closure): the workers inherit it by fork.
     Its results must pickle. ``on_done(done, total)`` is called here as each task finishes.
-    An exception in a task is raised here, after the workers are stopped.
+    An exception in a task is raised here, once the tasks already running have finished (those
+    not started are cancelled); a worker that dies (killed, out of memory) raises SkidkinError.
     """
     global _TASK, _ITEMS
     items = list(items)
@@ -70,18 +75,20 @@ def fork_map(task: Callable[[Any], Any], items: Sequence[Any], jobs: int,
         return results
     results = [None] * total
     _TASK, _ITEMS = task, items
-    pool = multiprocessing.get_context('fork').Pool(jobs, initializer=_worker_signals)
+    executor = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('fork'),
+                                   initializer=_worker_signals)
     try:
-        finished = pool.imap_unordered(_run, range(total), chunksize=1)
-        for done, (index, value) in enumerate(finished, 1):
+        futures = {executor.submit(_run, index) for index in range(total)}
+        for done, future in enumerate(as_completed(futures), 1):
+            index, value = future.result()
             results[index] = value
             if on_done is not None:
                 on_done(done, total)
-        pool.close()  # done: the workers leave on their own
-    except BaseException:
-        pool.terminate()  # an error or Ctrl-C: stop the workers still running
-        raise
+    except BrokenProcessPool as err:
+        raise SkidkinError(
+            'a worker process died before finishing its task (killed, or out of memory?); '
+            'rerun with fewer processes (--jobs 1 runs everything in this process)') from err
     finally:
-        pool.join()
+        executor.shutdown(wait=True, cancel_futures=True)
         _TASK, _ITEMS = None, ()
     return results
