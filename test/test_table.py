@@ -1,12 +1,15 @@
 """Trajectory table reader: layout, held ground truth, metadata and clear errors."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from skidkin_ros.adapters.table import read_table
 from skidkin_ros.errors import RecordingError
+
+HUSKY = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
 
 HEADER = 'segment,calib_step,t,cmd_left,cmd_right,wheel_left,wheel_right,x,y,yaw,imu_yaw_rate'
 
@@ -87,7 +90,7 @@ def test_time_must_increase_within_a_segment(tmp_path):
 
 
 def test_real_husky_layout_is_read():
-    drives = read_table('/work/shared/data/drive_husky_windows.csv')
+    drives = read_table(HUSKY)
     assert len(drives) == 603
     assert all(len(d.wheels) == 40 for d in drives)
     assert all(math.isfinite(d.truth.x[-1]) for d in drives)

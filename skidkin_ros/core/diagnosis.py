@@ -503,7 +503,7 @@ class CandidateScore:
     accepted: bool
     values: dict[str, float]
     terms: tuple[str, ...] = ()
-    seconds: float = 0.0
+    seconds: float = 0.0  # fitting time, summed over its tasks (which may run in parallel)
     note: str = ''
 
 
