@@ -26,7 +26,7 @@ bench: $(STAMP)
 	$(PY) bench/run.py --out bench/results
 
 bench-smoke: $(STAMP)
-	$(PY) bench/run.py --smoke --out bench/results
+	$(PY) bench/run.py --smoke --out bench/results-smoke
 
 lint: $(STAMP)
 	$(PY) -m pytest -q test/test_lint.py

@@ -74,7 +74,7 @@ SMOKE = Sizes(
     node_models=('full_linear',), node_augmented=False,
     calib_km=(0.02, 0.04), calib_drive_s=40.0, holdout_block_s=10.0, calib_n_starts=1,
     lidar_durations_s=(3.0, 5.0), lidar_azimuth_deg=4.0, lidar_horizon_m=0.5,
-    diag_km=(), diag_drive_s=60.0)
+    diag_km=(0.03,), diag_drive_s=40.0)
 
 
 def machine_facts() -> dict[str, Any]:

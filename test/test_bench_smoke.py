@@ -67,14 +67,20 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
         for key in ('read_ms_per_frame', 'icp_ms_per_frame', 'real_time_factor'):
             assert _finite(row[key]) and row[key] > 0, key
         assert _finite(row['memory'].get('peak_mb')), row['memory']
-    assert results['diagnosis']['available'] is False
+    # Diagnosis: timed on one process and on every CPU, with the same result both ways.
+    diag = results['diagnosis']
+    assert diag['available'] is True, diag.get('reason')
+    (row,) = diag['rows']
+    assert row['jobs'] >= 1 and row['same_result'] is True
+    for key in ('serial_s', 'diagnose_s', 'speedup', 's_per_km'):
+        assert _finite(row[key]) and row[key] > 0, key
 
     # The Markdown table names the command and has the expected rows; the plot is a PNG.
     text = (out / 'results.md').read_text()
     assert 'python bench/run.py --smoke' in text
     for needle in ('| bare rclpy relay |', '| odom_node full_linear |',
                    '| odom_node roc | not run in the smoke run', '## Calibration',
-                   '## Lidar pipeline', 'diagnosis: not run in the smoke run'):
+                   '## Lidar pipeline', '| km | drives | 1 process s |'):
         assert needle in text, needle
     assert (out / 'cost_vs_size.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
 
