@@ -93,13 +93,16 @@ def test_installed_node_publishes_odometry(installed, tmp_path):
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     received = []
     publisher = node.create_publisher(JointState, 'joint_states', qos)
-    node.create_subscription(Odometry, 'odom', received.append, qos)
+    subscription = node.create_subscription(Odometry, 'odom', received.append, qos)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
         deadline = time.monotonic() + 20.0
-        while publisher.get_subscription_count() == 0 or node.count_publishers(
-                f'/{namespace}/odom') == 0:
+        # Matched both ways (not just on the graph): an answer sent before the node's writer
+        # matched our reader would be lost, and the resent sample is a duplicate it does not
+        # answer again.
+        while (publisher.get_subscription_count() == 0
+               or subscription.get_publisher_count() == 0):
             assert process.poll() is None, process.communicate()[0]
             assert time.monotonic() < deadline, 'installed node did not come up'
             executor.spin_once(timeout_sec=0.05)

@@ -115,3 +115,13 @@ def test_bad_inputs_are_refused_with_a_reason():
         PoseFix(NS, 0.0, 0.0, None, np.eye(3))
     with pytest.raises(ParameterError, match='positive definite'):
         PoseFix(NS, 0.0, 0.0, 0.0, np.diag([1.0, 1.0, 0.0]))
+
+
+def test_an_augmented_model_is_refused_with_a_way_out():
+    from skidkin_ros.core.augmented import AugmentedModel
+    base = get_model('edd_symmetric').bind({'alpha': 0.9, 'b_hat': 1.5}, Geometry(0.3, 1.2))
+    lagged = AugmentedModel('edd_symmetric', ('first_order_lag',)).bind(
+        base, {'first_order_lag': {'tau_s': 0.3}})
+    with pytest.raises(ParameterError, match='plain kinematic model.*predict'):
+        PlanarEkf(lagged, None)
+    PlanarEkf(base, None)  # its base model is taken

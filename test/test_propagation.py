@@ -91,3 +91,30 @@ def test_plain_math_step_equals_the_matrix_form():
         expected = jac_pose @ cov @ jac_pose.T + jac_incr @ q_body @ jac_incr.T
         np.testing.assert_allclose(new_cov, expected, rtol=1e-12, atol=1e-12)
         np.testing.assert_array_equal(new_cov, new_cov.T)
+
+
+def test_predict_runs_a_stateful_model_as_the_node_does():
+    """An augmented model with a lag: predict() gives the node's pose and covariance."""
+    from skidkin_ros.core.augmented import AugmentedModel
+    from skidkin_ros.core.integrator import rollout_stream, SampleStatus, StreamingIntegrator
+    base = get_model('edd_symmetric').bind({'alpha': 0.9, 'b_hat': 1.5}, GEOM)
+    source = AugmentedModel('edd_symmetric', ('first_order_lag', 'lateral_skid')).bind(
+        base, {'first_order_lag': {'tau_s': 0.3}, 'lateral_skid': {'k': 0.05}})
+    t_ns, wl, wr = _drive()
+    start = [1.0, -2.0, 0.3]
+    pose, cov = predict(start, np.zeros((3, 3)), t_ns, wl, wr, source, NOISE)
+    np.testing.assert_allclose(pose, rollout_stream(source, t_ns, wl, wr, start)[-1],
+                               atol=1e-12)
+    # the memoryless twist (what predict used before) is far from it: the lag matters here
+    assert np.abs(pose - rollout(base.twist(wl[:-1], wr[:-1]), np.diff(t_ns) * 1e-9,
+                                 start)[-1]).max() > 0.05
+    # the node's path: the streaming integrator's steps into the streaming propagator
+    integrator = StreamingIntegrator(source)
+    integrator.reset(start)
+    prop = PoseCovariancePropagator(NOISE, [1] * 6, [2] * 6)
+    prop.cov = np.zeros((3, 3))  # the node starts from a tiny variance; predict() from cov
+    for t, left, right in zip(t_ns.tolist(), wl.tolist(), wr.tolist()):
+        result = integrator.step(t, left, right)
+        if result.status is SampleStatus.INTEGRATED:
+            prop.step(result.start_pose, result.step_twist, result.dt_s)
+    np.testing.assert_allclose(cov, prop.cov, rtol=1e-12, atol=1e-15)

@@ -26,7 +26,7 @@ from typing import Sequence
 
 import numpy as np
 
-from skidkin_ros.core.integrator import TwistSource, wrap_angle
+from skidkin_ros.core.integrator import is_stateful, TwistSource, wrap_angle
 from skidkin_ros.core.noise import NoiseModel
 from skidkin_ros.core.propagation import increment_input_jacobian, propagate_step
 from skidkin_ros.errors import DataError, ParameterError
@@ -85,6 +85,12 @@ class PlanarEkf:
     def __init__(self, source: TwistSource, noise: NoiseModel | None,
                  pose: Sequence[float] = (0.0, 0.0, 0.0), cov: np.ndarray | None = None,
                  input_variance: float = 0.0) -> None:
+        if is_stateful(source):
+            raise ParameterError(
+                'PlanarEkf takes a plain kinematic model (model.bind(values, geometry)); an '
+                'augmented model carries state between wheel samples, which this filter does not '
+                'split at fix times yet. Use its base model here, or propagation.predict() for '
+                "the augmented model's prediction")
         self.source = source
         self.noise = noise
         self.input_variance = float(input_variance)

@@ -30,7 +30,8 @@ from typing import Sequence
 
 import numpy as np
 
-from skidkin_ros.core.integrator import body_increment, step_scalar, TwistSource
+from skidkin_ros.core.integrator import (body_increment, IntegratorLimits, SampleStatus,
+                                         step_scalar, StreamingIntegrator, TwistSource)
 from skidkin_ros.core.noise import NoiseModel
 
 __all__ = [
@@ -161,23 +162,31 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
 
     ``pose`` (x, y, yaw) and ``cov`` (3 x 3) hold at t_ns[0]; the wheel speeds of each sample are
     held until the next one (the integrator's zero-order hold), so the last sample only sets the
-    end time. ``input_variance`` is the wheel-speed measurement variance (rad^2/s^2), propagated
-    through the model's Jacobian with respect to the inputs.
+    end time. The samples go through the node's streaming integrator, so a stateful ``source``
+    (an augmented model with a lag, a time-in-drive regime) predicts what the node publishes;
+    duplicate stamps update the held speeds, and samples with an older stamp or a non-finite
+    speed are skipped, as in the node (there is no limit on the step length or the speed here).
+    ``input_variance`` is the wheel-speed measurement variance (rad^2/s^2), propagated through
+    the model's Jacobian with respect to the inputs.
     """
-    t = np.asarray(t_ns, dtype=np.int64)
-    wl = np.asarray(omega_l, dtype=float)
-    wr = np.asarray(omega_r, dtype=float)
+    unlimited = IntegratorLimits(max_dt_s=math.inf, max_wheel_speed_rad_s=math.inf)
+    integrator = StreamingIntegrator(source, unlimited)
+    integrator.reset(pose)
     state = np.asarray(pose, dtype=float).copy()
     covariance = np.asarray(cov, dtype=float).copy()
-    for i in range(len(t) - 1):
-        dt_s = (t[i + 1] - t[i]) * 1e-9
-        if dt_s <= 0.0:
+    for t, left, right in zip(np.asarray(t_ns, dtype=np.int64).tolist(),
+                              np.asarray(omega_l, dtype=float).tolist(),
+                              np.asarray(omega_r, dtype=float).tolist()):
+        held = integrator.held_speeds
+        result = integrator.step(t, left, right)
+        if result.status is not SampleStatus.INTEGRATED:
             continue
-        twist = np.asarray(source.twist(wl[i], wr[i]), dtype=float)
-        jac_in = (increment_input_jacobian(source, wl[i], wr[i], dt_s)
+        jac_in = (increment_input_jacobian(source, *held, result.dt_s)
                   if input_variance > 0.0 else None)
-        state, covariance = propagate_step(state, covariance, twist, dt_s, noise, jac_in,
-                                           input_variance)
+        _, covariance = propagate_step(np.asarray(result.start_pose), covariance,
+                                       np.asarray(result.step_twist), result.dt_s, noise,
+                                       jac_in, input_variance)
+        state = np.asarray(result.pose)
     return state, covariance
 
 
