@@ -29,9 +29,7 @@ def cases() -> list[tuple[str, dict[str, Any]]]:
     from skidkin_ros.core.models import MODEL_NAMES
     out = [(model, {'model': model}) for model in MODEL_NAMES]
     out.append(node_bench.CALIBRATED_CASE)
-    augmented = node_bench.augmented_params()
-    if augmented is not None:
-        out.append(augmented)
+    out.append(node_bench.augmented_params())
     return [(label, {name: _typed(value) for name, value in params.items()})
             for label, params in out]
 

@@ -1,9 +1,9 @@
 """Diagnosis benchmark: time of ``diagnose`` against the distance driven, on one and all CPUs.
 
-The diagnosis feature (skidkin_ros.core.diagnosis) is optional here: when it cannot be imported
-the result says so ('not available') instead of inventing numbers. Drives come from the same
-simulator as the calibration benchmark (true model edd_asymmetric, so a default edd_symmetric
-leaves residuals to explain); the base model is edd_symmetric at its defaults.
+Drives come from the same simulator as the calibration benchmark (true model edd_asymmetric, so
+a default edd_symmetric leaves residuals to explain); the base model is edd_symmetric at its
+defaults. A diagnosis that fails is reported ('available': False, with the reason) instead of
+stopping the other benchmarks.
 """
 
 from __future__ import annotations
@@ -12,6 +12,8 @@ import time
 from typing import Any, Sequence
 
 from calib_bench import first_km, simulate_drives
+from skidkin_ros.core.diagnosis import diagnose, DiagnosisOptions
+from skidkin_ros.core.parallel import usable_cpus
 from skidkin_ros.sim import SimConfig
 
 
@@ -29,11 +31,6 @@ def run(sizes_km: Sequence[float], drive_s: float, holdout_block_s: float = 60.0
     Returns the rows: per size, the time with one process and with ``jobs`` (every usable CPU),
     their ratio, and whether both runs found the same result (they must).
     """
-    try:
-        from skidkin_ros.core.diagnosis import diagnose, DiagnosisOptions
-        from skidkin_ros.core.parallel import usable_cpus
-    except ImportError as err:
-        return {'available': False, 'reason': f'not available yet ({err})', 'rows': []}
     drives = simulate_drives(max(sizes_km), drive_s, seed=300)
     geometry = SimConfig().geometry
     jobs = usable_cpus()

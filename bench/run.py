@@ -127,11 +127,9 @@ def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
         label, params = node_bench.CALIBRATED_CASE
         suts.append(('odom', f'odom_node {label}', params))
     not_run = {}
-    augmented = node_bench.augmented_params() if sizes.node_augmented else None
-    if augmented is not None:
-        suts.append(('odom', f'odom_node {augmented[0]}', augmented[1]))
-    elif not smoke:
-        not_run['odom_node augmented'] = 'n/a yet (augmented models not in the node schema)'
+    if sizes.node_augmented:
+        label, params = node_bench.augmented_params()
+        suts.append(('odom', f'odom_node {label}', params))
     if smoke:
         for model in MODEL_NAMES:
             if model not in sizes.node_models:

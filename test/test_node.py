@@ -127,9 +127,10 @@ def test_frame_ids_changed_at_runtime_reach_the_output(make_rig):
     assert rig.odom[-1].twist.twist.linear.x == pytest.approx(R, abs=1e-12)
 
 
-def test_joint_state_in_another_encapsulation_goes_through_rclpy(make_rig):
+def test_joint_state_the_reader_refuses_goes_to_rclpy_and_is_counted(make_rig):
     # Data the node's reader does not take (here: a frame_id length that runs past the end) is
     # handed to rclpy's deserialization; what that cannot read is counted as a callback error.
+    # Serialized and message-object input are both taken.
     from rclpy.serialization import serialize_message
     rig = make_rig()
     t0 = wall_ns() - NS_PER_S

@@ -298,8 +298,8 @@ class SegmentPredictor:
         Flat sample indices (into the padded (D, L) arrays) and durations, one per segment:
         ``first``/``first_s``: the sample held from the window start to the first stamp inside
         it (to the window end when none is inside); ``a``/``b``: the first and last stamps inside
-        (equal when none is: no whole interval); ``last``/``last_s``: the sample held from the
-        last stamp inside to the window end (0 s when none is inside).
+        (equal when none is: no whole interval); ``last_s``: how long sample ``b`` is held from
+        its stamp to the window end (0 s when no stamp is inside).
         """
         cached = self._plans.get(offset_ns)
         if cached is not None:
@@ -307,7 +307,7 @@ class SegmentPredictor:
         width = self.t_ns.shape[1]
         seg = self.segments
         count = len(seg)
-        plan = {key: np.zeros(count, dtype=np.int64) for key in ('first', 'a', 'b', 'last')}
+        plan = {key: np.zeros(count, dtype=np.int64) for key in ('first', 'a', 'b')}
         plan.update(first_s=np.zeros(count), last_s=np.zeros(count))
         for d in np.unique(seg.drive):
             rows = np.nonzero(seg.drive == d)[0]
@@ -323,7 +323,6 @@ class SegmentPredictor:
             plan['first'][rows] = np.clip(lo - 1, 0, top) + d * width
             plan['a'][rows] = a + d * width
             plan['b'][rows] = b + d * width
-            plan['last'][rows] = b + d * width
             plan['first_s'][rows] = np.where(inner, stamps[a] - s_a, s_b - s_a) * 1e-9
             plan['last_s'][rows] = np.where(inner, s_b - stamps[b], 0) * 1e-9
         if len(self._plans) > 64:
@@ -378,7 +377,7 @@ class SegmentPredictor:
         cos_a, sin_a = np.cos(cyaw[a]), np.sin(cyaw[a])
         moves = (body_increment(*mean[plan['first']].T, plan['first_s']),
                  (cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx, cyaw[b] - cyaw[a]),
-                 body_increment(*mean[plan['last']].T, plan['last_s']))
+                 body_increment(*mean[b].T, plan['last_s']))
         x, y, yaw = start[:, 0], start[:, 1], start[:, 2]
         for move in moves:
             x, y, yaw = compose(x, y, yaw, *move)

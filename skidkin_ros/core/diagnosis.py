@@ -654,17 +654,23 @@ def _fold_labels(drives: Sequence[Drive], segments: SegmentSet, folds: int) -> n
     return labels
 
 
+def _p_greater(diff: np.ndarray, untestable: float) -> float:
+    """Return the one-sided Wilcoxon p-value that ``diff`` is above 0.
+
+    ``untestable`` is returned when fewer than 5 differences are non-zero or the test fails.
+    """
+    if np.count_nonzero(diff) < 5:
+        return untestable
+    try:
+        return float(stats.wilcoxon(diff, alternative='greater').pvalue)
+    except ValueError:
+        return untestable
+
+
 def _significance(null: np.ndarray, cand: np.ndarray) -> tuple[float, float]:
     total = float(null.sum())
     gain = 1.0 - float(cand.sum()) / total if total > 0 else 0.0
-    diff = null - cand
-    if np.count_nonzero(diff) < 5:
-        return gain, 1.0
-    try:
-        p_value = float(stats.wilcoxon(diff, alternative='greater').pvalue)
-    except ValueError:
-        p_value = 1.0
-    return gain, p_value
+    return gain, _p_greater(null - cand, untestable=1.0)
 
 
 class _Diagnoser:
@@ -907,13 +913,8 @@ def _sparsest(outcomes: Mapping[str, tuple[np.ndarray, ModelState, float]]
     best = min(outcomes, key=lambda n: outcomes[n][0].sum())
     as_good = []
     for name, (losses, full, _) in outcomes.items():
-        diff = losses - outcomes[best][0]
-        p_value = 1.0
-        if name != best and np.count_nonzero(diff) >= 5:
-            try:
-                p_value = float(stats.wilcoxon(diff, alternative='greater').pvalue)
-            except ValueError:
-                p_value = 1.0
+        p_value = (1.0 if name == best
+                   else _p_greater(losses - outcomes[best][0], untestable=1.0))
         if p_value >= TIE_SIGNIFICANCE:
             as_good.append((len(full.sparse_terms), -_variant(name)[1], name))
     kept = min(as_good)[2]
@@ -955,14 +956,7 @@ def _pick(round_scores: list[tuple], options: DiagnosisOptions, period_s: float
     for item in winners:
         if item is best:
             continue
-        diff = item[3] - best[3]
-        p_value = 0.0
-        if np.count_nonzero(diff) >= 5:
-            try:
-                p_value = float(stats.wilcoxon(diff, alternative='greater').pvalue)
-            except ValueError:
-                p_value = 0.0
-        if p_value >= TIE_SIGNIFICANCE:
+        if _p_greater(item[3] - best[3], untestable=0.0) >= TIE_SIGNIFICANCE:
             tied.append(item)
     if not tied:
         return best, []

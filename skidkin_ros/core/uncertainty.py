@@ -138,12 +138,17 @@ def segment_covariances(noise: NoiseModel, motion: SegmentMotion) -> np.ndarray:
     return cov + MIN_VARIANCE * np.eye(3)
 
 
+def _mahalanobis(cov: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """Return the squared Mahalanobis distance of each error (N, d) under its covariance."""
+    return np.einsum('ni,nij,nj->n', errors, np.linalg.inv(cov), errors)
+
+
 def _nll_position(log_q: np.ndarray, motion: SegmentMotion, err: np.ndarray) -> float:
     q = np.exp(log_q)
     cov = q[0] * motion.basis_x[:, :2, :2] + q[1] * motion.basis_y[:, :2, :2]
     cov = cov + MIN_VARIANCE * np.eye(2)
     sign, logdet = np.linalg.slogdet(cov)
-    maha = np.einsum('ni,nij,nj->n', err, np.linalg.inv(cov), err)
+    maha = _mahalanobis(cov, err)
     return float((logdet + maha).sum())
 
 
@@ -157,7 +162,7 @@ def _nll_yaw(log_q: np.ndarray, motion: SegmentMotion, err: np.ndarray) -> float
 def _nll_joint(log_q: np.ndarray, motion: SegmentMotion, err: np.ndarray) -> float:
     cov = segment_covariances(NoiseModel(*np.exp(log_q)), motion)
     sign, logdet = np.linalg.slogdet(cov)
-    maha = np.einsum('ni,nij,nj->n', err, np.linalg.inv(cov), err)
+    maha = _mahalanobis(cov, err)
     return float((logdet + maha).sum())
 
 
@@ -190,17 +195,12 @@ def fit_noise_model(errors: np.ndarray, motion: SegmentMotion) -> NoiseModel:
 def consistency(noise: NoiseModel, errors: np.ndarray, motion: SegmentMotion) -> Consistency:
     """Share of errors inside the predicted 95 % region (3 dof on x, y, yaw; 2 dof position)."""
     cov = segment_covariances(noise, motion)
-    maha3 = _mahalanobis(noise, errors, motion)
+    maha3 = _mahalanobis(cov, errors)
     pos = errors[:, :2]
-    maha2 = np.einsum('ni,nij,nj->n', pos, np.linalg.inv(cov[:, :2, :2]), pos)
+    maha2 = _mahalanobis(cov[:, :2, :2], pos)
     n = errors.shape[0]
     return Consistency(float((maha3 <= CHI2_95_3DOF).mean()) if n else float('nan'),
                        float((maha2 <= CHI2_95_2DOF).mean()) if n else float('nan'), n)
-
-
-def _mahalanobis(noise: NoiseModel, errors: np.ndarray, motion: SegmentMotion) -> np.ndarray:
-    cov = segment_covariances(noise, motion)
-    return np.einsum('ni,nij,nj->n', errors, np.linalg.inv(cov), errors)
 
 
 def coverage_scale(noise: NoiseModel, errors: np.ndarray, motion: SegmentMotion,
@@ -211,7 +211,7 @@ def coverage_scale(noise: NoiseModel, errors: np.ndarray, motion: SegmentMotion,
     covariances by s (MIN_VARIANCE aside), so the factor is a quantile of the Mahalanobis
     distances over the chi2 bound.
     """
-    maha = _mahalanobis(noise, errors, motion)
+    maha = _mahalanobis(segment_covariances(noise, motion), errors)
     if maha.size == 0:
         return 1.0
     needed = float(np.quantile(maha, target, method='higher')) / CHI2_95_3DOF
