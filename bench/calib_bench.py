@@ -12,7 +12,7 @@ from dataclasses import replace
 import time
 from typing import Any, Sequence
 
-from skidkin_ros.core.calibration import calibrate, CalibrationOptions
+from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.sim import SimConfig, simulate
 

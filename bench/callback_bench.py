@@ -26,7 +26,7 @@ JOINTS = node_bench.JOINTS
 
 def cases() -> list[tuple[str, dict[str, Any]]]:
     """Return (label, node parameters) of each configuration the latency benchmark runs."""
-    from skidkin_ros.core.models import MODEL_NAMES
+    from skidkin_ros.core.kinematics.models import MODEL_NAMES
     out = [(model, {'model': model}) for model in MODEL_NAMES]
     out.append(node_bench.CALIBRATED_CASE)
     out.append(node_bench.augmented_params())

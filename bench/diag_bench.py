@@ -12,7 +12,7 @@ import time
 from typing import Any, Sequence
 
 from calib_bench import first_km, simulate_drives
-from skidkin_ros.core.diagnosis import diagnose, DiagnosisOptions
+from skidkin_ros.core.calibration.diagnosis import diagnose, DiagnosisOptions
 from skidkin_ros.core.parallel import usable_cpus
 from skidkin_ros.sim import SimConfig
 

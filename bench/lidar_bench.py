@@ -46,8 +46,8 @@ def time_stages(bag: Path, horizon_m: float) -> dict[str, Any]:
     from skidkin_ros.adapters.bag_reader import open_recording
     from skidkin_ros.adapters.lidar_gt import IcpConfig, lidar_ground_truth
     from skidkin_ros.core.drive import Drive
-    from skidkin_ros.core.fitting import fit_models
-    from skidkin_ros.core.segments import cut_segments, SegmentOptions
+    from skidkin_ros.core.calibration.fitting import fit_models
+    from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
     from skidkin_ros.errors import SkidkinError
     from skidkin_ros.sim import SimConfig
 

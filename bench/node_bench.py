@@ -73,8 +73,8 @@ AUGMENTED_VALUES = {
 
 def augmented_params() -> tuple[str, dict[str, str]]:
     """Return the label and node parameters of the heaviest augmented model."""
-    from skidkin_ros.core.augmented import AUGMENTED_NAME
-    from skidkin_ros.core.extensions import EXTENSION_NAMES
+    from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
+    from skidkin_ros.core.kinematics.extensions import EXTENSION_NAMES
     extensions = [name for name in EXTENSION_NAMES if name != 'sparse_correction']
     label = f'{AUGMENTED_NAME}: edd_symmetric + {len(extensions)} extensions'
     params = {'model': AUGMENTED_NAME, 'augmented.base': 'edd_symmetric',

@@ -35,7 +35,7 @@ import lidar_bench
 import node_bench
 import report
 from skidkin_ros.atomic import atomic_write_text
-from skidkin_ros.core.models import MODEL_NAMES
+from skidkin_ros.core.kinematics.models import MODEL_NAMES
 
 PARTS = ('node', 'calibration', 'lidar', 'diagnosis')
 

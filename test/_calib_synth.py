@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
-from skidkin_ros.core.integrator import rollout
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.integrator import rollout
 
 GEOMETRY = Geometry(0.1651, 0.555)
 

@@ -10,13 +10,8 @@ import numpy as np
 import pytest
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
-from skidkin_ros.adapters.bag_reader import (
-    check_overlap,
-    format_summary,
-    keep_monotonic,
-    open_recording,
-    POINTCLOUD2,
-)
+from skidkin_ros.adapters.bag_reader import (check_overlap, format_summary, keep_monotonic,
+                                             open_recording, POINTCLOUD2)
 from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.errors import DataError, RecordingError

@@ -14,7 +14,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from skidkin_ros.core.config import write_params_file
+from skidkin_ros.core.odometry.config import write_params_file
 from skidkin_ros.node.conversions import ns_to_stamp
 
 pytestmark = [pytest.mark.heavy, pytest.mark.ros]

@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
-from skidkin_ros.core.config import (OdometryConfig, parameter_schema, read_params_file,
-                                     SCHEMA_VERSION, write_params_file)
-from skidkin_ros.core.models import MODELS
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.models import MODELS
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.config import (OdometryConfig, parameter_schema, read_params_file,
+                                              SCHEMA_VERSION, write_params_file)
 from skidkin_ros.errors import ConfigError, OutputError, ParameterError
 import yaml
 

@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from skidkin_ros.core.consistency import (chi2_band, nees, nees_over_time, segment_nees,
-                                          summarize_nees)
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.segments import cut_segments, SegmentOptions
-from skidkin_ros.core.uncertainty import segment_covariances, segment_motion
+from skidkin_ros.core.calibration.noise_fit import segment_covariances, segment_motion
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.estimation.nees import (chi2_band, nees, nees_over_time, segment_nees,
+                                              summarize_nees)
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.errors import DataError
-from skidkin_ros.estimation_study import run_estimation_study, StudyOptions
+from skidkin_ros.studies.estimation import run_estimation_study, StudyOptions
 
 NOISE = NoiseModel(4e-3, 1e-3, 2e-4, 5e-3)
 

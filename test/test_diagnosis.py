@@ -4,14 +4,14 @@ import math
 
 import numpy as np
 import pytest
-from skidkin_ros.core.config import OdometryConfig, read_params_file, write_params_file
-from skidkin_ros.core.diagnosis import (body_velocities, DiagnosisOptions, stlsq,
-                                        truth_velocities)
+from skidkin_ros.core.calibration.diagnosis import (body_velocities, DiagnosisOptions, stlsq,
+                                                    truth_velocities)
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
-from skidkin_ros.effects_study import drawn_effect, run_case as study_case
+from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
 from skidkin_ros.errors import OutputError, ParameterError
 from skidkin_ros.report.diagnosis import write_diagnosis_report
 from skidkin_ros.sim.effects import EFFECT_NAMES, make_effect
+from skidkin_ros.studies.effects import drawn_effect, run_case as study_case
 
 
 def run_case(effect, duration_s=120.0, options=None):
@@ -59,7 +59,7 @@ def test_options_are_validated():
 
 
 def test_sparse_fallback_keeps_the_fewest_terms_that_are_as_good_as_the_best():
-    from skidkin_ros.core.diagnosis import _sparsest, ModelState
+    from skidkin_ros.core.calibration.diagnosis import _sparsest, ModelState
     rng = np.random.default_rng(0)
     base = rng.gamma(2.0, 1.0, 300)
 

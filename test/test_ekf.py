@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 from skidkin_ros.core.drive import WheelSamples
-from skidkin_ros.core.ekf import PlanarEkf, PoseFix
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.prediction import predict_wheels
-from skidkin_ros.core.propagation import predict
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.estimation.ekf import PlanarEkf, PoseFix
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.noise import NoiseModel
+from skidkin_ros.core.odometry.prediction import predict_wheels
+from skidkin_ros.core.odometry.propagation import predict
 from skidkin_ros.errors import DataError, ParameterError
 
 GEOMETRY = Geometry(0.1651, 0.555)
@@ -118,7 +118,7 @@ def test_bad_inputs_are_refused_with_a_reason():
 
 
 def test_an_augmented_model_is_refused_with_a_way_out():
-    from skidkin_ros.core.augmented import AugmentedModel
+    from skidkin_ros.core.kinematics.augmented import AugmentedModel
     base = get_model('edd_symmetric').bind({'alpha': 0.9, 'b_hat': 1.5}, Geometry(0.3, 1.2))
     lagged = AugmentedModel('edd_symmetric', ('first_order_lag',)).bind(
         base, {'first_order_lag': {'tau_s': 0.3}})

@@ -4,9 +4,10 @@ from _calib_synth import GEOMETRY, make_drive
 import numpy as np
 import pytest
 
-from skidkin_ros.core.calibration import CalibrationOptions, horizon_study
-from skidkin_ros.core.evaluation import ErrorStats, evaluate_models, split_holdout
-from skidkin_ros.core.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.calibration.evaluation import ErrorStats, evaluate_models
+from skidkin_ros.core.calibration.holdout import split_holdout
+from skidkin_ros.core.calibration.pipeline import CalibrationOptions, horizon_study
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.errors import DataError, ParameterError
 
 

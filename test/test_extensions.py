@@ -4,18 +4,19 @@ import math
 
 import numpy as np
 import pytest
-from skidkin_ros.core.augmented import AugmentedModel, lag_factors, SegmentPredictor
-from skidkin_ros.core.config import OdometryConfig, parameter_schema, parse_extensions
+from skidkin_ros.core.calibration.fitting import predict_end_poses
+from skidkin_ros.core.calibration.predictor import SegmentPredictor
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
-from skidkin_ros.core.extensions import (EXTENSION_NAMES, EXTENSIONS, get_extension,
-                                         SPARSE_FEATURES)
-from skidkin_ros.core.fitting import predict_end_poses
-from skidkin_ros.core.integrator import (IntegratorLimits, rollout, rollout_stream,
-                                         SampleStatus, StreamingIntegrator)
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.prediction import predict_wheels
-from skidkin_ros.core.segments import cut_segments, SegmentOptions
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.augmented import AugmentedModel, lag_factors
+from skidkin_ros.core.kinematics.extensions import (EXTENSION_NAMES, EXTENSIONS, get_extension,
+                                                    SPARSE_FEATURES)
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.config import OdometryConfig, parameter_schema, parse_extensions
+from skidkin_ros.core.odometry.integrator import (IntegratorLimits, rollout, rollout_stream,
+                                                  SampleStatus, StreamingIntegrator)
+from skidkin_ros.core.odometry.prediction import predict_wheels
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.effects import EFFECT_NAMES
 
@@ -202,7 +203,7 @@ def _window_by_steps(stamps, twists, s_a, s_b, start):
 
 def test_segment_predictor_windows_agree_with_step_by_step_integration():
     """Windows inside one interval, on stamps, before the first and after the last, over a gap."""
-    from skidkin_ros.core.segments import SegmentSet
+    from skidkin_ros.core.calibration.segments import SegmentSet
     drives = []
     for seed in (11, 12):
         t_ns, wl, wr = _random_drive(seed, 120)

@@ -4,8 +4,8 @@ from _calib_synth import GEOMETRY, make_drive, TRUE_VALUES
 import numpy as np
 import pytest
 
-from skidkin_ros.core.fitting import fit_model, fit_models, FitOptions
-from skidkin_ros.core.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.calibration.fitting import fit_model, fit_models, FitOptions
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 
 SEGMENTS = SegmentOptions(horizon_m=2.0, horizon_rad=1.0)
 

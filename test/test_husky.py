@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 
 from skidkin_ros.adapters.table import read_table
-from skidkin_ros.core.calibration import calibrate, CalibrationOptions
-from skidkin_ros.core.evaluation import split_holdout
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.calibration.holdout import split_holdout
+from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions
+from skidkin_ros.core.kinematics.specs import Geometry
 
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
 HUSKY = Geometry(0.1651, 0.555)

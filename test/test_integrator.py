@@ -4,11 +4,11 @@ import math
 
 import numpy as np
 import pytest
-from skidkin_ros.core.integrator import (body_increment, IntegratorLimits, rollout,
-                                         rollout_segments, SampleStatus, SMALL_ANGLE_RAD,
-                                         StreamingIntegrator)
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.integrator import (body_increment, IntegratorLimits, rollout,
+                                                  rollout_segments, SampleStatus, SMALL_ANGLE_RAD,
+                                                  StreamingIntegrator)
 
 GEOM = Geometry(0.3, 1.2)
 

@@ -45,3 +45,43 @@ def test_library_code_does_not_print():
                     and node.func.id == 'print'):
                 offenders.append(f'{f.relative_to(PACKAGE)}:{node.lineno}')
     assert offenders == []
+
+
+# The core's folders tell the story in order: models -> what the node runs -> fitting them
+# offline -> checking the result with a filter. A folder may use the ones before it, never after.
+CORE_ORDER = ('kinematics', 'odometry', 'calibration', 'estimation')
+
+
+def _skidkin_imports(path):
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module.startswith('skidkin_ros'):
+                yield node.module
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith('skidkin_ros'):
+                    yield alias.name
+
+
+def _core_rank(module):
+    parts = module.split('.')
+    if parts[:2] != ['skidkin_ros', 'core'] or len(parts) < 3:
+        return None
+    return CORE_ORDER.index(parts[2]) + 1 if parts[2] in CORE_ORDER else 0
+
+
+def test_core_folders_only_use_earlier_folders():
+    offenders = []
+    for f in _files('core'):
+        module = '.'.join(f.relative_to(PACKAGE.parent).with_suffix('').parts)
+        rank = _core_rank(module)
+        for target in _skidkin_imports(f):
+            other = _core_rank(target)
+            if other is None:
+                if not target.startswith(('skidkin_ros.core', 'skidkin_ros.errors',
+                                          'skidkin_ros.atomic')) and target != 'skidkin_ros':
+                    offenders.append((module, target))
+            elif other > rank:
+                offenders.append((module, target))
+    assert offenders == []

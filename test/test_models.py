@@ -4,8 +4,8 @@ import math
 
 import numpy as np
 import pytest
-from skidkin_ros.core.models import get_model, MODEL_NAMES, MODELS, RocModel
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES, MODELS, RocModel
+from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.errors import ParameterError
 
 GEOM = Geometry(wheel_radius=0.3, track_width=1.2)

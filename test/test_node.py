@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
-from skidkin_ros.core.config import parameter_schema, write_params_file
 from skidkin_ros.core.drive import WheelSamples
-from skidkin_ros.core.integrator import rollout
-from skidkin_ros.core.models import get_model
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.config import parameter_schema, write_params_file
+from skidkin_ros.core.odometry.integrator import rollout
 from skidkin_ros.core.rotation import quaternion_to_yaw
-from skidkin_ros.core.specs import Geometry
 from skidkin_ros.errors import ConfigError, ParameterError
 from skidkin_ros.node.odom_node import check_params_files, main, parameter_descriptor
 from skidkin_ros.node.replay import replay_through_node

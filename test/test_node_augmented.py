@@ -1,10 +1,10 @@
-"""The real node runs an augmented parameters file exactly like core.prediction.predict_wheels."""
+"""The real node runs an augmented parameters file exactly like `predict_wheels` offline."""
 
 import numpy as np
 import pytest
-from skidkin_ros.core.config import OdometryConfig, read_params_file, write_params_file
-from skidkin_ros.core.integrator import IntegratorLimits
-from skidkin_ros.core.prediction import predict_wheels
+from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
+from skidkin_ros.core.odometry.integrator import IntegratorLimits
+from skidkin_ros.core.odometry.prediction import predict_wheels
 from skidkin_ros.node.replay import replay_through_node
 from skidkin_ros.sim.simulate import SimConfig, simulate
 

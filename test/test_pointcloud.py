@@ -8,12 +8,8 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import get_typestore, Stores
 
 from skidkin_ros.adapters.bag_writer import BagWriter
-from skidkin_ros.adapters.pointcloud import (
-    find_time_field,
-    interpret_point_times,
-    read_fields,
-    read_xyz_and_times,
-)
+from skidkin_ros.adapters.pointcloud import (find_time_field, interpret_point_times, read_fields,
+                                             read_xyz_and_times)
 from skidkin_ros.errors import RecordingError
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)

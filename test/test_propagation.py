@@ -1,11 +1,11 @@
 """Covariance propagation: first-order propagation matches Monte Carlo of the same noise."""
 
 import numpy as np
-from skidkin_ros.core.integrator import body_increment, compose, rollout
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.propagation import PoseCovariancePropagator, predict, to_6x6
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.integrator import body_increment, compose, rollout
+from skidkin_ros.core.odometry.noise import NoiseModel
+from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator, predict, to_6x6
 
 GEOM = Geometry(0.3, 1.2)
 NOISE = NoiseModel(var_x_per_m=4e-4, var_y_per_m=2e-4, var_yaw_per_m=1e-4, var_yaw_per_rad=2e-3)
@@ -74,7 +74,7 @@ def test_to_6x6_places_yaw_in_the_last_row_and_column():
 
 def test_plain_math_step_equals_the_matrix_form():
     """propagate_step writes F P F^T + G Q G^T out by hand; check it against numpy's products."""
-    from skidkin_ros.core.propagation import propagate_step, step_jacobians
+    from skidkin_ros.core.odometry.propagation import propagate_step, step_jacobians
     rng = np.random.default_rng(3)
     for _ in range(50):
         pose = rng.normal(size=3) * [5.0, 5.0, 3.0]
@@ -95,8 +95,9 @@ def test_plain_math_step_equals_the_matrix_form():
 
 def test_predict_runs_a_stateful_model_as_the_node_does():
     """An augmented model with a lag: predict() gives the node's pose and covariance."""
-    from skidkin_ros.core.augmented import AugmentedModel
-    from skidkin_ros.core.integrator import rollout_stream, SampleStatus, StreamingIntegrator
+    from skidkin_ros.core.kinematics.augmented import AugmentedModel
+    from skidkin_ros.core.odometry.integrator import (rollout_stream, SampleStatus,
+                                                      StreamingIntegrator)
     base = get_model('edd_symmetric').bind({'alpha': 0.9, 'b_hat': 1.5}, GEOM)
     source = AugmentedModel('edd_symmetric', ('first_order_lag', 'lateral_skid')).bind(
         base, {'first_order_lag': {'tau_s': 0.3}, 'lateral_skid': {'k': 0.05}})

@@ -3,9 +3,9 @@
 from _calib_synth import GEOMETRY, make_drive
 import pytest
 
-from skidkin_ros.core.calibration import (calibrate, CalibrationOptions, horizon_study,
-                                          result_to_parameters)
-from skidkin_ros.core.config import OdometryConfig, read_params_file, write_params_file
+from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions, horizon_study,
+                                                   result_to_parameters)
+from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
 from skidkin_ros.errors import FitError, OutputError
 from skidkin_ros.report import write_report
 

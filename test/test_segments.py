@@ -4,10 +4,10 @@ from _calib_synth import GEOMETRY, make_drive
 import numpy as np
 import pytest
 
+from skidkin_ros.core.calibration.fitting import segment_errors
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
-from skidkin_ros.core.fitting import segment_errors
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.errors import DataError
 
 

@@ -11,7 +11,7 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import get_typestore, Stores
 
-from skidkin_ros.core.integrator import rollout
+from skidkin_ros.core.odometry.integrator import rollout
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim import (EFFECT_NAMES, EFFECTS, LidarConfig, make_effect, random_effect,
                              SimConfig, simulate, write_bag)

@@ -4,10 +4,11 @@ from _calib_synth import GEOMETRY, make_drive
 import numpy as np
 import pytest
 
-from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.segments import cut_segments, SegmentOptions
-from skidkin_ros.core.uncertainty import (calibrate_noise, consistency, coverage_scale,
-                                          fit_noise_model, segment_covariances, segment_motion)
+from skidkin_ros.core.calibration.noise_fit import (calibrate_noise, consistency, coverage_scale,
+                                                    fit_noise_model, segment_covariances,
+                                                    segment_motion)
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.odometry.noise import NoiseModel
 
 VALUES = {'alpha': 0.9, 'b_hat': 1.04}
 TRUE_NOISE = NoiseModel(4e-3, 1e-3, 2e-4, 5e-3)
@@ -95,8 +96,8 @@ def test_calibrate_noise_on_model_residuals():
 
 
 def _errors_and_motion(segs):
-    from skidkin_ros.core.fitting import segment_errors
-    from skidkin_ros.core.models import get_model
+    from skidkin_ros.core.calibration.fitting import segment_errors
+    from skidkin_ros.core.kinematics.models import get_model
     model = get_model('edd_symmetric')
     errors = segment_errors(model, model.vector(VALUES, GEOMETRY), GEOMETRY, segs)
     return errors, segment_motion('edd_symmetric', VALUES, GEOMETRY, segs)

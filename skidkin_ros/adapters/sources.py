@@ -20,10 +20,10 @@ from skidkin_ros.adapters.bag_reader import check_overlap, open_recording
 from skidkin_ros.adapters.lidar_gt import bag_identity, IcpConfig, lidar_ground_truth
 from skidkin_ros.adapters.table import read_table
 from skidkin_ros.core.drive import Drive, PoseTrack
-from skidkin_ros.core.integrator import IntegratorLimits
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.prediction import predict_wheels
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.integrator import IntegratorLimits
+from skidkin_ros.core.odometry.prediction import predict_wheels
 from skidkin_ros.errors import DataError, RecordingError
 
 __all__ = ['SourceOptions', 'LoadedSource', 'load_source', 'load_sources', 'is_table',

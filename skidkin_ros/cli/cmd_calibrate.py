@@ -8,13 +8,14 @@ from typing import Any, Sequence
 
 from skidkin_ros.adapters.sources import load_sources, LoadedSource
 from skidkin_ros.atomic import check_writable
-from skidkin_ros.cli.common import add_geometry_args, add_source_args, geometry_from_args, \
-    print_notes, say, source_options
+from skidkin_ros.cli.common import (add_geometry_args, add_source_args, geometry_from_args,
+                                    print_notes, say, source_options)
 from skidkin_ros.cli.tables import error_table, parameter_lines
-from skidkin_ros.core.calibration import calibrate, CalibrationOptions, CalibrationResult, \
-    horizon_study, result_to_parameters
-from skidkin_ros.core.config import write_params_file
-from skidkin_ros.core.models import get_model, MODEL_NAMES
+from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
+                                                   CalibrationResult, horizon_study,
+                                                   result_to_parameters)
+from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
+from skidkin_ros.core.odometry.config import write_params_file
 from skidkin_ros.errors import FitError, OutputError
 from skidkin_ros.report.page import write_report
 

@@ -22,10 +22,11 @@ from skidkin_ros.adapters.sources import load_source, SourceOptions
 from skidkin_ros.cli.cmd_calibrate import print_result, provenance
 from skidkin_ros.cli.cmd_predict import limits_of, load_config
 from skidkin_ros.cli.common import default_cache_dir, say
-from skidkin_ros.core.calibration import calibrate, CalibrationOptions, result_to_parameters
-from skidkin_ros.core.config import write_params_file
-from skidkin_ros.core.evaluation import ErrorStats, relative_pose_errors
-from skidkin_ros.core.prediction import predict_wheels
+from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_pose_errors
+from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
+                                                   result_to_parameters)
+from skidkin_ros.core.odometry.config import write_params_file
+from skidkin_ros.core.odometry.prediction import predict_wheels
 from skidkin_ros.errors import OutputError
 from skidkin_ros.report.page import write_report
 from skidkin_ros.sim.simulate import SimConfig, simulate, write_bag

@@ -10,9 +10,9 @@ from skidkin_ros.atomic import check_writable
 from skidkin_ros.cli.cmd_calibrate import check_report_dir
 from skidkin_ros.cli.common import (add_source_args, jobs_arg, print_notes, RoundBars, say,
                                     source_options)
-from skidkin_ros.core.config import OdometryConfig, read_params_file, write_params_file
-from skidkin_ros.core.diagnosis import diagnose, DiagnosisOptions
-from skidkin_ros.core.extensions import EXTENSIONS
+from skidkin_ros.core.calibration.diagnosis import diagnose, DiagnosisOptions
+from skidkin_ros.core.kinematics.extensions import EXTENSIONS
+from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
 from skidkin_ros.core.parallel import usable_cpus
 from skidkin_ros.report.diagnosis import write_diagnosis_report
 

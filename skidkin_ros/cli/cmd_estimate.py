@@ -7,7 +7,7 @@ from pathlib import Path
 
 from skidkin_ros.cli.cmd_calibrate import check_report_dir
 from skidkin_ros.cli.common import say
-from skidkin_ros.estimation_study import run_estimation_study
+from skidkin_ros.studies.estimation import run_estimation_study
 
 __all__ = ['add_parser']
 

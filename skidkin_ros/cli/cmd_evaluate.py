@@ -12,8 +12,8 @@ from skidkin_ros.cli.cmd_calibrate import check_report_dir
 from skidkin_ros.cli.cmd_predict import load_config
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
 from skidkin_ros.cli.tables import error_table
-from skidkin_ros.core.evaluation import evaluate_models
-from skidkin_ros.core.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.calibration.evaluation import evaluate_models
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.errors import DataError
 from skidkin_ros.report.figures import error_distributions
 

@@ -10,8 +10,8 @@ import numpy as np
 
 from skidkin_ros.adapters.sources import load_source
 from skidkin_ros.atomic import atomic_write_text, check_writable
-from skidkin_ros.cli.common import add_geometry_args, add_source_args, geometry_from_args, \
-    print_notes, say, source_options
+from skidkin_ros.cli.common import (add_geometry_args, add_source_args, geometry_from_args,
+                                    print_notes, say, source_options)
 from skidkin_ros.core.drive import PoseTrack
 
 __all__ = ['add_parser', 'track_csv', 'track_tum']

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from skidkin_ros.core.models import MODELS
-from skidkin_ros.core.noise import NOISE_SPECS
-from skidkin_ros.core.specs import GEOMETRY_SPECS
+from skidkin_ros.core.kinematics.models import MODELS
+from skidkin_ros.core.kinematics.specs import GEOMETRY_SPECS
+from skidkin_ros.core.odometry.noise import NOISE_SPECS
 
 __all__ = ['add_parser', 'markdown_tables']
 

@@ -10,9 +10,9 @@ from pathlib import Path
 from skidkin_ros.adapters.sources import is_table, load_source
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
-from skidkin_ros.core.config import OdometryConfig, read_params_file
-from skidkin_ros.core.integrator import IntegratorLimits
-from skidkin_ros.core.prediction import predict_wheels
+from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file
+from skidkin_ros.core.odometry.integrator import IntegratorLimits
+from skidkin_ros.core.odometry.prediction import predict_wheels
 
 __all__ = ['add_parser', 'load_config', 'limits_of']
 

@@ -10,7 +10,7 @@ from typing import Iterable
 
 from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, LoadedSource, SourceOptions
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.specs import Geometry
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
            'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'RoundBars']

@@ -5,9 +5,9 @@ from __future__ import annotations
 import math
 from typing import Mapping
 
-from skidkin_ros.core.evaluation import ModelEvaluation
-from skidkin_ros.core.fitting import FitResult
-from skidkin_ros.core.uncertainty import NoiseFit
+from skidkin_ros.core.calibration.evaluation import ModelEvaluation
+from skidkin_ros.core.calibration.fitting import FitResult
+from skidkin_ros.core.calibration.noise_fit import NoiseFit
 
 __all__ = ['error_table', 'parameter_lines']
 

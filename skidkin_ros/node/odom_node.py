@@ -13,8 +13,8 @@ overridden with the standard ``qos_overrides.<topic>.subscription.*`` parameters
 
 Outputs: nav_msgs/Odometry on ``odom`` (reliable), one per accepted sample with a new stamp
 (capped by ``max_rate``), stamped with the sample stamp, twist in the child frame; covariance from
-:class:`~skidkin_ros.core.propagation.PoseCovariancePropagator` (never all zeros); optional TF
-(needs tf2_ros); /diagnostics at 1 Hz on a steady clock.
+:class:`~skidkin_ros.core.odometry.propagation.PoseCovariancePropagator` (never all zeros);
+optional TF (needs tf2_ros); /diagnostics at 1 Hz on a steady clock.
 
 Services and topics: ``~/reset`` (std_srvs/Trigger) zeroes the pose and covariance and always
 succeeds. ``~/set_pose`` (geometry_msgs/PoseWithCovarianceStamped, like robot_localization's
@@ -52,17 +52,16 @@ from rclpy.qos import (qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
-from skidkin_ros.core.config import OdometryConfig, parameter_schema, SchemaEntry
-from skidkin_ros.core.integrator import (IntegratorLimits, SampleStatus, StepResult,
-                                         StreamingIntegrator)
-from skidkin_ros.core.propagation import PoseCovariancePropagator
+from skidkin_ros.core.kinematics.specs import Geometry, GEOMETRY_SPECS
+from skidkin_ros.core.odometry.config import OdometryConfig, parameter_schema, SchemaEntry
+from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, StepResult,
+                                                  StreamingIntegrator)
+from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
 from skidkin_ros.core.rotation import yaw_to_quaternion
-from skidkin_ros.core.specs import Geometry, GEOMETRY_SPECS
 from skidkin_ros.errors import ConfigError
-from skidkin_ros.node.conversions import (check_velocity_count, joint_indices,
-                                          MissingJointError, ns_to_stamp, plain_value,
-                                          planar_covariance_from_msg, planar_pose_from_msg,
-                                          speeds_at, stamp_to_ns)
+from skidkin_ros.node.conversions import (check_velocity_count, joint_indices, MissingJointError,
+                                          ns_to_stamp, plain_value, planar_covariance_from_msg,
+                                          planar_pose_from_msg, speeds_at, stamp_to_ns)
 from skidkin_ros.node.wire import JointStateReader, OdometryWriter, WireFormatError
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger

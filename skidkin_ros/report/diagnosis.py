@@ -11,9 +11,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from skidkin_ros.atomic import atomic_write_text  # noqa: E402
-from skidkin_ros.core.diagnosis import COMPONENTS, DiagnosisResult  # noqa: E402
-from skidkin_ros.core.extensions import (get_extension, SPARSE_FEATURES,  # noqa: E402
-                                         sparse_features)
+from skidkin_ros.core.calibration.diagnosis import COMPONENTS, DiagnosisResult  # noqa: E402
+from skidkin_ros.core.kinematics.extensions import (get_extension, SPARSE_FEATURES,  # noqa: E402
+                                                    sparse_features)
 from skidkin_ros.report.figures import save_figure  # noqa: E402
 from skidkin_ros.report.page import (figure_lines, prepare_report,  # noqa: E402
                                      provenance_lines)

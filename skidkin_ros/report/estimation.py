@@ -11,11 +11,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from skidkin_ros.core.consistency import NeesSummary, SegmentNees  # noqa: E402
+from skidkin_ros.core.estimation.nees import NeesSummary, SegmentNees  # noqa: E402
 from skidkin_ros.report.figures import save_figure  # noqa: E402
 
 if TYPE_CHECKING:
-    from skidkin_ros.estimation_study import FilterRuns
+    from skidkin_ros.studies.estimation import FilterRuns
 
 __all__ = ['error_over_time', 'nees_over_time_figure', 'segment_nees_figure',
            'write_estimation_figures']

@@ -11,9 +11,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from skidkin_ros.atomic import atomic_write_bytes  # noqa: E402
-from skidkin_ros.core.calibration import CalibrationResult, HorizonStudy  # noqa: E402
-from skidkin_ros.core.integrator import rollout_segments  # noqa: E402
-from skidkin_ros.core.models import get_model  # noqa: E402
+from skidkin_ros.core.calibration.pipeline import CalibrationResult, HorizonStudy  # noqa: E402
+from skidkin_ros.core.kinematics.models import get_model  # noqa: E402
+from skidkin_ros.core.odometry.integrator import rollout_segments  # noqa: E402
 
 __all__ = ['save_figure', 'error_distributions', 'rotation_per_metre', 'angular_error_map',
            'segment_paths', 'horizon_figure']

@@ -7,8 +7,8 @@ import math
 from pathlib import Path
 
 from skidkin_ros.atomic import atomic_write_text, check_writable
-from skidkin_ros.core.calibration import CalibrationResult, HorizonStudy
-from skidkin_ros.core.models import get_model
+from skidkin_ros.core.calibration.pipeline import CalibrationResult, HorizonStudy
+from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.errors import OutputError
 from skidkin_ros.report import figures
 

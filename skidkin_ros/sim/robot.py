@@ -9,7 +9,8 @@ the lidar always sees the scene. The motors follow the commands through a first-
 
 The true body twist is a true kinematic model applied to the actual (noise-free) wheel speeds,
 modified by the named effects of :mod:`skidkin_ros.sim.effects`; it is integrated on a fine grid
-(1 kHz by default) with the project's one integrator (:func:`skidkin_ros.core.integrator.rollout`).
+(1 kHz by default) with the project's one integrator
+(:func:`skidkin_ros.core.odometry.integrator.rollout`).
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ from typing import Sequence
 import numpy as np
 from scipy.signal import lfilter
 
-from skidkin_ros.core.integrator import rollout
-from skidkin_ros.core.models import BoundModel
+from skidkin_ros.core.kinematics.models import BoundModel
+from skidkin_ros.core.odometry.integrator import rollout
 from skidkin_ros.sim.effects import apply_effects, Effect
 
 __all__ = ['COMMAND_KINDS', 'CommandSchedule', 'TruthTrace', 'plan_commands', 'motor_response',

@@ -19,13 +19,13 @@ import numpy as np
 
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
-from skidkin_ros.core.models import BoundModel, get_model
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.models import BoundModel, get_model
+from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.effects import Effect
 from skidkin_ros.sim.lidar import cast_sweep, LidarConfig, LidarScan
-from skidkin_ros.sim.robot import (CommandSchedule, plan_commands, scripted_commands,
-                                   true_motion, TruthTrace)
+from skidkin_ros.sim.robot import (CommandSchedule, plan_commands, scripted_commands, true_motion,
+                                   TruthTrace)
 from skidkin_ros.sim.scene import default_scene, Scene
 
 __all__ = ['DEFAULT_TRUE_PARAMS', 'JOINT_NAMES', 'POINT_TIME_CONVENTIONS', 'SimConfig',

@@ -3,11 +3,11 @@
 For every effect of ``skidkin_ros.sim.effects`` (and for effect-free data): simulate two training
 and three evaluation drives of a robot whose true model is ``edd_symmetric`` plus that effect at a
 seeded random strength, give them ICP-like ground truth (10 Hz, noisy, held onto the 20 Hz wheel
-grid), calibrate ``edd_symmetric``, run :func:`skidkin_ros.core.diagnosis.diagnose` without telling
-it the effect, and score on the evaluation drives: the base model, the augmented one, and the
-simulator's true model driven by the same noisy wheel speeds.
+grid), calibrate ``edd_symmetric``, run :func:`skidkin_ros.core.calibration.diagnosis.diagnose`
+without telling it the effect, and score on the evaluation drives: the base model, the augmented
+one, and the simulator's true model driven by the same noisy wheel speeds.
 
-Run ``python -m skidkin_ros.effects_study`` (about 2 minutes) for the table in the README.
+Run ``python -m skidkin_ros.studies.effects`` (about 2 minutes) for the table in the README.
 """
 
 from __future__ import annotations
@@ -17,13 +17,14 @@ from typing import Sequence
 
 import numpy as np
 
-from skidkin_ros.core.augmented import SegmentPredictor
-from skidkin_ros.core.diagnosis import diagnose, DiagnosisOptions, DiagnosisResult, ModelState
+from skidkin_ros.core.calibration.diagnosis import (diagnose, DiagnosisOptions, DiagnosisResult,
+                                                    ModelState)
+from skidkin_ros.core.calibration.evaluation import ErrorStats
+from skidkin_ros.core.calibration.fitting import fit_model
+from skidkin_ros.core.calibration.predictor import SegmentPredictor
+from skidkin_ros.core.calibration.segments import cut_segments
 from skidkin_ros.core.drive import Drive, PoseTrack
-from skidkin_ros.core.evaluation import ErrorStats
-from skidkin_ros.core.fitting import fit_model
-from skidkin_ros.core.segments import cut_segments
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.sim.effects import Effect, EFFECT_NAMES, EFFECTS, make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
 

@@ -14,12 +14,12 @@
    the velocity residual over a range of offsets.
 3. **Candidates.** Every named extension (and the sparse fallback: STLSQ on the per-pose
    residuals over a library of twist terms, then the chosen terms only) is fitted on segments by
-   bounded least squares, like :mod:`skidkin_ros.core.fitting`, with the base model's parameters
-   refitted jointly (``refit_base``; the file then holds the joint values for the base model).
-   Step-like parameters (the terrain switch time) are searched on a grid first. With ``trim``
-   the outlier training segments of the base refit are dropped once, as calibration does; off by
-   default, because the segments a missing effect hits hardest look like outliers to the base
-   model (a yaw slip at one speed ratio, fast driving) and trimming them hides the effect.
+   bounded least squares, like :mod:`skidkin_ros.core.calibration.fitting`, with the base model's
+   parameters refitted jointly (``refit_base``; the file then holds the joint values for the base
+   model). Step-like parameters (the terrain switch time) are searched on a grid first. With
+   ``trim`` the outlier training segments of the base refit are dropped once, as calibration does;
+   off by default, because the segments a missing effect hits hardest look like outliers to the
+   base model (a yaw slip at one speed ratio, fast driving) and trimming them hides the effect.
 4. **Selection.** Cross-validation over ``folds`` groups of training segments (by ``calib_step``
    when the drives carry one, by drive when there are enough, else interleaved time blocks): each
    candidate's held-out loss (whitened squared end-pose error) against the current model's.
@@ -46,18 +46,20 @@ import numpy as np
 from scipy import optimize, stats
 
 from skidkin_ros import __version__
-from skidkin_ros.core.augmented import (AUGMENTED_NAME, AugmentedModel, BoundAugmented,
-                                        relative_errors, SegmentPredictor)
+from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_errors
+from skidkin_ros.core.calibration.fitting import _trim_mask, FitOptions
+from skidkin_ros.core.calibration.holdout import resolve_holdout
+from skidkin_ros.core.calibration.predictor import SegmentPredictor
+from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
+                                                   SegmentSet)
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.evaluation import ErrorStats, resolve_holdout
-from skidkin_ros.core.extensions import (EXTENSION_NAMES, get_extension, ordered,
-                                         SPARSE_FEATURES, sparse_features)
-from skidkin_ros.core.fitting import _trim_mask, FitOptions
-from skidkin_ros.core.integrator import rollout_stream
-from skidkin_ros.core.models import BoundModel, get_model
+from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel, BoundAugmented
+from skidkin_ros.core.kinematics.extensions import (EXTENSION_NAMES, get_extension, ordered,
+                                                    SPARSE_FEATURES, sparse_features)
+from skidkin_ros.core.kinematics.models import BoundModel, get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.integrator import rollout_stream
 from skidkin_ros.core.parallel import fork_map
-from skidkin_ros.core.segments import cut_segments, HorizonOptions, SegmentOptions, SegmentSet
-from skidkin_ros.core.specs import Geometry
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['DiagnosisOptions', 'DiagnosisResult', 'CandidateScore', 'ModelStep', 'Trace',

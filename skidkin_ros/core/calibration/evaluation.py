@@ -1,4 +1,4 @@
-"""Relative errors per metre (Baril et al. 2020, after KITTI/Geiger 2012) and hold-out splits.
+"""Relative errors per metre (Baril et al. 2020, after KITTI/Geiger 2012).
 
 On evaluation segments of horizon h_e (cut on the ground truth, the same for every model):
 
@@ -11,31 +11,27 @@ dividing by a near-zero path would dominate every statistic.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 import math
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
-from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
-from skidkin_ros.core.fitting import segment_errors
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.segments import segment_frame_error, SegmentSet
-from skidkin_ros.core.specs import Geometry
-from skidkin_ros.errors import DataError, ParameterError
+from skidkin_ros.core.calibration.fitting import segment_errors
+from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
+from skidkin_ros.core.drive import PoseTrack
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.errors import DataError
 
 __all__ = [
     'ErrorStats',
     'ModelEvaluation',
     'evaluate_model',
     'evaluate_models',
-    'split_holdout',
-    'HOLDOUT_MODES',
+    'relative_errors',
     'relative_pose_errors',
-    'resolve_holdout',
 ]
-
-HOLDOUT_MODES = ('auto', 'drive', 'time')
 
 
 @dataclass(frozen=True)
@@ -96,79 +92,6 @@ def evaluate_models(values: Mapping[str, Mapping[str, float]], geometry: Geometr
             for name, vals in values.items()}
 
 
-def _time_slice(drive: Drive, t0_ns: int, t1_ns: int, suffix: str) -> Drive:
-    wheels = drive.wheels.between(t0_ns, t1_ns)
-    truth = drive.truth
-    if truth is not None:
-        keep = (truth.t_ns >= t0_ns) & (truth.t_ns <= t1_ns)
-        truth = PoseTrack(truth.t_ns[keep], truth.x[keep], truth.y[keep], truth.yaw[keep],
-                          truth.valid[keep])
-    imu = drive.imu
-    if imu is not None:
-        keep = (imu.t_ns >= t0_ns) & (imu.t_ns <= t1_ns)
-        imu = ImuSamples(imu.t_ns[keep], np.asarray(imu.yaw_rate)[keep])
-    return replace(drive, name=f'{drive.name}{suffix}', wheels=WheelSamples(
-        wheels.t_ns, wheels.omega_l, wheels.omega_r), truth=truth, imu=imu)
-
-
-def split_holdout(drives: Sequence[Drive], every: int = 3, mode: str = 'auto',
-                  block_s: float = 60.0, key: str | None = None
-                  ) -> tuple[list[Drive], list[Drive]]:
-    """Split drives into (train, evaluate) deterministically, when no evaluation drive is given.
-
-    - ``key`` (e.g. 'calib_step'): a drive goes to evaluation when ``int(meta[key]) % every ==
-      every - 1`` (every=2: odd values evaluate, even values train; the Husky table split);
-    - mode 'drive': every ``every``-th drive (the last of each group) evaluates;
-    - mode 'time': each drive is cut into blocks of ``block_s`` seconds and every ``every``-th
-      block evaluates (a block boundary loses at most one segment on each side);
-    - mode 'auto': 'drive' when there are at least ``2 * every`` drives, else 'time'.
-    """
-    if every < 2:
-        raise ParameterError(f'every must be >= 2 (one in every blocks evaluates), got {every}')
-    if mode not in HOLDOUT_MODES:
-        raise ParameterError(f'hold-out mode must be one of {HOLDOUT_MODES}, got {mode!r}')
-    if not drives:
-        raise DataError('no drive to split')
-    if key is not None:
-        missing = [d.name for d in drives if key not in d.meta]
-        if missing:
-            raise DataError(f'drive(s) {missing[:3]} have no {key!r} in their metadata; '
-                            'split by drive or time instead')
-        train = [d for d in drives if int(d.meta[key]) % every != every - 1]
-        evaluate = [d for d in drives if int(d.meta[key]) % every == every - 1]
-        return train, evaluate
-    if mode == 'auto':
-        mode = 'drive' if len(drives) >= 2 * every else 'time'
-    if mode == 'drive':
-        return ([d for i, d in enumerate(drives) if i % every != every - 1],
-                [d for i, d in enumerate(drives) if i % every == every - 1])
-    if not block_s > 0:
-        raise ParameterError(f'block_s must be > 0 s, got {block_s!r}')
-    train, evaluate = [], []
-    block_ns = int(block_s * 1e9)
-    for drive in drives:
-        if len(drive.wheels) == 0:
-            continue
-        t0 = int(drive.wheels.t_ns[0])
-        t_end = int(drive.wheels.t_ns[-1])
-        # A drive shorter than 2 * every blocks still gives two evaluation blocks.
-        step_ns = max(1, min(block_ns, (t_end - t0) // (2 * every)))
-        for index, start in enumerate(range(t0, t_end + 1, step_ns)):
-            part = _time_slice(drive, start, min(start + step_ns - 1, t_end), f'@{index}')
-            (evaluate if index % every == every - 1 else train).append(part)
-    return train, evaluate
-
-
-def resolve_holdout(train: Sequence[Drive], evaluate: Sequence[Drive] | None, every: int,
-                    mode: str, block_s: float, key: str | None
-                    ) -> tuple[list[Drive], list[Drive], str]:
-    """Return (train, evaluate, how): the given split, or a deterministic hold-out of train."""
-    if evaluate is not None:
-        return list(train), list(evaluate), 'given'
-    train, evaluate = split_holdout(train, every, mode, block_s, key)
-    return train, evaluate, f'held out 1 in {every} ({key or mode})'
-
-
 def relative_pose_errors(t_ns: np.ndarray, estimate: np.ndarray, truth: PoseTrack,
                          horizon_m: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """Relative errors of any odometry output against ground truth, per metre (evo-style RPE).
@@ -211,3 +134,12 @@ def relative_pose_errors(t_ns: np.ndarray, estimate: np.ndarray, truth: PoseTrac
     length = path[b_idx] - path[a_idx]
     return (np.hypot(errors[:, 0], errors[:, 1]) / length,
             np.degrees(np.abs(errors[:, 2])) / length)
+
+
+def relative_errors(errors: np.ndarray, path_m: np.ndarray,
+                    min_path_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Return eps_t (m/m) and eps_theta (deg/m) of the segments at least min_path_m long."""
+    scored = path_m >= min_path_m
+    path = path_m[scored]
+    return (np.hypot(errors[scored, 0], errors[scored, 1]) / path,
+            np.degrees(np.abs(errors[scored, 2])) / path)

@@ -5,16 +5,17 @@
 1. simulate a training drive and calibration hold-out drives (the simulator's default true
    model; wheels and the exact truth from ``Simulation.drive()``, optionally blurred by white
    ground-truth noise comparable to ICP) and calibrate them with
-   :func:`skidkin_ros.core.calibration.calibrate` (fits on the training drive, noise rates on
-   the hold-out; several drives of the test length rather than one long one, because the error
+   :func:`skidkin_ros.core.calibration.pipeline.calibrate` (fits on the training drive, noise rates
+   on the hold-out; several drives of the test length rather than one long one, because the error
    statistics vary from drive to drive: one 1800 s drive gave rates 20 % off those of the test
    drives and an average NEES ~10 % above 3 on all four seeds tried);
 2. simulate held-out test drives (other seeds, never seen by the calibration);
 3. odometry alone: NEES over independent windows of the test drives
-   (:func:`skidkin_ros.core.consistency.segment_nees`: non-overlapping windows of h_e of
+   (:func:`skidkin_ros.core.estimation.nees.segment_nees`: non-overlapping windows of h_e of
    ground-truth path, each predicted from the true pose with zero covariance), at the calibration
    horizon h_e and, to show how far the rate model carries, at other horizons;
-4. the reference EKF (:class:`skidkin_ros.core.ekf.PlanarEkf`, prediction = skidkin's, corrected
+4. the reference EKF (:class:`skidkin_ros.core.estimation.ekf.PlanarEkf`, prediction = skidkin's,
+corrected
    by a simulated absolute fix every ``fix_period_s`` with white noise of known covariance) and
    odometry alone on every test drive from the true start pose: position and yaw RMSE, and the
    filter's NEES over time against the chi2 band for the number of runs;
@@ -41,16 +42,16 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from skidkin_ros.core.calibration import calibrate, CalibrationOptions, CalibrationResult
-from skidkin_ros.core.consistency import (nees, nees_over_time, NeesOverTime, NeesSummary,
-                                          segment_nees, SegmentNees, summarize_nees)
+from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
+from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions, CalibrationResult
+from skidkin_ros.core.calibration.segments import SegmentOptions
 from skidkin_ros.core.drive import Drive, PoseTrack
-from skidkin_ros.core.ekf import PlanarEkf, PoseFix
-from skidkin_ros.core.integrator import wrap_angle
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.segments import SegmentOptions
-from skidkin_ros.core.uncertainty import MIN_VARIANCE
+from skidkin_ros.core.estimation.ekf import PlanarEkf, PoseFix
+from skidkin_ros.core.estimation.nees import (nees, nees_over_time, NeesOverTime, NeesSummary,
+                                              segment_nees, SegmentNees, summarize_nees)
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.odometry.integrator import wrap_angle
+from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.errors import FitError, ParameterError
 from skidkin_ros.sim.simulate import SimConfig, simulate
 

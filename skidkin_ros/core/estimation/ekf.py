@@ -1,14 +1,15 @@
 """A small reference EKF on the planar pose (x, y, yaw): skidkin's prediction, absolute fixes.
 
 The prediction step IS skidkin's: wheel speeds are held between samples (the integrator's
-zero-order hold) and every interval is one :func:`skidkin_ros.core.propagation.propagate_step`
-(the exact SE(2) step of the integrator and its first-order covariance with the calibrated
-NoiseModel). The correction is a standard EKF update with an absolute pose measurement (a GNSS
-or lidar fix: position, optionally yaw) of known covariance; the yaw innovation is wrapped.
+zero-order hold) and every interval is one
+:func:`skidkin_ros.core.odometry.propagation.propagate_step` (the exact SE(2) step of the
+integrator and its first-order covariance with the calibrated NoiseModel). The correction is a
+standard EKF update with an absolute pose measurement (a GNSS or lidar fix: position, optionally
+yaw) of known covariance; the yaw innovation is wrapped.
 
 Example (wheel samples at 20 Hz, a fix every second)::
 
-    from skidkin_ros.core.ekf import PlanarEkf, PoseFix
+    from skidkin_ros.core.estimation.ekf import PlanarEkf, PoseFix
 
     ekf = PlanarEkf(bound_model, noise, pose=start_pose, cov=np.diag([0.01, 0.01, 0.001]))
     for t_ns, omega_l, omega_r in samples:
@@ -26,9 +27,9 @@ from typing import Sequence
 
 import numpy as np
 
-from skidkin_ros.core.integrator import is_stateful, TwistSource, wrap_angle
-from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.propagation import increment_input_jacobian, propagate_step
+from skidkin_ros.core.odometry.integrator import is_stateful, TwistSource, wrap_angle
+from skidkin_ros.core.odometry.noise import NoiseModel
+from skidkin_ros.core.odometry.propagation import increment_input_jacobian, propagate_step
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['PoseFix', 'Innovation', 'PlanarEkf']

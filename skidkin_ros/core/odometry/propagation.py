@@ -13,10 +13,10 @@ diagonals instead (never zeros).
 
 Example, for a filter author (one prediction over a batch of wheel samples)::
 
-    from skidkin_ros.core.models import get_model
-    from skidkin_ros.core.specs import Geometry
-    from skidkin_ros.core.noise import NoiseModel
-    from skidkin_ros.core.propagation import predict
+    from skidkin_ros.core.kinematics.models import get_model
+    from skidkin_ros.core.kinematics.specs import Geometry
+    from skidkin_ros.core.odometry.noise import NoiseModel
+    from skidkin_ros.core.odometry.propagation import predict
 
     model = get_model('edd_symmetric').bind({'alpha': 0.9, 'b_hat': 1.1}, Geometry(0.165, 0.555))
     noise = NoiseModel(2e-4, 1e-4, 5e-4, 2e-3)
@@ -30,9 +30,9 @@ from typing import Sequence
 
 import numpy as np
 
-from skidkin_ros.core.integrator import (body_increment, IntegratorLimits, SampleStatus,
-                                         step_scalar, StreamingIntegrator, TwistSource)
-from skidkin_ros.core.noise import NoiseModel
+from skidkin_ros.core.odometry.integrator import (body_increment, IntegratorLimits, SampleStatus,
+                                                  step_scalar, StreamingIntegrator, TwistSource)
+from skidkin_ros.core.odometry.noise import NoiseModel
 
 __all__ = [
     'INITIAL_VARIANCE',

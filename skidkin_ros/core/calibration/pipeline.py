@@ -4,7 +4,7 @@
 
 1. cut the training drives into segments of h_t (plus a heading horizon so spins in place still
    make segments), dropping stationary and invalid ones (counted);
-2. fit the requested models on them (skidkin_ros.core.fitting);
+2. fit the requested models on them (skidkin_ros.core.calibration.fitting);
 3. cut the evaluation drives (a deterministic hold-out of the training drives when none are given)
    into segments of h_e and score every model on the same segments (eps_t, eps_theta);
 4. calibrate each model's noise rates on its evaluation residuals, with a consistency figure;
@@ -26,14 +26,16 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from skidkin_ros import __version__
+from skidkin_ros.core.calibration.evaluation import evaluate_models, ModelEvaluation
+from skidkin_ros.core.calibration.fitting import fit_models, FitOptions, FitResult
+from skidkin_ros.core.calibration.holdout import resolve_holdout
+from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
+from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
+                                                   SegmentSet)
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.evaluation import evaluate_models, ModelEvaluation, resolve_holdout
-from skidkin_ros.core.fitting import fit_models, FitOptions, FitResult
-from skidkin_ros.core.models import get_model, MODEL_NAMES
-from skidkin_ros.core.noise import NOISE_SPECS
-from skidkin_ros.core.segments import cut_segments, HorizonOptions, SegmentOptions, SegmentSet
-from skidkin_ros.core.specs import Geometry
-from skidkin_ros.core.uncertainty import calibrate_noise, NoiseFit
+from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
 __all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best',

@@ -17,7 +17,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from skidkin_ros.core.specs import check_value, Geometry, INF, ParamSpec
+from skidkin_ros.core.kinematics.specs import check_value, Geometry, INF, ParamSpec
 from skidkin_ros.errors import ParameterError
 
 __all__ = [

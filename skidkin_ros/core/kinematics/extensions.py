@@ -23,7 +23,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from skidkin_ros.core.specs import check_value, ParamSpec
+from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 from skidkin_ros.errors import ParameterError
 
 __all__ = [

@@ -37,10 +37,10 @@ from typing import Sequence
 import numpy as np
 from scipy import optimize, stats
 
-from skidkin_ros.core.integrator import rollout_columns
-from skidkin_ros.core.models import get_model, KinematicModel, MODEL_NAMES
-from skidkin_ros.core.segments import segment_frame_error, SegmentSet
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
+from skidkin_ros.core.kinematics.models import get_model, KinematicModel, MODEL_NAMES
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.integrator import rollout_columns
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = [

@@ -1,9 +1,9 @@
 """Calibrate each model's NoiseModel from held-out segment residuals, and check its consistency.
 
-Segment covariance of the rate model (skidkin_ros.core.noise): every integration step j of a
-segment adds the body-frame covariance C_j = diag(q_x ds_j, q_y ds_j, q_ym ds_j + q_yr |dth_j|),
+Segment covariance of the rate model (skidkin_ros.core.odometry.noise): every integration step j of
+a segment adds the body-frame covariance C_j = diag(q_x ds_j, q_y ds_j, q_ym ds_j + q_yr |dth_j|),
 ds_j and dth_j being the length and rotation of the model's own predicted step. It is carried to
-the segment end exactly as the prediction step carries it (core.propagation.propagate_step,
+the segment end exactly as the prediction step carries it (odometry.propagation.propagate_step,
 started from a zero covariance): rotated into the segment's start frame by the heading theta_j
 before the step, and a heading error made at step j moves every later position through the
 lever arm from the pose after step j to the segment end. With A_j = Phi_j R(theta_j),
@@ -45,12 +45,12 @@ from typing import Mapping
 import numpy as np
 from scipy import optimize, stats
 
-from skidkin_ros.core.fitting import segment_errors
-from skidkin_ros.core.integrator import body_increment, rollout_segments
-from skidkin_ros.core.models import get_model
-from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.segments import SegmentSet
-from skidkin_ros.core.specs import Geometry
+from skidkin_ros.core.calibration.fitting import segment_errors
+from skidkin_ros.core.calibration.segments import SegmentSet
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.integrator import body_increment, rollout_segments
+from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.errors import DataError
 
 __all__ = ['SegmentMotion', 'Consistency', 'NoiseFit', 'segment_motion', 'segment_covariances',

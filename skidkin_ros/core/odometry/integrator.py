@@ -8,7 +8,8 @@ fitting) and the streaming integrator (used by the node and ``skidkin predict``)
 additions in the same order, so they agree to the last bit.
 
 Stateful sources (an augmented model with a first-order response, a time-in-drive regime; see
-:mod:`skidkin_ros.core.augmented`) carry a small state from sample to sample. Their protocol is
+:mod:`skidkin_ros.core.kinematics.augmented`) carry a small state from sample to sample. Their
+protocol is
 :class:`StatefulTwistSource`: ``begin`` takes a new sample (returns the twist now published),
 ``advance`` gives the mean twist over the held interval and the state at its end. The streaming
 integrator calls these two; the batch form :func:`stream_twists` runs the same recursion over whole

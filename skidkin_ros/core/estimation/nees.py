@@ -7,13 +7,13 @@ with 95 % probability when the covariance is right (Bar-Shalom, Li and Kirubaraj
 Above the band the covariance is too small (over-confident), below it too large.
 
 Odometry alone (:func:`segment_nees`): the held-out drives are cut with
-:func:`skidkin_ros.core.segments.cut_segments` into NON-OVERLAPPING windows of a fixed ground-truth
-path length (``SegmentOptions.horizon_m``, by default the calibration's evaluation horizon
-h_e = 2 m; the remainder at a drive's end is dropped, as are windows without motion). Each
-window is predicted independently with :func:`skidkin_ros.core.propagation.predict` from the TRUE
-start pose with a ZERO covariance, over the drive's own wheel samples; its end-pose error (start
-frame, yaw wrapped) is scored against the propagated covariance. Windows share no wheel sample
-and start from the truth, so their errors are independent as far as the odometry error is
+:func:`skidkin_ros.core.calibration.segments.cut_segments` into NON-OVERLAPPING windows of a fixed
+ground-truth path length (``SegmentOptions.horizon_m``, by default the calibration's evaluation
+horizon h_e = 2 m; the remainder at a drive's end is dropped, as are windows without motion). Each
+window is predicted independently with :func:`skidkin_ros.core.odometry.propagation.predict` from
+the TRUE start pose with a ZERO covariance, over the drive's own wheel samples; its end-pose error
+(start frame, yaw wrapped) is scored against the propagated covariance. Windows share no wheel
+sample and start from the truth, so their errors are independent as far as the odometry error is
 white; what is left of systematic model error correlates them, which the band does not allow
 for (a reason to read the band as a check, not a proof).
 
@@ -30,12 +30,12 @@ from typing import Sequence
 import numpy as np
 from scipy import stats
 
+from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
+from skidkin_ros.core.calibration.segments import cut_segments, segment_frame_error, SegmentOptions
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.integrator import TwistSource
-from skidkin_ros.core.noise import NoiseModel
-from skidkin_ros.core.propagation import predict
-from skidkin_ros.core.segments import cut_segments, segment_frame_error, SegmentOptions
-from skidkin_ros.core.uncertainty import MIN_VARIANCE
+from skidkin_ros.core.odometry.integrator import TwistSource
+from skidkin_ros.core.odometry.noise import NoiseModel
+from skidkin_ros.core.odometry.propagation import predict
 from skidkin_ros.errors import DataError
 
 __all__ = ['nees', 'chi2_band', 'NeesSummary', 'summarize_nees', 'SegmentNees', 'segment_nees',

@@ -12,8 +12,8 @@ from typing import Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import WheelSamples
-from skidkin_ros.core.integrator import (IntegratorLimits, SampleStatus, StreamingIntegrator,
-                                         TwistSource)
+from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus,
+                                                  StreamingIntegrator, TwistSource)
 
 __all__ = ['Prediction', 'predict_wheels']
 

@@ -18,7 +18,7 @@ from typing import Mapping
 
 import numpy as np
 
-from skidkin_ros.core.specs import check_value, INF, ParamSpec
+from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 
 __all__ = ['NOISE_SPECS', 'NoiseModel', 'FALLBACK_POSE_DIAGONAL', 'FALLBACK_TWIST_DIAGONAL']
 

@@ -15,12 +15,12 @@ from typing import Any, Mapping
 
 from skidkin_ros import __version__
 from skidkin_ros.atomic import atomic_write_text
-from skidkin_ros.core.augmented import AUGMENTED_NAME, AugmentedModel
-from skidkin_ros.core.extensions import EXTENSIONS, ordered
-from skidkin_ros.core.models import get_model, MODELS
-from skidkin_ros.core.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
-                                    NOISE_SPECS, NoiseModel)
-from skidkin_ros.core.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
+from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
+from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
+from skidkin_ros.core.kinematics.models import get_model, MODELS
+from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
+from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
+                                             NOISE_SPECS, NoiseModel)
 from skidkin_ros.errors import ConfigError, ParameterError
 import yaml
 

@@ -1,0 +1,1 @@
+"""Calibration: segments, fitting, evaluation, hold-out, noise fitting and the diagnosis."""

@@ -1,0 +1,171 @@
+"""Segment end poses predicted by any twist source, stateful or not, over whole drives.
+
+The diagnosis fits augmented models (a lag, a time offset) whose state evolves along a drive as
+it does in the node; a segment cannot then be integrated on its own from zero state.
+:class:`SegmentPredictor` runs the source over every drive once and composes each segment from
+the drive's cumulative poses. With a plain base model and no offset it computes exactly what
+:func:`skidkin_ros.core.calibration.fitting.predict_end_poses` does.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
+from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.odometry.integrator import (body_increment, compose, is_stateful,
+                                                  rollout_columns)
+
+__all__ = ['SegmentPredictor']
+
+
+def _pad_drives(drives: Sequence[Drive]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    width = max(max((len(d.wheels) for d in drives), default=1), 1)
+    count = len(drives)
+    t = np.zeros((count, width), dtype=np.int64)
+    wl = np.zeros((count, width))
+    wr = np.zeros((count, width))
+    sizes = np.zeros(count, dtype=int)
+    for i, drive in enumerate(drives):
+        n = len(drive.wheels)
+        sizes[i] = n
+        if n == 0:
+            continue
+        t[i, :n] = drive.wheels.t_ns
+        t[i, n:] = drive.wheels.t_ns[-1]
+        wl[i, :n] = drive.wheels.omega_l
+        wr[i, :n] = drive.wheels.omega_r
+        wl[i, n:] = drive.wheels.omega_l[-1]
+        wr[i, n:] = drive.wheels.omega_r[-1]
+    return t, wl, wr, sizes
+
+
+class SegmentPredictor:
+    """Predict segment end poses with any (stateful) source, over whole drives.
+
+    The source runs over every drive (its state evolves along the drive as in the node); each
+    segment then integrates the mean twists of the wheel samples held over its window
+    [t_a - offset, t_b - offset] from its ground-truth start pose. With a plain base model and no
+    offset this is exactly what :func:`skidkin_ros.core.calibration.fitting.predict_end_poses`
+    computes.
+    """
+
+    def __init__(self, drives: Sequence[Drive], segments: SegmentSet,
+                 max_dt_s: float = 0.5) -> None:
+        self.drives = list(drives)
+        self.segments = segments
+        self.t_ns, self.omega_l, self.omega_r, self.sizes = _pad_drives(self.drives)
+        dt = np.zeros(self.t_ns.shape)
+        dt[:, :-1] = np.diff(self.t_ns, axis=1) * 1e-9
+        self.restart = np.zeros(self.t_ns.shape, dtype=bool)
+        self.restart[:, 1:] = dt[:, :-1] > max_dt_s
+        dt[dt > max_dt_s] = 0.0
+        self.dt_s = dt
+        self.step_s = np.diff(self.t_ns, axis=1) * 1e-9  # between stamps, gaps included
+        self._plans: dict[int, dict[str, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self.segments)
+
+    def plan(self, offset_ns: int) -> dict[str, np.ndarray]:
+        """Return how each segment's window [t_a - offset, t_b - offset] meets the samples.
+
+        Flat sample indices (into the padded (D, L) arrays) and durations, one per segment:
+        ``first``/``first_s``: the sample held from the window start to the first stamp inside
+        it (to the window end when none is inside); ``a``/``b``: the first and last stamps inside
+        (equal when none is: no whole interval); ``last_s``: how long sample ``b`` is held from
+        its stamp to the window end (0 s when no stamp is inside).
+        """
+        cached = self._plans.get(offset_ns)
+        if cached is not None:
+            return cached
+        width = self.t_ns.shape[1]
+        seg = self.segments
+        count = len(seg)
+        plan = {key: np.zeros(count, dtype=np.int64) for key in ('first', 'a', 'b')}
+        plan.update(first_s=np.zeros(count), last_s=np.zeros(count))
+        for d in np.unique(seg.drive):
+            rows = np.nonzero(seg.drive == d)[0]
+            stamps = self.t_ns[d, :self.sizes[d]]
+            top = stamps.size - 1
+            s_a = seg.t_a_ns[rows].astype(np.int64) - offset_ns
+            s_b = seg.t_b_ns[rows].astype(np.int64) - offset_ns
+            lo = np.searchsorted(stamps, s_a, side='right')
+            hi = np.maximum(np.searchsorted(stamps, s_b, side='left'), lo)
+            inner = hi > lo
+            a = np.clip(lo, 0, top)
+            b = np.where(inner, hi - 1, a)
+            plan['first'][rows] = np.clip(lo - 1, 0, top) + d * width
+            plan['a'][rows] = a + d * width
+            plan['b'][rows] = b + d * width
+            plan['first_s'][rows] = np.where(inner, stamps[a] - s_a, s_b - s_a) * 1e-9
+            plan['last_s'][rows] = np.where(inner, s_b - stamps[b], 0) * 1e-9
+        if len(self._plans) > 64:
+            self._plans.clear()
+        self._plans[offset_ns] = plan
+        return plan
+
+    def cumulative_poses(self, mean: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the dead-reckoned pose at every stamp of every drive, flat (D * L,) each.
+
+        Each drive starts at the origin and integrates every sample interval with its mean
+        twist, for the time between the stamps (as a segment does, gaps included).
+        """
+        count, width = self.t_ns.shape
+        if width < 2:
+            zeros = np.zeros(count * width)
+            return zeros, zeros.copy(), zeros.copy()
+        rows = mean.reshape(count, width, 3)
+        x, y, yaw = rollout_columns(np.ascontiguousarray(rows[:, :-1, 0]),
+                                    np.ascontiguousarray(rows[:, :-1, 1]),
+                                    np.ascontiguousarray(rows[:, :-1, 2]), self.step_s,
+                                    np.zeros((count, 3)))
+        return x.ravel(), y.ravel(), yaw.ravel()
+
+    def mean_twists(self, source: Any) -> np.ndarray:
+        """Return the mean twist over every sample interval of every drive, flat (D * L, 3)."""
+        if is_stateful(source):
+            _, mean = source.intervals(self.t_ns, self.omega_l, self.omega_r, self.dt_s,
+                                       self.restart)
+        else:
+            mean = np.asarray(source.twist(self.omega_l, self.omega_r), dtype=float)
+        return mean.reshape(-1, 3)
+
+    def predict_ends(self, source: Any, keep: np.ndarray | None = None) -> np.ndarray:
+        """Return the predicted end pose (S, 3) of every segment (or of ``keep`` indices).
+
+        The end pose is the start pose composed with three moves: the partial interval up to
+        the first stamp inside the window, the dead-reckoned motion between the first and last
+        stamps inside it (from the drive's cumulative poses: one rollout per drive, shared by
+        every segment), and the partial interval to the window end. The same steps as
+        integrating each window on its own, in O(samples + segments).
+        """
+        plan = self.plan(int(getattr(source, 'output_offset_ns', 0)))
+        start = self.segments.start
+        if keep is not None:
+            plan = {key: value[keep] for key, value in plan.items()}
+            start = start[keep]
+        mean = self.mean_twists(source)
+        cx, cy, cyaw = self.cumulative_poses(mean)
+        a, b = plan['a'], plan['b']
+        dx, dy = cx[b] - cx[a], cy[b] - cy[a]
+        cos_a, sin_a = np.cos(cyaw[a]), np.sin(cyaw[a])
+        moves = (body_increment(*mean[plan['first']].T, plan['first_s']),
+                 (cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx, cyaw[b] - cyaw[a]),
+                 body_increment(*mean[b].T, plan['last_s']))
+        x, y, yaw = start[:, 0], start[:, 1], start[:, 2]
+        for move in moves:
+            x, y, yaw = compose(x, y, yaw, *move)
+        return np.stack([x, y, yaw], axis=-1)
+
+    def errors(self, source: Any, keep: np.ndarray | None = None) -> np.ndarray:
+        """Return the end-pose error of every segment in its start frame (true - predicted)."""
+        start, end = self.segments.start, self.segments.end
+        if keep is not None:
+            start, end = start[keep], end[keep]
+        with np.errstate(all='ignore'):
+            predicted = self.predict_ends(source, keep)
+        return segment_frame_error(start, end, predicted)

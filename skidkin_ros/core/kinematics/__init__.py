@@ -1,0 +1,1 @@
+"""Kinematics: parameter specs, the five skid-steer models and the extensions that augment them."""

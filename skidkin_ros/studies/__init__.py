@@ -1,0 +1,1 @@
+"""Studies: simulated experiments whose results the README reports (they return data)."""
