@@ -33,7 +33,8 @@ def _bag_bytes(path: Path) -> int:
 
 def write_recording(folder: Path, duration_s: float, azimuth_deg: float, seed: int) -> Path:
     """Simulate a drive with lidar and write it as a bag; return the bag path."""
-    from skidkin_ros.sim import LidarConfig, SimConfig, simulate, write_bag
+    from skidkin_ros.adapters.sim_writer import write_bag
+    from skidkin_ros.sim import LidarConfig, SimConfig, simulate
 
     config = SimConfig(duration_s=duration_s, seed=seed, internal_rate_hz=200.0,
                        lidar=LidarConfig(azimuth_resolution_deg=azimuth_deg))

@@ -130,21 +130,6 @@ def test_named_joints_and_pose_stamped(tmp_path):
             bag.read_wheels('/js')
 
 
-def test_float64_pair_merged_with_zero_order_hold(tmp_path):
-    with BagWriter(tmp_path / 'bag') as bag:
-        for k, t_ms in enumerate([0, 10, 20, 30]):
-            bag.write_float64('/left_wheel/speed', T0_NS + t_ms * MS, float(k))
-        for k, t_ms in enumerate([5, 15, 30]):
-            bag.write_float64('/right_wheel/speed', T0_NS + t_ms * MS, 10.0 + k)
-    with open_recording(tmp_path / 'bag') as bag:
-        wheels = bag.read_wheels()  # no JointState: the left/right Float64 pair is detected
-        assert any('no JointState topic' in n for n in bag.notes)
-    # Starts when both have spoken (5 ms); each side holds its last value.
-    np.testing.assert_array_equal((wheels.t_ns - T0_NS) // MS, [5, 10, 15, 20, 30])
-    np.testing.assert_array_equal(wheels.omega_l, [0, 1, 1, 2, 3])
-    np.testing.assert_array_equal(wheels.omega_r, [10, 10, 11, 11, 12])
-
-
 # -- C1 ------------------------------------------------------------------------------------------
 def test_c1_missing_path(tmp_path):
     with pytest.raises(RecordingError, match='nowhere.*does not exist'):

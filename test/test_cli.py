@@ -6,11 +6,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from skidkin_ros.adapters.sim_writer import write_truth_csv
 from skidkin_ros.cli import cmd_demo
 from skidkin_ros.cli.main import main
 from skidkin_ros.core.drive import WheelSamples
 from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file
-from skidkin_ros.sim.simulate import SimConfig, simulate, write_truth_csv
+from skidkin_ros.sim.simulate import SimConfig, simulate
 
 HUSKY = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
 

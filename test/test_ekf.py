@@ -8,7 +8,7 @@ from skidkin_ros.core.estimation.ekf import PlanarEkf, PoseFix
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.noise import NoiseModel
-from skidkin_ros.core.odometry.prediction import predict_wheels
+from skidkin_ros.core.odometry.odometer import predict_wheels
 from skidkin_ros.core.odometry.propagation import predict
 from skidkin_ros.errors import DataError, ParameterError
 

@@ -16,7 +16,7 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig, parameter_schema, parse_extensions
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, rollout, rollout_stream,
                                                   SampleStatus, StreamingIntegrator)
-from skidkin_ros.core.odometry.prediction import predict_wheels
+from skidkin_ros.core.odometry.odometer import predict_wheels
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.effects import EFFECT_NAMES
 

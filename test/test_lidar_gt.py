@@ -12,8 +12,9 @@ import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.lidar_gt import (bag_identity, check_point_times, IcpConfig,
                                            lidar_ground_truth, lidar_to_base, planar_pose)
+from skidkin_ros.adapters.sim_writer import write_bag
 from skidkin_ros.core.drive import PoseTrack
-from skidkin_ros.sim import LidarConfig, SimConfig, simulate, write_bag
+from skidkin_ros.sim import LidarConfig, SimConfig, simulate
 
 # Dense enough for point-to-point ICP on the synthetic scene (a VLP-16 fires every 0.2 deg).
 LIDAR = LidarConfig(azimuth_resolution_deg=0.5, mount_xyz_m=(0.3, 0.1, 0.5), mount_yaw_rad=0.4)

@@ -1,10 +1,9 @@
-"""The real node runs an augmented parameters file exactly like `predict_wheels` offline."""
+"""The real node runs an augmented parameters file exactly like the odometer offline."""
 
 import numpy as np
 import pytest
-from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
-from skidkin_ros.core.odometry.integrator import IntegratorLimits
-from skidkin_ros.core.odometry.prediction import predict_wheels
+from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
+from skidkin_ros.core.odometry.odometer import Odometer, predict_wheels
 from skidkin_ros.node.replay import replay_through_node
 from skidkin_ros.sim.simulate import SimConfig, simulate
 
@@ -25,11 +24,9 @@ def test_node_with_augmented_file_reproduces_predict(tmp_path):
     sim = simulate(SimConfig(duration_s=12.0, seed=5))
     wheels = sim.wheels
     path = write_params_file(tmp_path / 'augmented.yaml', AUGMENTED, {'source': 'test'})
-    config = OdometryConfig.from_flat(read_params_file(path))
-    source = config.bound_model()
-    assert source.output_offset_ns == 80_000_000
-    expected = predict_wheels(wheels, source, IntegratorLimits(config['max_dt'],
-                                                               config['max_wheel_speed']))
+    config = OdometryConfig.from_file(path)
+    assert config.bound_model().output_offset_ns == 80_000_000
+    expected = Odometer.from_config(config).predict(wheels)
     result = replay_through_node(wheels, params_file=path)
     assert len(result) == len(wheels)
     # published stamps carry the time offset: sample stamp + 80 ms

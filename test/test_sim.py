@@ -11,10 +11,11 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import get_typestore, Stores
 
+from skidkin_ros.adapters.sim_writer import write_bag
 from skidkin_ros.core.odometry.integrator import rollout
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim import (EFFECT_NAMES, EFFECTS, LidarConfig, make_effect, random_effect,
-                             SimConfig, simulate, write_bag)
+                             SimConfig, simulate)
 from skidkin_ros.sim.robot import COMMAND_KINDS
 from skidkin_ros.sim.scene import Box, Cylinder, default_scene, Room, Scene
 

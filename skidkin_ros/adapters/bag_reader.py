@@ -59,6 +59,10 @@ from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
 from skidkin_ros.adapters.pointcloud import interpret_point_times, read_xyz_and_times
 from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.core.odometry.config import node_default
+from skidkin_ros.core.odometry.wheels import (check_velocity_count, joint_indices,
+                                              MalformedMessageError, MissingJointError,
+                                              pair_wheel_streams, speeds_at)
 from skidkin_ros.core.rotation import quaternion_to_yaw
 from skidkin_ros.errors import DataError, RecordingError
 
@@ -92,7 +96,9 @@ TF_MESSAGE = 'tf2_msgs/msg/TFMessage'
 
 STORAGE_SUFFIXES = ('.db3', '.mcap')
 DEFAULT_MAX_CORRUPT = 10
-DEFAULT_MAX_WHEEL_SPEED_RAD_S = 100.0
+DEFAULT_MAX_WHEEL_SPEED_RAD_S = node_default('max_wheel_speed')
+DEFAULT_PAIR_TOLERANCE_S = node_default('pair_tolerance')
+NS_PER_S = 1_000_000_000
 # A damaged storage region is jumped over in doubling steps up to this much bag time.
 _MAX_JUMP_NS = 600 * 10**9
 # Header stamps may run on another clock than the bag (sim time), but their offset from the
@@ -468,20 +474,27 @@ class BagRecording:
     def messages(self, topic: str, start_ns: int | None = None, stop_ns: int | None = None
                  ) -> Iterator[tuple[int, Any]]:
         """Yield (receive ns, decoded message) of one topic, lazily, skipping corrupt ones."""
-        conns = [c for c in self._connections() if c.topic == topic]
-        if not conns:
-            raise RecordingError(f'topic {topic} is not in {self.path}. Topics present: '
-                                 f'{self._listing()}')
+        for _, t_ns, msg in self.messages_of([topic], start_ns, stop_ns):
+            yield t_ns, msg
+
+    def messages_of(self, topics: Sequence[str], start_ns: int | None = None,
+                    stop_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
+        """Yield (topic, receive ns, decoded message) of several topics in recording order."""
+        conns = [c for c in self._connections() if c.topic in topics]
+        for topic in topics:
+            if not any(c.topic == topic for c in conns):
+                raise RecordingError(f'topic {topic} is not in {self.path}. Topics present: '
+                                     f'{self._listing()}')
         for conn in conns:
-            self._require_type(topic, conn.msgtype)
+            self._require_type(conn.topic, conn.msgtype)
         skipped = 0
-        for conn, t_ns, raw in self._raw_stream(conns, topic, start_ns, stop_ns):
+        for conn, t_ns, raw in self._raw_stream(conns, ' + '.join(topics), start_ns, stop_ns):
             try:
                 msg = self.typestore.deserialize_cdr(raw, conn.msgtype)
             except _DECODE_ERRORS as err:
-                skipped = self._skip(topic, 'undecodable message', err, skipped)
+                skipped = self._skip(conn.topic, 'undecodable message', err, skipped)
                 continue
-            yield t_ns, msg
+            yield conn.topic, t_ns, msg
 
     def _drop(self, topic: str, reason: str, n: int = 1) -> None:
         if n:
@@ -498,20 +511,22 @@ class BagRecording:
                     left_joints: Sequence[str] | None = None,
                     right_joints: Sequence[str] | None = None,
                     left_topic: str | None = None, right_topic: str | None = None,
-                    max_wheel_speed_rad_s: float = DEFAULT_MAX_WHEEL_SPEED_RAD_S
-                    ) -> WheelSamples:
+                    max_wheel_speed_rad_s: float = DEFAULT_MAX_WHEEL_SPEED_RAD_S,
+                    pair_tolerance_s: float = DEFAULT_PAIR_TOLERANCE_S) -> WheelSamples:
         """Return wheel speeds (rad/s) from a JointState topic or two Float64 topics.
 
         JointState: stamps from header.stamp (a bag whose stamps are all zero uses receive
-        time, noted); a side's speed is the mean of its joints' velocities; joints default to
-        those whose names contain 'left' / 'right'. Float64 pairs: see :meth:`_read_float_pair`.
+        time, noted); a side's speed is the mean of its joints' velocities, as the node takes it
+        (:mod:`skidkin_ros.core.odometry.wheels`); joints default to those whose names contain
+        'left' / 'right'. Float64 pairs: see :meth:`_read_float_pair`.
         """
         if left_topic is not None or right_topic is not None:
-            return self._read_float_pair(left_topic, right_topic, max_wheel_speed_rad_s)
+            return self._read_float_pair(left_topic, right_topic, max_wheel_speed_rad_s,
+                                         pair_tolerance_s)
         if topic is None and JOINT_STATE not in self.topics().values():
             pair = self._detect_float_pair()
             if pair is not None:
-                return self._read_float_pair(*pair, max_wheel_speed_rad_s)
+                return self._read_float_pair(*pair, max_wheel_speed_rad_s, pair_tolerance_s)
         chosen = self.select(JOINT_STATE, topic, 'wheel speeds')
         return self._read_joint_states(chosen, left_joints, right_joints, max_wheel_speed_rad_s)
 
@@ -534,7 +549,7 @@ class BagRecording:
         receive: list[int] = []
         omega_l: list[float] = []
         omega_r: list[float] = []
-        index_cache: tuple[list[str], list[int], list[int]] | None = None
+        index_cache: tuple[list[str], tuple[int, ...], tuple[int, ...]] | None = None
         seen_names: set[str] = set()
         for t_ns, msg in self.messages(topic):
             names = list(msg.name)
@@ -547,17 +562,18 @@ class BagRecording:
                 left = left or auto_left
                 right = right or auto_right
             if index_cache is None or index_cache[0] != names:
-                lookup = {n: i for i, n in enumerate(names)}
-                if not all(j in lookup for j in left + right):
+                try:
+                    index_cache = (names, *joint_indices(names, left, right))
+                except MissingJointError:
                     self._drop(topic, 'without wheel joints')
                     continue
-                index_cache = (names, [lookup[j] for j in left], [lookup[j] for j in right])
-            velocity = np.asarray(msg.velocity, dtype=np.float64)
-            if velocity.size != len(names):
+            velocity = msg.velocity
+            try:
+                check_velocity_count(len(names), len(velocity))
+            except MalformedMessageError:
                 self._drop(topic, 'without velocities')
                 continue
-            wl = float(np.mean(velocity[index_cache[1]]))
-            wr = float(np.mean(velocity[index_cache[2]]))
+            wl, wr = speeds_at(velocity, index_cache[1], index_cache[2])
             if not (math.isfinite(wl) and math.isfinite(wr)):
                 self._drop(topic, 'non-finite speed')
                 continue
@@ -611,54 +627,70 @@ class BagRecording:
             return left[0], right[0]
         return None
 
-    def _read_float_series(self, topic: str, max_speed: float) -> tuple[np.ndarray, np.ndarray]:
-        times: list[int] = []
-        values: list[float] = []
-        for t_ns, msg in self.messages(topic):
-            value = float(msg.data)
-            if not math.isfinite(value):
-                self._drop(topic, 'non-finite speed')
-                continue
-            if abs(value) > max_speed:
-                self._drop(topic, f'speed beyond {max_speed:g} rad/s')
-                continue
-            times.append(t_ns)
-            values.append(value)
-        if not times:
-            raise RecordingError(f'wheel speeds: no valid message on {topic} '
-                                 f'({self._reasons(topic)})')
-        t = np.array(times, dtype=np.int64)
-        v = np.array(values)
-        # Receive times are non-decreasing in a bag; for equal stamps the last value wins.
-        last_of_stamp = np.append(np.diff(t) > 0, True)
-        self._note_drops(topic, int(last_of_stamp.sum()))
-        return t[last_of_stamp], v[last_of_stamp]
-
     def _read_float_pair(self, left_topic: str | None, right_topic: str | None,
-                         max_speed: float) -> WheelSamples:
-        """Merge two std_msgs/Float64 wheel topics onto one time base (bag receive time).
+                         max_speed: float, pair_tolerance_s: float) -> WheelSamples:
+        """Pair two std_msgs/Float64 wheel topics on bag receive time, as odom_node pairs them.
 
-        Every message of either side is an event; at each event time both sides hold their most
-        recent value (zero-order hold, the integrator's own assumption). Samples start when
-        both sides have spoken.
+        The messages of both topics are taken in recording order and paired by the node's own
+        rule (:class:`~skidkin_ros.core.odometry.wheels.WheelPairer`): a left and a right value
+        received within ``pair_tolerance_s`` form one sample stamped with the later receive
+        time; a value whose partner does not come in time is dropped. A pair with a non-finite
+        or implausible value is dropped, as the node's integrator rejects it; of pairs with the
+        same stamp the last is kept (the node holds its speeds).
         """
         if left_topic is None or right_topic is None:
             raise RecordingError('wheel speeds from Float64 topics need both a left and a right '
                                  f'topic. Topics present: {self._listing()}')
+        if left_topic == right_topic:
+            raise RecordingError(f'wheel speeds: the left and right Float64 topics are both '
+                                 f'{left_topic}; name one topic per side')
         self.select(FLOAT64, left_topic, 'left wheel speed')
         self.select(FLOAT64, right_topic, 'right wheel speed')
-        t_l, v_l = self._read_float_series(left_topic, max_speed)
-        t_r, v_r = self._read_float_series(right_topic, max_speed)
-        start = max(t_l[0], t_r[0])
-        t = np.union1d(t_l, t_r)
-        t = t[t >= start]
-        wl = v_l[np.searchsorted(t_l, t, side='right') - 1]
-        wr = v_r[np.searchsorted(t_r, t, side='right') - 1]
-        self.notes.append(f'wheel speeds: {left_topic} and {right_topic} merged on bag receive '
-                          f'time ({t.size} samples, zero-order hold)')
+        sides = {left_topic: 'left', right_topic: 'right'}
+        events = ((sides[topic], t_ns, float(msg.data))
+                  for topic, t_ns, msg in self.messages_of([left_topic, right_topic]))
+        pairs, unpaired = pair_wheel_streams(events, pair_tolerance_s * NS_PER_S)
+        t_ns: list[int] = []
+        omega_l: list[float] = []
+        omega_r: list[float] = []
+        for t, wl, wr in pairs:
+            if not self._plausible_pair(((left_topic, wl), (right_topic, wr)), max_speed):
+                continue
+            if t_ns and t <= t_ns[-1]:
+                if t < t_ns[-1]:  # storage files out of order: the node rejects it as older
+                    self._drop(left_topic, 'stamp out of order')
+                    continue
+                omega_l[-1], omega_r[-1] = wl, wr
+                continue
+            t_ns.append(t)
+            omega_l.append(wl)
+            omega_r.append(wr)
+        if not t_ns:
+            raise RecordingError(
+                f'wheel speeds: no valid left/right pair on {left_topic} and {right_topic} '
+                f'within pair_tolerance {pair_tolerance_s:g} s ({unpaired} unpaired; '
+                f'{self._reasons(left_topic)}; {self._reasons(right_topic)})')
+        for topic in (left_topic, right_topic):
+            self._note_drops(topic, len(t_ns))
+        self.notes.append(f'wheel speeds: {left_topic} and {right_topic} paired on bag receive '
+                          f'time within pair_tolerance {pair_tolerance_s:g} s, as odom_node '
+                          f'pairs them ({len(t_ns)} samples, {unpaired} value(s) without a '
+                          'partner dropped)')
         self.wheel_input = {'input': 'wheel_topics', 'left_topic': left_topic,
                             'right_topic': right_topic}
-        return WheelSamples(t, wl, wr)
+        return WheelSamples(np.array(t_ns, dtype=np.int64), omega_l, omega_r)
+
+    def _plausible_pair(self, values: Sequence[tuple[str, float]], max_speed: float) -> bool:
+        """Tell whether both speeds are finite and within max_speed; count the faulty side."""
+        good = True
+        for topic, value in values:
+            if not math.isfinite(value):
+                self._drop(topic, 'non-finite speed')
+                good = False
+            elif abs(value) > max_speed:
+                self._drop(topic, f'speed beyond {max_speed:g} rad/s')
+                good = False
+        return good
 
     # -- lidar -----------------------------------------------------------------------------------
     def iter_lidar(self, topic: str | None = None, time_field: str | None = None,

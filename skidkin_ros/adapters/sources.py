@@ -22,8 +22,9 @@ from skidkin_ros.adapters.table import read_table
 from skidkin_ros.core.drive import Drive, PoseTrack
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.config import node_default
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
-from skidkin_ros.core.odometry.prediction import predict_wheels
+from skidkin_ros.core.odometry.odometer import predict_wheels
 from skidkin_ros.errors import DataError, RecordingError
 
 __all__ = ['SourceOptions', 'LoadedSource', 'load_source', 'load_sources', 'is_table',
@@ -72,7 +73,8 @@ class SourceOptions:
     cache_dir: Path | None = None
     progress: bool = False
     icp: IcpConfig = field(default_factory=IcpConfig)
-    max_wheel_speed_rad_s: float = 100.0
+    max_wheel_speed_rad_s: float = node_default('max_wheel_speed')
+    pair_tolerance_s: float = node_default('pair_tolerance')
     min_overlap_s: float = 10.0
     geometry: Geometry | None = None
 
@@ -110,7 +112,8 @@ def _load_bag(path: Path, options: SourceOptions, need_truth: bool) -> LoadedSou
         wheels = rec.read_wheels(options.wheel_topic, left_joints=options.left_joints,
                                  right_joints=options.right_joints,
                                  left_topic=options.left_topic, right_topic=options.right_topic,
-                                 max_wheel_speed_rad_s=options.max_wheel_speed_rad_s)
+                                 max_wheel_speed_rad_s=options.max_wheel_speed_rad_s,
+                                 pair_tolerance_s=options.pair_tolerance_s)
         if len(wheels) < 2:
             raise DataError(f'{path}: fewer than 2 wheel samples; nothing to integrate')
         imu = None

@@ -4,58 +4,20 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any, Sequence
 
-from skidkin_ros.adapters.sources import load_sources, LoadedSource
+from skidkin_ros.adapters.sources import load_sources
 from skidkin_ros.atomic import check_writable
-from skidkin_ros.cli.common import (add_geometry_args, add_source_args, geometry_from_args,
-                                    print_notes, say, source_options)
-from skidkin_ros.cli.tables import error_table, parameter_lines
-from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
-                                                   CalibrationResult, horizon_study,
+from skidkin_ros.cli.common import (add_geometry_args, add_source_args, calibration_provenance,
+                                    check_report_dir, geometry_from_args, input_parameters,
+                                    print_calibration, print_notes, say, source_options)
+from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions, horizon_study,
                                                    result_to_parameters)
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.odometry.config import write_params_file
-from skidkin_ros.errors import FitError, OutputError
+from skidkin_ros.errors import FitError
 from skidkin_ros.report.page import write_report
 
-__all__ = ['add_parser', 'input_parameters', 'provenance', 'check_report_dir']
-
-
-def check_report_dir(path: Path | None, force: bool) -> None:
-    if path is not None and path.exists() and any(path.iterdir()) and not force:
-        raise OutputError(f'report folder {path} exists and is not empty; pass --force to '
-                          'overwrite its files')
-
-
-def input_parameters(sources: Sequence[LoadedSource]) -> dict[str, Any]:
-    """Node input parameters (input mode, joint names) as used when reading the recordings."""
-    for source in sources:
-        wheel = source.wheel_input
-        if wheel.get('input') == 'joint_state':
-            return {'input': 'joint_state', 'left_wheel_joints': wheel['left_wheel_joints'],
-                    'right_wheel_joints': wheel['right_wheel_joints']}
-        if wheel.get('input') == 'wheel_topics':
-            return {'input': 'wheel_topics'}
-    return {}
-
-
-def provenance(result: CalibrationResult, train: Sequence[LoadedSource],
-               evaluate: Sequence[LoadedSource], command: str) -> dict[str, Any]:
-    errors = {}
-    for name, ev in result.evaluation.items():
-        errors[name] = {'eps_t_median_m_per_m': ev.stats_t.median,
-                        'eps_t_p90_m_per_m': ev.stats_t.p90,
-                        'eps_theta_median_deg_per_m': ev.stats_theta.median,
-                        'eps_theta_p90_deg_per_m': ev.stats_theta.p90,
-                        'valid': bool(result.fits[name].valid)}
-    prov = dict(result.provenance)
-    prov.update({'command': command, 'train_sources': [str(s.path) for s in train],
-                 'evaluate_sources': [str(s.path) for s in evaluate] or result.holdout,
-                 'ground_truth': sorted({s.truth_info.get('ground_truth', 'table')
-                                         for s in list(train) + list(evaluate)}),
-                 'errors': errors})
-    return prov
+__all__ = ['add_parser']
 
 
 def _options(args: argparse.Namespace) -> CalibrationOptions:
@@ -64,24 +26,6 @@ def _options(args: argparse.Namespace) -> CalibrationOptions:
         n_starts=args.starts, seed=args.seed, models=tuple(args.models),
         sigma_diag=tuple(args.sigma), holdout_every=2 if args.split_by else args.holdout_every,
         holdout_key=args.split_by)
-
-
-def print_result(result: CalibrationResult) -> None:
-    say(f'\nsegments: {len(result.train_segments)} training (h_t = {result.options.h_t:g} m), '
-        f'{len(result.eval_segments)} evaluation (h_e = {result.options.h_e:g} m, '
-        f'{result.holdout})')
-    say(error_table(result.evaluation, result.fits, result.noise, result.best))
-    say('\nfitted parameters (± standard error):')
-    for line in parameter_lines(result.fits):
-        say(line)
-    sym = result.fits.get('edd_symmetric')
-    if sym is not None and sym.values:
-        ratio = sym.values['b_hat'] / result.geometry.track_width
-        say(f'  edd_symmetric b_hat / track_width = {ratio:.3f}: the '
-            'wheel_separation_multiplier of diff_drive_controller that matches this data '
-            f'(its alpha = {sym.values["alpha"]:.3f} would be wheel_radius_multiplier)')
-    for warning in result.warnings:
-        say(f'  warning: {warning}')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -98,10 +42,10 @@ def run(args: argparse.Namespace) -> int:
     print_notes(train + evaluate)
     result = calibrate([d for s in train for d in s.drives],
                        [d for s in evaluate for d in s.drives] or None, geometry, options)
-    print_result(result)
+    print_calibration(result)
     base = {'robot': args.robot, **input_parameters(train)}
     flat = result_to_parameters(result, base, allow_invalid=False)
-    prov = provenance(result, train, evaluate, 'skidkin calibrate')
+    prov = calibration_provenance(result, train, evaluate, 'skidkin calibrate')
     written = write_params_file(args.out, flat, prov, force=args.force)
     say(f'\nbest model: {result.best}  (parameters file: {written}; run the node with\n'
         f'  ros2 run skidkin_ros odom_node --ros-args --params-file {written})')

@@ -18,18 +18,18 @@ import time
 
 import numpy as np
 
+from skidkin_ros.adapters.sim_writer import write_bag
 from skidkin_ros.adapters.sources import load_source, SourceOptions
-from skidkin_ros.cli.cmd_calibrate import print_result, provenance
-from skidkin_ros.cli.cmd_predict import limits_of, load_config
-from skidkin_ros.cli.common import default_cache_dir, say
+from skidkin_ros.cli.common import (calibration_provenance, default_cache_dir,
+                                    input_parameters, print_calibration, say)
 from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_pose_errors
 from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
                                                    result_to_parameters)
-from skidkin_ros.core.odometry.config import write_params_file
-from skidkin_ros.core.odometry.prediction import predict_wheels
+from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
+from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.errors import OutputError
 from skidkin_ros.report.page import write_report
-from skidkin_ros.sim.simulate import SimConfig, simulate, write_bag
+from skidkin_ros.sim.simulate import SimConfig, simulate
 
 __all__ = ['add_parser', 'pipeline', 'DEMO_TRAIN', 'DEMO_EVAL']
 
@@ -81,12 +81,12 @@ def pipeline(args: argparse.Namespace) -> dict:
             f'{src.truth_info.get("frames")}')
     options = CalibrationOptions(seed=0)
     result = calibrate(train_src.drives, eval_src.drives, geometry, options)
-    print_result(result)
+    print_calibration(result)
     params = out / 'params.yaml'
-    flat = result_to_parameters(result, {'robot': 'demo_sim_husky', 'input': 'joint_state',
-                                         **{k: v for k, v in train_src.wheel_input.items()
-                                            if k.endswith('wheel_joints')}})
-    write_params_file(params, flat, provenance(result, [train_src], [eval_src], 'skidkin demo'))
+    flat = result_to_parameters(result, {'robot': 'demo_sim_husky',
+                                         **input_parameters([train_src])})
+    prov = calibration_provenance(result, [train_src], [eval_src], 'skidkin demo')
+    write_params_file(params, flat, prov)
     page = write_report(result, out / 'report', force=True)
     say(f'      parameters file: {params}\n      report: {page}')
 
@@ -112,8 +112,8 @@ def pipeline(args: argparse.Namespace) -> dict:
 
     wheels = eval_src.drives[0].wheels
     replay = replay_through_node(wheels, params_file=params)
-    config = load_config(params)
-    offline = predict_wheels(wheels, config.bound_model(), limits_of(config))
+    config = OdometryConfig.from_file(params)
+    offline = Odometer.from_config(config).predict(wheels)
     index = {int(t): i for i, t in enumerate(offline.t_ns)}
     rows = np.array([index[int(t)] for t in replay.t_ns])
     diff = np.abs(replay.poses - offline.poses[rows]).max()
@@ -122,7 +122,7 @@ def pipeline(args: argparse.Namespace) -> dict:
     truth = eval_sim.truth
     say(_stats_line(f'node ({config.model}) vs truth', *relative_pose_errors(
         replay.t_ns, replay.poses, truth)))
-    ideal = predict_wheels(wheels, config.bound_model('ideal_dd'), limits_of(config))
+    ideal = Odometer.from_config(config, model='ideal_dd').predict(wheels)
     say(_stats_line('ideal diff-drive vs truth', *relative_pose_errors(
         ideal.t_ns, ideal.poses, truth)))
     say(f'done in {time.monotonic() - started:.0f} s; outputs in {out}/')

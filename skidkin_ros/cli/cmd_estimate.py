@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from skidkin_ros.cli.cmd_calibrate import check_report_dir
-from skidkin_ros.cli.common import say
+from skidkin_ros.cli.common import check_report_dir, say
 from skidkin_ros.studies.estimation import run_estimation_study
 
 __all__ = ['add_parser']

@@ -8,12 +8,12 @@ from types import SimpleNamespace
 
 from skidkin_ros.adapters.sources import load_sources
 from skidkin_ros.atomic import atomic_write_text
-from skidkin_ros.cli.cmd_calibrate import check_report_dir
-from skidkin_ros.cli.cmd_predict import load_config
-from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
+from skidkin_ros.cli.common import (add_source_args, check_report_dir, print_notes, say,
+                                    source_options)
 from skidkin_ros.cli.tables import error_table
 from skidkin_ros.core.calibration.evaluation import evaluate_models
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.errors import DataError
 from skidkin_ros.report.figures import error_distributions
 
@@ -22,7 +22,7 @@ __all__ = ['add_parser']
 
 def run(args: argparse.Namespace) -> int:
     check_report_dir(args.report, args.force)
-    config = load_config(args.params)
+    config = OdometryConfig.from_file(args.params)
     sources = load_sources(args.sources, source_options(args, config.geometry))
     print_notes(sources)
     drives = [d for s in sources for d in s.drives]

@@ -4,43 +4,36 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
 from pathlib import Path
 
-from skidkin_ros.adapters.sources import is_table, load_source
+from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
-from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file
-from skidkin_ros.core.odometry.integrator import IntegratorLimits
-from skidkin_ros.core.odometry.prediction import predict_wheels
+from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.odometer import Odometer
 
-__all__ = ['add_parser', 'load_config', 'limits_of']
-
-
-def load_config(path: Path, model: str | None = None) -> OdometryConfig:
-    flat = read_params_file(path)
-    if model is not None:
-        flat['model'] = model
-    return OdometryConfig.from_flat(flat)
+__all__ = ['add_parser']
 
 
-def limits_of(config: OdometryConfig) -> IntegratorLimits:
-    """Return the node's integrator limits, so offline prediction matches it sample for sample."""
-    return IntegratorLimits(max_dt_s=config['max_dt'],
-                            max_wheel_speed_rad_s=config['max_wheel_speed'])
+def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
+    """Return how to read the recording: with the node's speed limit and wheel pairing."""
+    return dataclasses.replace(source_options(args),
+                               max_wheel_speed_rad_s=config['max_wheel_speed'],
+                               pair_tolerance_s=config['pair_tolerance'])
 
 
 def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
-    loaded = load_source(args.source, source_options(args), need_truth=True)
+    loaded = load_source(args.source, _reading(args, config), need_truth=True)
     print_notes([loaded])
     with args.source.open(newline='', encoding='utf-8') as handle:
         rows = list(csv.reader(handle))
     header, body = rows[0], rows[1:]
     extra = [['', '', ''] for _ in body]
-    bound = config.bound_model()
+    odometer = Odometer.from_config(config)
     for drive in loaded.drives:
-        start = drive.truth.poses[0]
-        pred = predict_wheels(drive.wheels, bound, limits_of(config), start=start)
+        pred = odometer.predict(drive.wheels, start=drive.truth.poses[0])
         for row, pose in zip(drive.meta['row_index'], pred.poses):
             extra[row] = [f'{pose[0]:.6f}', f'{pose[1]:.6f}', f'{pose[2]:.6f}']
     out = io.StringIO()
@@ -52,10 +45,10 @@ def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[st
 
 
 def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
-    loaded = load_source(args.source, source_options(args), need_truth=False)
+    loaded = load_source(args.source, _reading(args, config), need_truth=False)
     print_notes([loaded])
     wheels = loaded.drives[0].wheels
-    pred = predict_wheels(wheels, config.bound_model(), limits_of(config))
+    pred = Odometer.from_config(config).predict(wheels)
     out = io.StringIO()
     out.write('t,t_ns,x,y,yaw,vx,vy,wz,status\n')
     t0 = int(wheels.t_ns[0])
@@ -68,7 +61,7 @@ def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str,
 
 def run(args: argparse.Namespace) -> int:
     check_writable(args.out, args.force)
-    config = load_config(args.params, args.model)
+    config = OdometryConfig.from_file(args.params, args.model)
     text, rows = (_predict_table if is_table(args.source) else _predict_bag)(args, config)
     atomic_write_text(args.out, text, force=args.force)
     say(f'{config.model}: predicted {rows} samples -> {args.out}')

@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from skidkin_ros.adapters.sim_writer import write_bag
 from skidkin_ros.cli.common import say
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.effects import EFFECTS, make_effect
-from skidkin_ros.sim.simulate import SimConfig, simulate, write_bag
+from skidkin_ros.sim.simulate import SimConfig, simulate
 
 __all__ = ['add_parser']
 

@@ -1,4 +1,8 @@
-"""Arguments and output helpers shared by the ``skidkin`` subcommands."""
+"""Arguments and output helpers shared by the ``skidkin`` subcommands.
+
+The one home of what more than one command needs: the command modules (``cmd_*``) import from
+here, never from each other (``test/test_layering.py``).
+"""
 
 from __future__ import annotations
 
@@ -6,14 +10,19 @@ import argparse
 import os
 from pathlib import Path
 import sys
-from typing import Iterable
+from typing import Any, Iterable, Sequence
 
 from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, LoadedSource, SourceOptions
+from skidkin_ros.cli.tables import error_table, parameter_lines
+from skidkin_ros.core.calibration.pipeline import CalibrationResult
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.errors import OutputError
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
-           'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'RoundBars']
+           'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'RoundBars',
+           'check_report_dir', 'input_parameters', 'calibration_provenance',
+           'print_calibration']
 
 
 def say(*parts: object) -> None:
@@ -131,3 +140,60 @@ def source_options(args: argparse.Namespace, geometry: Geometry | None = None) -
         extrinsic=extrinsic_from_xyz_rpy(extrinsic) if extrinsic else None,
         cache_dir=cache, progress=not get('no_progress') and sys.stderr.isatty(), icp=icp,
         geometry=geometry)
+
+
+def check_report_dir(path: Path | None, force: bool) -> None:
+    """Refuse a report folder that holds files unless ``force`` (before any work is done)."""
+    if path is not None and path.exists() and any(path.iterdir()) and not force:
+        raise OutputError(f'report folder {path} exists and is not empty; pass --force to '
+                          'overwrite its files')
+
+
+def input_parameters(sources: Sequence[LoadedSource]) -> dict[str, Any]:
+    """Node input parameters (input mode, joint names) as used when reading the recordings."""
+    for source in sources:
+        wheel = source.wheel_input
+        if wheel.get('input') == 'joint_state':
+            return {'input': 'joint_state', 'left_wheel_joints': wheel['left_wheel_joints'],
+                    'right_wheel_joints': wheel['right_wheel_joints']}
+        if wheel.get('input') == 'wheel_topics':
+            return {'input': 'wheel_topics'}
+    return {}
+
+
+def calibration_provenance(result: CalibrationResult, train: Sequence[LoadedSource],
+                           evaluate: Sequence[LoadedSource], command: str) -> dict[str, Any]:
+    """Return the provenance a calibration's parameters file records (sources, errors)."""
+    errors = {}
+    for name, ev in result.evaluation.items():
+        errors[name] = {'eps_t_median_m_per_m': ev.stats_t.median,
+                        'eps_t_p90_m_per_m': ev.stats_t.p90,
+                        'eps_theta_median_deg_per_m': ev.stats_theta.median,
+                        'eps_theta_p90_deg_per_m': ev.stats_theta.p90,
+                        'valid': bool(result.fits[name].valid)}
+    prov = dict(result.provenance)
+    prov.update({'command': command, 'train_sources': [str(s.path) for s in train],
+                 'evaluate_sources': [str(s.path) for s in evaluate] or result.holdout,
+                 'ground_truth': sorted({s.truth_info.get('ground_truth', 'table')
+                                         for s in list(train) + list(evaluate)}),
+                 'errors': errors})
+    return prov
+
+
+def print_calibration(result: CalibrationResult) -> None:
+    """Print a calibration: segments, the error table, the fitted parameters, the warnings."""
+    say(f'\nsegments: {len(result.train_segments)} training (h_t = {result.options.h_t:g} m), '
+        f'{len(result.eval_segments)} evaluation (h_e = {result.options.h_e:g} m, '
+        f'{result.holdout})')
+    say(error_table(result.evaluation, result.fits, result.noise, result.best))
+    say('\nfitted parameters (± standard error):')
+    for line in parameter_lines(result.fits):
+        say(line)
+    sym = result.fits.get('edd_symmetric')
+    if sym is not None and sym.values:
+        ratio = sym.values['b_hat'] / result.geometry.track_width
+        say(f'  edd_symmetric b_hat / track_width = {ratio:.3f}: the '
+            'wheel_separation_multiplier of diff_drive_controller that matches this data '
+            f'(its alpha = {sym.values["alpha"]:.3f} would be wheel_radius_multiplier)')
+    for warning in result.warnings:
+        say(f'  warning: {warning}')

@@ -1,13 +1,12 @@
 """Conversions between ROS messages and the plain numbers the core works with.
 
 Kept free of node state so each conversion can be tested on its own. Times are integer
-nanoseconds; a malformed message raises :class:`MalformedMessageError`, a JointState without one
-of the configured wheel joints raises :class:`MissingJointError` (fault row N20).
+nanoseconds. How wheel speeds are read from a JointState (joint lookup, side speed) is not here
+but in :mod:`skidkin_ros.core.odometry.wheels`, shared with the bag reader.
 """
 
 from __future__ import annotations
 
-import array
 import math
 from typing import Any, Sequence
 
@@ -16,28 +15,13 @@ import numpy as np
 from skidkin_ros.core.rotation import quaternion_to_yaw
 
 __all__ = [
-    'MalformedMessageError',
-    'MissingJointError',
     'stamp_to_ns',
     'ns_to_stamp',
-    'side_speed',
-    'check_velocity_count',
-    'joint_indices',
-    'speeds_at',
     'planar_pose_from_msg',
     'planar_covariance_from_msg',
-    'plain_value',
 ]
 
 NS_PER_S = 1_000_000_000
-
-
-class MalformedMessageError(ValueError):
-    """A message whose fields contradict each other (e.g. fewer velocities than names)."""
-
-
-class MissingJointError(ValueError):
-    """A JointState that lacks one of the configured wheel joints."""
 
 
 def stamp_to_ns(stamp: Any) -> int:
@@ -49,49 +33,6 @@ def ns_to_stamp(t_ns: int) -> Time:
     """Return integer nanoseconds as a builtin_interfaces/Time (t_ns >= 0)."""
     sec, nanosec = divmod(int(t_ns), NS_PER_S)
     return Time(sec=sec, nanosec=nanosec)
-
-
-def side_speed(values: Sequence[float]) -> float:
-    """Return the mean of one side's wheel speeds (rad/s).
-
-    Identical values return that value unchanged, so a single-wheel reading survives the mean
-    bit for bit (the node then matches an offline prediction exactly).
-    """
-    first = float(values[0])
-    if all(float(v) == first for v in values):
-        return first
-    return math.fsum(float(v) for v in values) / len(values)
-
-
-def joint_indices(names: Sequence[str], left_joints: Sequence[str],
-                  right_joints: Sequence[str]) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """Return where the left and right wheel joints are in a JointState's ``name`` list.
-
-    Raises MissingJointError when a configured joint is absent. Drivers send the same name list
-    every time, so the node looks the indices up once per distinct list.
-    """
-    index = {name: i for i, name in enumerate(names)}
-    missing = [joint for joint in (*left_joints, *right_joints) if joint not in index]
-    if missing:
-        raise MissingJointError(
-            f'JointState lacks wheel joint(s) {missing} (it has {list(names)}); check '
-            'left_wheel_joints / right_wheel_joints')
-    return (tuple(index[joint] for joint in left_joints),
-            tuple(index[joint] for joint in right_joints))
-
-
-def check_velocity_count(n_names: int, n_velocities: int) -> None:
-    """Raise MalformedMessageError when a JointState has fewer velocities than names."""
-    if n_velocities < n_names:
-        raise MalformedMessageError(
-            f'JointState has {n_names} names but only {n_velocities} velocities; expected '
-            'one velocity (rad/s) per joint name')
-
-
-def speeds_at(velocity: Sequence[float], left: Sequence[int],
-              right: Sequence[int]) -> tuple[float, float]:
-    """Return (omega_left, omega_right) in rad/s: each the mean of its joints' velocities."""
-    return side_speed([velocity[i] for i in left]), side_speed([velocity[i] for i in right])
 
 
 def planar_pose_from_msg(pose: Any) -> tuple[float, float, float]:
@@ -115,10 +56,3 @@ def planar_covariance_from_msg(covariance: Sequence[float]) -> np.ndarray | None
     if not np.all(np.isfinite(block)) or np.any(np.diag(block) < 0.0):
         return None
     return 0.5 * (block + block.T)
-
-
-def plain_value(value: Any) -> Any:
-    """Return a parameter value with arrays as lists (rclpy hands out array.array)."""
-    if isinstance(value, (array.array, tuple, np.ndarray)):
-        return list(value)
-    return value

@@ -1,5 +1,11 @@
 """The live odometry node: wheel speeds in, calibrated nav_msgs/Odometry out.
 
+The node is the ROS wiring around :class:`~skidkin_ros.core.odometry.odometer.Odometer`, which
+holds every rule applied to a sample (stamping, wheel pairing, integration, covariance, what is
+published) and which ``skidkin predict`` runs offline. Here: subscriptions, publishers, services,
+timers, the clock and logging; parameters are declared in :mod:`skidkin_ros.node.parameters`,
+the /diagnostics status is built in :mod:`skidkin_ros.node.diagnostics`.
+
 Inputs (parameter ``input``, read-only after start-up):
 
 * ``joint_state`` (default): sensor_msgs/JointState on ``joint_states``, integrated on
@@ -30,21 +36,19 @@ from __future__ import annotations
 
 import collections
 import functools
-import math
 import sys
 import threading
 import time
 from typing import Any, Callable, Sequence
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from nav_msgs.msg import Odometry
 import numpy as np
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 import rclpy
 from rclpy.clock import Clock, ClockType, JumpThreshold, TimeJump
 from rclpy.duration import Duration
-from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 import rclpy.logging
 from rclpy.node import Node
@@ -52,20 +56,20 @@ from rclpy.qos import (qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
-from skidkin_ros.core.kinematics.specs import Geometry, GEOMETRY_SPECS
-from skidkin_ros.core.odometry.config import OdometryConfig, parameter_schema, SchemaEntry
-from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, StepResult,
-                                                  StreamingIntegrator)
-from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
+from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.odometer import Estimate, Odometer
+from skidkin_ros.core.odometry.wheels import (check_velocity_count, joint_indices,
+                                              MissingJointError, speeds_at)
 from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.errors import ConfigError
-from skidkin_ros.node.conversions import (check_velocity_count, joint_indices, MissingJointError,
-                                          ns_to_stamp, plain_value, planar_covariance_from_msg,
-                                          planar_pose_from_msg, speeds_at, stamp_to_ns)
+from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_msg,
+                                          planar_pose_from_msg, stamp_to_ns)
+from skidkin_ros.node.diagnostics import StatusReport
+from skidkin_ros.node.parameters import (check_params_files, current_flat, declare_schema,
+                                         parameter_descriptor, plain_value)
 from skidkin_ros.node.wire import JointStateReader, OdometryWriter, WireFormatError
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
-import yaml
 
 __all__ = ['OdomNode', 'main', 'check_params_files', 'parameter_descriptor', 'NODE_NAME']
 
@@ -76,41 +80,6 @@ WATCHDOG_PERIOD_S = 0.1
 WARN_PERIOD_NS = NS_PER_S
 OUTPUT_DEPTH = 10
 EXIT_CONFIG = 2
-
-# Counter names reported on /diagnostics; which of them make the status WARN or ERROR.
-WARN_CAUSES = ('non_finite', 'implausible', 'older', 'gap', 'zero_stamp', 'future_stamp',
-               'missing_joint', 'unpaired', 'waiting_for_clock', 'set_pose_rejected')
-ERROR_CAUSES = ('non_finite_state', 'non_finite_output', 'callback_error')
-# Parameters that cannot change while running (the subscriptions depend on them).
-READ_ONLY = ('input',)
-
-
-def parameter_descriptor(entry: SchemaEntry) -> ParameterDescriptor:
-    """Return the ROS parameter descriptor of one schema entry.
-
-    Floating-point parameters use dynamic typing so that ``1`` in a YAML file (an integer to
-    rclpy) is accepted and converted; the node validates every value itself through
-    :meth:`OdometryConfig.from_flat`. A FloatingPointRange is attached only when both bounds are
-    finite (rclpy cannot express an open or infinite range).
-    """
-    descriptor = ParameterDescriptor(name=entry.name, description=entry.description,
-                                     read_only=entry.name in READ_ONLY)
-    if entry.kind in ('double', 'double_array'):
-        descriptor.dynamic_typing = True
-        descriptor.additional_constraints = 'integers are accepted and converted to floats'
-    spec = entry.spec
-    if (entry.kind == 'double' and spec is not None and math.isfinite(spec.lower)
-            and math.isfinite(spec.upper)):
-        descriptor.floating_point_range = [
-            FloatingPointRange(from_value=float(spec.lower), to_value=float(spec.upper),
-                               step=0.0)]
-        if spec.lower_open or spec.upper_open:
-            descriptor.additional_constraints += f'; allowed range {spec.range_text()}'
-    if entry.choices:
-        descriptor.additional_constraints = 'one of: ' + ', '.join(entry.choices)
-    if entry.kind == 'double_array':
-        descriptor.additional_constraints += f'; exactly {entry.length} values > 0'
-    return descriptor
 
 
 def _guarded(method: Callable) -> Callable:
@@ -137,28 +106,24 @@ class OdomNode(Node):
         self._suppressed: collections.Counter[str] = collections.Counter()
         self._clock_waiting_logged = False
         try:
-            self._schema = self._declare_parameters()
-            self._config = OdometryConfig.from_flat(self._current_flat())
+            self._schema = declare_schema(self)
+            self._config = OdometryConfig.from_flat(current_flat(self, self._schema))
         except ConfigError:
             self.destroy_node()
             raise
         config = self._config
-        self._integrator = StreamingIntegrator(config.bound_model(), self._limits(config))
-        self._covariance = self._new_propagator(config)
-        self._period_s = 0.0
-        self._last_published_t_ns: int | None = None
+        self._odometer = Odometer.from_config(config, counters=self.counters, warn=self._warn,
+                                              fresh=self._mark_fresh)
         self._last_accepted_mono_ns: int | None = None
         self._stale = True
         self._stale_reported = False
-        self._pending: dict[str, tuple[int, float] | None] = {'left': None, 'right': None}
         # The wheel joints' places in the last JointState name list (drivers repeat the list),
         # keyed by that list (its serialized bytes when the message came serialized).
         self._joint_key: Any = None
         self._joint_reader = JointStateReader()
         self._joint_index: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())
         self._side_seen_mono_ns: dict[str, int | None] = {'left': None, 'right': None}
-        self._report_counters: collections.Counter[str] = collections.Counter()
-        self._report_mono_ns = time.monotonic_ns()
+        self._status_report = StatusReport()
 
         output_qos = QoSProfile(depth=OUTPUT_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         overridable = QoSOverridingOptions.with_default_policies()
@@ -202,49 +167,12 @@ class OdomNode(Node):
             f'covariance {"calibrated" if config.active_noise else "fallback diagonals"}')
 
     # ------------------------------------------------------------------ parameters
-    def _declare_parameters(self) -> dict[str, SchemaEntry]:
-        """Declare the whole schema (geometry first: model defaults follow it)."""
-        self._check_overrides()
-        geometry_entries = {entry.name: entry for entry in parameter_schema()
-                            if entry.name in {spec.name for spec in GEOMETRY_SPECS}}
-        for entry in geometry_entries.values():
-            self._declare(entry)
-        geometry = Geometry(**{name: float(self.get_parameter(name).value)
-                               for name in geometry_entries})
-        schema = {entry.name: entry for entry in parameter_schema(geometry)}
-        for name, entry in schema.items():
-            if name not in geometry_entries:
-                self._declare(entry)
-        return schema
-
-    def _declare(self, entry: SchemaEntry) -> None:
-        try:
-            self.declare_parameter(entry.name, entry.default, parameter_descriptor(entry))
-        except ParameterException as err:
-            raise ConfigError(f'parameter {entry.name!r} was refused by ROS: {err}; '
-                              f'{entry.description}') from err
-
-    def _check_overrides(self) -> None:
-        """Validate the values given on the command line / in files before declaring them.
-
-        This gives one clear message naming the parameter and its range (instead of rclpy's
-        type or range exception) and refuses names the node does not know (typos).
-        """
-        builtin = set(self._parameters)  # declared by rclpy itself (use_sim_time, ...)
-        overrides = {name: plain_value(param.value)
-                     for name, param in self._parameter_overrides.items()
-                     if name not in builtin}
-        OdometryConfig.from_flat(overrides)
-
-    def _current_flat(self) -> dict[str, Any]:
-        return {name: plain_value(self.get_parameter(name).value) for name in self._schema}
-
     def _on_set_parameters(self, parameters: Sequence[rclpy.parameter.Parameter]
                            ) -> SetParametersResult:
         changes = {p.name: plain_value(p.value) for p in parameters if p.name in self._schema}
         if not changes:
             return SetParametersResult(successful=True)
-        flat = self._current_flat()
+        flat = current_flat(self, self._schema)
         flat.update(changes)
         try:
             config = OdometryConfig.from_flat(flat)
@@ -256,23 +184,9 @@ class OdomNode(Node):
         self.get_logger().info(f'parameters changed: {sorted(changes)}; model {config.model}')
         return SetParametersResult(successful=True)
 
-    @staticmethod
-    def _limits(config: OdometryConfig) -> IntegratorLimits:
-        return IntegratorLimits(max_dt_s=config['max_dt'],
-                                max_wheel_speed_rad_s=config['max_wheel_speed'])
-
-    @staticmethod
-    def _new_propagator(config: OdometryConfig) -> PoseCovariancePropagator:
-        return PoseCovariancePropagator(config.active_noise, config['pose_covariance_diagonal'],
-                                        config['twist_covariance_diagonal'])
-
     def _apply_config(self, config: OdometryConfig) -> None:
         """Switch to a validated configuration; the pose and its covariance are kept."""
-        self._integrator.set_source(config.bound_model())
-        self._integrator.limits = self._limits(config)
-        covariance = self._new_propagator(config)
-        covariance.cov = self._covariance.cov.copy()
-        self._covariance = covariance
+        self._odometer.configure(config)
         self._joint_key = None  # the wheel joints may have changed
         if config['publish_tf'] and self._tf_broadcaster is None:
             self._tf_broadcaster = self._make_tf_broadcaster(True)
@@ -287,7 +201,7 @@ class OdomNode(Node):
     def pose(self) -> np.ndarray:
         """Return the current (x, y, yaw) estimate."""
         with self._lock:
-            return self._integrator.pose.copy()
+            return self._odometer.pose
 
     # ------------------------------------------------------------------ inputs
     @_guarded
@@ -296,11 +210,11 @@ class OdomNode(Node):
         t_ns, n_names, key, names, velocity = self._joint_state_fields(msg)
         with self._lock:
             self.counters['received'] += 1
-            config = self._config
             check_velocity_count(n_names, len(velocity))  # raises: reported by _guarded
             if key != self._joint_key:
                 if names is None:
                     names = self._joint_reader.names(key)
+                config = self._config
                 try:
                     self._joint_index = joint_indices(names, config['left_wheel_joints'],
                                                       config['right_wheel_joints'])
@@ -312,21 +226,9 @@ class OdomNode(Node):
             now_ns = self._clock_now_ns()
             if now_ns is None:
                 return
-            if t_ns == 0:
-                if not config['zero_stamp_uses_receive_time']:
-                    self._reject('zero_stamp', 'JointState header.stamp is zero; sample '
-                                 'rejected (set zero_stamp_uses_receive_time to use the receive '
-                                 'time instead)')
-                    return
-                t_ns = now_ns
-            ahead_ns = t_ns - now_ns
-            if ahead_ns > config['future_tolerance'] * NS_PER_S:
-                self._reject('future_stamp',
-                             f'JointState stamp is {ahead_ns / NS_PER_S:.3f} s ahead of the node '
-                             f'clock (future_tolerance {config["future_tolerance"]:g} s); '
-                             'sample rejected: check the clocks of the driver and this machine')
-                return
-            self._process(t_ns, omega_l, omega_r)
+            estimate = self._odometer.joint_sample(t_ns, omega_l, omega_r, now_ns)
+            if estimate is not None:
+                self._publish(estimate)
 
     def _joint_state_fields(self, msg: bytes | JointState
                             ) -> tuple[int, int, Any, list[str] | None, Sequence[float]]:
@@ -353,32 +255,16 @@ class OdomNode(Node):
         self._on_wheel('right', msg.data)
 
     def _on_wheel(self, side: str, omega_rad_s: float) -> None:
-        """Pair the two Float64 streams within pair_tolerance (N9)."""
+        """Hand one side's speed, stamped with the node clock, to the odometer's pairing (N9)."""
         with self._lock:
             self.counters['received'] += 1
             now_ns = self._clock_now_ns()
             if now_ns is None:
                 return
-            other = 'right' if side == 'left' else 'left'
             self._side_seen_mono_ns[side] = time.monotonic_ns()
-            tolerance_ns = self._config['pair_tolerance'] * NS_PER_S
-            partner = self._pending[other]
-            if partner is not None and abs(now_ns - partner[0]) <= tolerance_ns:
-                self._pending[other] = None
-                omega = {side: float(omega_rad_s), other: partner[1]}
-                self._process(max(now_ns, partner[0]), omega['left'], omega['right'])
-                return
-            if self._pending[side] is not None or partner is not None:
-                seen = self._side_seen_mono_ns[other]
-                age = ('never received' if seen is None
-                       else f'last sample {(time.monotonic_ns() - seen) / NS_PER_S:.3f} s ago')
-                self._reject('unpaired',
-                             f'{other} wheel speed is stale ({age}); not integrating until both '
-                             f'sides arrive within pair_tolerance '
-                             f'{self._config["pair_tolerance"]:g} s')
-            self._pending[side] = (now_ns, float(omega_rad_s))
-            if partner is not None and now_ns - partner[0] > tolerance_ns:
-                self._pending[other] = None
+            estimate = self._odometer.wheel_sample(side, omega_rad_s, now_ns)
+            if estimate is not None:
+                self._publish(estimate)
 
     def _clock_now_ns(self) -> int | None:
         """Return the node clock in ns, or None while use_sim_time waits for /clock (N13)."""
@@ -398,28 +284,7 @@ class OdomNode(Node):
             return None
         return now_ns
 
-    # ------------------------------------------------------------------ integration
-    def _process(self, t_ns: int, omega_l: float, omega_r: float) -> None:
-        result = self._integrator.step(t_ns, omega_l, omega_r)
-        status = result.status
-        self.counters[status.value] += 1
-        if status is SampleStatus.NON_FINITE_STATE:
-            self._warn('non_finite_state', f'{result.detail}; not published', error=True)
-            return
-        if not status.accepted:
-            self._warn(status.value, f'wheel sample rejected: {result.detail}')
-            return
-        if status is SampleStatus.INTEGRATED:
-            self._covariance.step(result.start_pose, result.step_twist, result.dt_s)
-            self._period_s = result.dt_s
-        elif status is SampleStatus.GAP:
-            self._warn('gap', result.detail)
-        self._mark_fresh()
-        if status is SampleStatus.DUPLICATE_STAMP:
-            return  # held speeds updated; a second message with the same stamp would confuse EKFs
-        # With a time offset (augmented model) the pose integrated to t is the pose at t + offset.
-        self._publish(t_ns + self._integrator.output_offset_ns, result)
-
+    # ------------------------------------------------------------------ output
     def _mark_fresh(self) -> None:
         self._last_accepted_mono_ns = time.monotonic_ns()
         if self._stale and self._stale_reported:
@@ -427,24 +292,9 @@ class OdomNode(Node):
         self._stale = False
         self._stale_reported = False
 
-    def _publish(self, t_ns: int, result: StepResult) -> None:
+    def _publish(self, estimate: Estimate) -> None:
         config = self._config
-        max_rate = config['max_rate']
-        if (max_rate > 0.0 and self._last_published_t_ns is not None
-                and t_ns - self._last_published_t_ns < NS_PER_S / max_rate):
-            self.counters['rate_limited'] += 1
-            return
-        pose_cov = self._covariance.pose_covariance_flat()
-        twist_cov = self._covariance.twist_covariance_flat(result.twist, self._period_s)
-        x, y, yaw = result.pose
-        vx, vy, w = result.twist
-        # A sum of finite terms may overflow to inf only far beyond any plausible value.
-        if not math.isfinite(x + y + yaw + vx + vy + w + sum(pose_cov) + sum(twist_cov)):
-            self.counters['non_finite_output'] += 1
-            self._warn('non_finite_output', 'odometry has a non-finite pose, twist or '
-                       f'covariance (pose {result.pose}, twist {result.twist}); not published',
-                       error=True)
-            return
+        t_ns, (x, y, yaw), (vx, vy, w), pose_cov, twist_cov = estimate
         qx, qy, qz, qw = yaw_to_quaternion(yaw)
         writer = self._writer(config)
         if writer is not None:
@@ -453,8 +303,6 @@ class OdomNode(Node):
         else:
             self._odom_pub.publish(self._odometry_msg(t_ns, x, y, qz, qw, pose_cov, vx, vy, w,
                                                       twist_cov))
-        self.counters['published'] += 1
-        self._last_published_t_ns = t_ns
         if self._tf_broadcaster is not None and config['publish_tf']:
             transform = TransformStamped()
             transform.header.stamp = ns_to_stamp(t_ns)
@@ -530,20 +378,13 @@ class OdomNode(Node):
                 self._reject('set_pose_rejected', f'set_pose rejected: {err}')
             return
         with self._lock:
-            self._reset_state(pose)
-            block = planar_covariance_from_msg(msg.pose.covariance)
-            if block is not None:
-                self._covariance.cov = self._covariance.cov + block
+            self._reset_state(pose, planar_covariance_from_msg(msg.pose.covariance))
             self.counters['set_pose'] += 1
         self.get_logger().info(f'pose set to x {pose[0]:.3f} m, y {pose[1]:.3f} m, '
                                f'yaw {pose[2]:.3f} rad')
 
-    def _reset_state(self, pose: Sequence[float]) -> None:
-        self._integrator.reset(pose)
-        self._covariance.reset()
-        self._period_s = 0.0
-        self._last_published_t_ns = None
-        self._pending = {'left': None, 'right': None}
+    def _reset_state(self, pose: Sequence[float], covariance: np.ndarray | None = None) -> None:
+        self._odometer.reset(pose, covariance)
 
     @_guarded
     def _on_clock_jump(self, jump: TimeJump) -> None:
@@ -628,49 +469,16 @@ class OdomNode(Node):
     def diagnostic_status(self) -> DiagnosticStatus:
         """Return the current status (also published on /diagnostics) and start a new period."""
         with self._lock:
-            now = time.monotonic_ns()
-            period_s = max((now - self._report_mono_ns) / NS_PER_S, 1e-9)
-            recent = self.counters - self._report_counters
-            self._report_counters = collections.Counter(self.counters)
-            self._report_mono_ns = now
             age_s = self.last_sample_age_s()
             stale = self._stale or age_s is None or age_s > self._config['input_timeout']
-            level, summary = self._level(recent, stale)
-            status = DiagnosticStatus(level=level, name=f'{self.get_fully_qualified_name()}: '
-                                      'wheel odometry', message=summary,
-                                      hardware_id=self._config['robot'])
-            values = {
-                'model': self._config.model,
-                'input': self._input,
-                'covariance': 'calibrated' if self._config.active_noise else 'fallback',
-                'rate_hz': f'{recent["published"] / period_s:.2f}',
-                'accepted_rate_hz': f'{self._accepted(recent) / period_s:.2f}',
-                'last_sample_age_s': 'none' if age_s is None else f'{age_s:.3f}',
-            }
-            for side in ('left', 'right'):
-                seen = self._side_seen_mono_ns[side]
-                if self._input == 'wheel_topics':
-                    values[f'{side}_age_s'] = ('none' if seen is None
-                                               else f'{(now - seen) / NS_PER_S:.3f}')
-            for name in sorted(self.counters):
-                values[f'count.{name}'] = str(self.counters[name])
-            status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-            return status
-
-    @staticmethod
-    def _accepted(counts: collections.Counter[str]) -> int:
-        return sum(counts[s.value] for s in SampleStatus if s.accepted)
-
-    def _level(self, recent: collections.Counter[str], stale: bool) -> tuple[bytes, str]:
-        errors = {c: recent[c] for c in ERROR_CAUSES if recent[c]}
-        warnings = {c: recent[c] for c in WARN_CAUSES if recent[c]}
-        if stale:
-            return DiagnosticStatus.STALE, 'no wheel input within input_timeout: pose held'
-        if errors:
-            return DiagnosticStatus.ERROR, f'errors in the last period: {errors}'
-        if warnings:
-            return DiagnosticStatus.WARN, f'samples rejected in the last period: {warnings}'
-        return DiagnosticStatus.OK, 'integrating'
+            side_ages = None
+            if self._input == 'wheel_topics':
+                now = time.monotonic_ns()
+                side_ages = {side: None if seen is None else (now - seen) / NS_PER_S
+                             for side, seen in self._side_seen_mono_ns.items()}
+            return self._status_report.status(
+                f'{self.get_fully_qualified_name()}: wheel odometry', self._config,
+                self.counters, stale, age_s, side_ages)
 
     @_guarded
     def _on_diagnostics(self) -> None:
@@ -687,32 +495,6 @@ class OdomNode(Node):
             handle.unregister()
             self._jump_handle = None
         super().destroy_node()
-
-
-def check_params_files(argv: Sequence[str]) -> list[str]:
-    """Return one problem per ``--params-file`` path that is missing or unreadable (N16)."""
-    problems = []
-    args = list(argv)
-    for i, arg in enumerate(args):
-        if arg != '--params-file':
-            continue
-        if i + 1 >= len(args):
-            problems.append('--params-file is given without a path')
-            continue
-        path = args[i + 1]
-        try:
-            with open(path, encoding='utf-8') as stream:
-                yaml.safe_load(stream)
-        except FileNotFoundError:
-            problems.append(f'parameters file {path} does not exist')
-        except IsADirectoryError:
-            problems.append(f'parameters file {path} is a directory, expected a YAML file')
-        except (OSError, UnicodeDecodeError) as err:
-            problems.append(f'parameters file {path} cannot be read: {err}')
-        except yaml.YAMLError as err:
-            problems.append(f'parameters file {path} is not valid YAML: '
-                            f'{" ".join(str(err).split())}')
-    return problems
 
 
 def main(args: Sequence[str] | None = None) -> int:

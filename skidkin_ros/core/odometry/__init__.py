@@ -1,4 +1,6 @@
 """Odometry: what the node runs on every wheel sample, and offline prediction by the same code.
 
-The integrator, the process-noise model, covariance propagation and the node's configuration.
+The odometer (stamp rules, wheel pairing, integration, covariance, what is published), the wheel
+rules shared with the bag reader, the integrator, the process-noise model, covariance propagation
+and the node's configuration.
 """

@@ -19,6 +19,7 @@ from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
+from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
 from skidkin_ros.errors import ConfigError, ParameterError
@@ -27,6 +28,7 @@ import yaml
 __all__ = [
     'SCHEMA_VERSION',
     'INPUT_MODES',
+    'node_default',
     'SchemaEntry',
     'parameter_schema',
     'OdometryConfig',
@@ -80,6 +82,11 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
           'stamps further than this ahead of the node clock are rejected', lower_open=True),
     _spec('max_rate', 'Hz', 0.0, 0.0, 1e5, 'cap on the odometry publish rate (0: every sample)'),
 )
+
+
+def node_default(name: str) -> float:
+    """Return the default of one of the node's own numeric parameters (e.g. pair_tolerance)."""
+    return next(spec.default for spec in NODE_SPECS if spec.name == name)
 
 
 def _model_entries(geometry: Geometry) -> list[SchemaEntry]:
@@ -236,11 +243,25 @@ class OdometryConfig:
         return get_model(name).bind(self.model_values[name], self.geometry)
 
     @property
+    def limits(self) -> IntegratorLimits:
+        """Return the plausibility limits of the integrator: max_dt and max_wheel_speed."""
+        return IntegratorLimits(max_dt_s=self.values['max_dt'],
+                                max_wheel_speed_rad_s=self.values['max_wheel_speed'])
+
+    @property
     def active_noise(self) -> NoiseModel | None:
         """Return the noise model in force (an augmented model uses its base model's)."""
         if self.model == AUGMENTED_NAME:
             return self.noise.get(self.augmented_base)
         return self.noise.get(self.model)
+
+    @classmethod
+    def from_file(cls, path: str | Path, model: str | None = None) -> 'OdometryConfig':
+        """Read and validate a ROS 2 parameters file; ``model`` replaces the file's model."""
+        flat = read_params_file(path)
+        if model is not None:
+            flat['model'] = model
+        return cls.from_flat(flat)
 
     @classmethod
     def from_flat(cls, flat: Mapping[str, Any]) -> 'OdometryConfig':

@@ -1,0 +1,296 @@
+"""The odometer: what odom_node does with every wheel sample, in plain numbers, without ROS.
+
+diff_drive_controller keeps its ``Odometry`` class apart from the controller; so does skidkin. The
+node (``skidkin_ros.node``) turns messages into numbers, reads its clock and publishes; everything
+between is here, and ``skidkin predict`` runs the very same steps over recorded samples, so the
+node and the offline prediction agree by construction. For one sample:
+
+1. Stamp it (:meth:`Odometer.joint_sample`): a zero header stamp is refused, or replaced by the
+   receive time when ``zero_stamp_uses_receive_time``; a stamp more than ``future_tolerance``
+   ahead of the node clock is refused. Two Float64 wheel topics carry no stamp: their values are
+   paired within ``pair_tolerance`` and stamped with the receive time
+   (:meth:`Odometer.wheel_sample`, :class:`~skidkin_ros.core.odometry.wheels.WheelPairer`).
+2. Integrate it (:meth:`Odometer.step`): the streaming integrator checks the speeds and the
+   stamp (duplicate, older, gap), advances the pose, and the covariance is propagated over the
+   integrated step. Every outcome is counted by cause; rejections are reported to ``warn``.
+3. Decide what to publish (:meth:`Odometer.update`): nothing for a duplicate stamp (the held
+   speeds are updated; a second message with the same stamp would confuse an EKF), nothing
+   closer than 1/``max_rate`` to the last output, nothing non-finite; otherwise an
+   :class:`Estimate` stamped with the sample stamp plus the model's time offset (an augmented
+   model's pose integrated to t is the pose at t + offset).
+
+Each kind of input enters through its own method and ends in :meth:`Odometer.update`, so a new
+input (encoder positions differenced into speeds, an IMU's yaw rate) or a new stamp check joins
+the same pipeline without touching the node.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+import math
+from typing import Callable, NamedTuple, Sequence
+
+import numpy as np
+
+from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.core.odometry.config import node_default, OdometryConfig
+from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, StepResult,
+                                                  StreamingIntegrator, TwistSource)
+from skidkin_ros.core.odometry.noise import FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL
+from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
+from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer
+
+__all__ = ['SampleRules', 'Estimate', 'Odometer', 'Prediction', 'predict_wheels']
+
+NS_PER_S = 1_000_000_000
+Triple = tuple[float, float, float]
+Warn = Callable[..., None]  # warn(cause, message, error=False)
+
+
+@dataclass(frozen=True)
+class SampleRules:
+    """How samples are stamped and how often odometry is published (node parameters)."""
+
+    zero_stamp_uses_receive_time: bool = False
+    future_tolerance_s: float = node_default('future_tolerance')
+    pair_tolerance_s: float = node_default('pair_tolerance')
+    max_rate_hz: float = node_default('max_rate')
+
+    @classmethod
+    def from_config(cls, config: OdometryConfig) -> 'SampleRules':
+        return cls(config['zero_stamp_uses_receive_time'], config['future_tolerance'],
+                   config['pair_tolerance'], config['max_rate'])
+
+
+class Estimate(NamedTuple):
+    """One odometry output: stamp (ns), pose (x, y, yaw), body twist and their covariances.
+
+    The covariances are row-major 6 x 6 (x, y, z, roll, pitch, yaw), 36 floats each, as
+    nav_msgs/Odometry carries them. (A named tuple: one is made per published sample.)
+    """
+
+    t_ns: int
+    pose: Triple
+    twist: Triple
+    pose_covariance: list[float]
+    twist_covariance: list[float]
+
+
+def _ignore(*args: object, **kwargs: object) -> None:
+    """Ignore an event (the listener of offline prediction)."""
+
+
+class Odometer:
+    """Wheel samples in, odometry estimates out (see the module docstring for the recipe).
+
+    ``counters`` (a Counter, shared with the caller if given) counts every sample by outcome
+    (``SampleStatus`` values, and 'zero_stamp', 'future_stamp', 'unpaired', 'rate_limited',
+    'non_finite_output', 'published'). ``warn(cause, message, error=False)`` hears about every
+    rejected or doubtful sample; ``fresh()`` is called for every accepted one.
+    """
+
+    def __init__(self, source: TwistSource, limits: IntegratorLimits | None = None,
+                 rules: SampleRules | None = None,
+                 covariance: PoseCovariancePropagator | None = None, *,
+                 counters: collections.Counter[str] | None = None, warn: Warn | None = None,
+                 fresh: Callable[[], None] | None = None) -> None:
+        self.integrator = StreamingIntegrator(source, limits)
+        self.covariance = covariance or PoseCovariancePropagator(
+            None, FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL)
+        self.counters: collections.Counter[str] = (collections.Counter() if counters is None
+                                                   else counters)
+        self._warn = warn or _ignore
+        self._fresh = fresh or _ignore
+        self.pairer = WheelPairer(0.0)
+        self.set_rules(rules or SampleRules())
+        self.period_s = 0.0
+        self.last_published_t_ns: int | None = None
+
+    @classmethod
+    def from_config(cls, config: OdometryConfig, model: str | None = None, *,
+                    counters: collections.Counter[str] | None = None, warn: Warn | None = None,
+                    fresh: Callable[[], None] | None = None) -> 'Odometer':
+        """Return the odometer a configuration describes (``model`` replaces its model)."""
+        return cls(config.bound_model(model), config.limits, SampleRules.from_config(config),
+                   _propagator(config), counters=counters, warn=warn, fresh=fresh)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def pose(self) -> np.ndarray:
+        """Return the current (x, y, yaw), yaw unwrapped (a new array)."""
+        return self.integrator.pose
+
+    @property
+    def output_offset_ns(self) -> int:
+        """Return the offset (ns) added to a sample stamp for what is published."""
+        return self.integrator.output_offset_ns
+
+    def set_rules(self, rules: SampleRules) -> None:
+        """Use new stamp, pairing and rate rules from the next sample on."""
+        self.rules = rules
+        self._future_ns = rules.future_tolerance_s * NS_PER_S
+        self._min_period_ns = NS_PER_S / rules.max_rate_hz if rules.max_rate_hz > 0.0 else 0.0
+        self.pairer.tolerance_ns = rules.pair_tolerance_s * NS_PER_S
+
+    def configure(self, config: OdometryConfig) -> None:
+        """Switch to a validated configuration; the pose and its covariance are kept."""
+        self.integrator.set_source(config.bound_model())
+        self.integrator.limits = config.limits
+        covariance = _propagator(config)
+        covariance.cov = self.covariance.cov.copy()
+        self.covariance = covariance
+        self.set_rules(SampleRules.from_config(config))
+
+    def reset(self, pose: Sequence[float] = (0.0, 0.0, 0.0),
+              covariance: np.ndarray | None = None) -> None:
+        """Set the pose (default: the origin) and restart from it.
+
+        The covariance restarts from (almost) zero, plus ``covariance`` (a 3 x 3 (x, y, yaw)
+        block) when given; held speeds, the last stamp and wheel values waiting for a partner
+        are forgotten.
+        """
+        self.integrator.reset(pose)
+        self.covariance.reset()
+        if covariance is not None:
+            self.covariance.cov = self.covariance.cov + covariance
+        self.period_s = 0.0
+        self.last_published_t_ns = None
+        self.pairer.clear()
+
+    # ------------------------------------------------------------------ inputs
+    def joint_sample(self, t_ns: int, omega_l: float, omega_r: float,
+                     now_ns: int) -> Estimate | None:
+        """Take a stamped sample (a JointState's) received at ``now_ns`` on the node clock."""
+        if t_ns == 0:
+            if not self.rules.zero_stamp_uses_receive_time:
+                self._reject('zero_stamp', 'JointState header.stamp is zero; sample rejected '
+                             '(set zero_stamp_uses_receive_time to use the receive time '
+                             'instead)')
+                return None
+            t_ns = now_ns
+        ahead_ns = t_ns - now_ns
+        if ahead_ns > self._future_ns:
+            self._reject('future_stamp',
+                         f'JointState stamp is {ahead_ns / NS_PER_S:.3f} s ahead of the node '
+                         f'clock (future_tolerance {self.rules.future_tolerance_s:g} s); sample '
+                         'rejected: check the clocks of the driver and this machine')
+            return None
+        return self.update(t_ns, omega_l, omega_r)
+
+    def wheel_sample(self, side: str, omega_rad_s: float, now_ns: int) -> Estimate | None:
+        """Take one side's unstamped speed (a Float64 topic's) received at ``now_ns``."""
+        other = 'right' if side == 'left' else 'left'
+        seen_ns = self.pairer.last_seen_ns[other]
+        outcome, sample = self.pairer.offer(side, now_ns, float(omega_rad_s))
+        if sample is not None:
+            return self.update(*sample)
+        if outcome is Pairing.UNPAIRED:
+            age = ('never received' if seen_ns is None
+                   else f'last sample {(now_ns - seen_ns) / NS_PER_S:.3f} s ago')
+            self._reject('unpaired',
+                         f'{other} wheel speed is stale ({age}); not integrating until both '
+                         'sides arrive within pair_tolerance '
+                         f'{self.rules.pair_tolerance_s:g} s')
+        return None
+
+    # ------------------------------------------------------------------ the pipeline
+    def update(self, t_ns: int, omega_l: float, omega_r: float) -> Estimate | None:
+        """Integrate a stamped sample; return what to publish for it, if anything."""
+        result = self.step(t_ns, omega_l, omega_r)
+        status = result.status
+        if not status.accepted:
+            return None
+        self._fresh()
+        if status is SampleStatus.DUPLICATE_STAMP:
+            return None
+        return self._estimate(t_ns + self.integrator.output_offset_ns, result)
+
+    def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
+        """Integrate one sample and propagate the covariance; count and report the outcome."""
+        result = self.integrator.step(t_ns, omega_l, omega_r)
+        status = result.status
+        self.counters[status.value] += 1
+        if status is SampleStatus.INTEGRATED:
+            self.covariance.step(result.start_pose, result.step_twist, result.dt_s)
+            self.period_s = result.dt_s
+        elif status is SampleStatus.GAP:
+            self._warn('gap', result.detail)
+        elif status is SampleStatus.NON_FINITE_STATE:
+            self._warn('non_finite_state', f'{result.detail}; not published', error=True)
+        elif not status.accepted:
+            self._warn(status.value, f'wheel sample rejected: {result.detail}')
+        return result
+
+    def _estimate(self, t_ns: int, result: StepResult) -> Estimate | None:
+        last = self.last_published_t_ns
+        if self._min_period_ns and last is not None and t_ns - last < self._min_period_ns:
+            self.counters['rate_limited'] += 1
+            return None
+        covariance = self.covariance
+        pose_cov = covariance.pose_covariance_flat()
+        twist_cov = covariance.twist_covariance_flat(result.twist, self.period_s)
+        x, y, yaw = result.pose
+        vx, vy, w = result.twist
+        # A sum of finite terms may overflow to inf only far beyond any plausible value.
+        if not math.isfinite(x + y + yaw + vx + vy + w + sum(pose_cov) + sum(twist_cov)):
+            self.counters['non_finite_output'] += 1
+            self._warn('non_finite_output', 'odometry has a non-finite pose, twist or '
+                       f'covariance (pose {result.pose}, twist {result.twist}); not published',
+                       error=True)
+            return None
+        self.counters['published'] += 1
+        self.last_published_t_ns = t_ns
+        return Estimate(t_ns, result.pose, result.twist, pose_cov, twist_cov)
+
+    def _reject(self, cause: str, message: str) -> None:
+        self.counters[cause] += 1
+        self._warn(cause, message)
+
+    # ------------------------------------------------------------------ offline
+    def predict(self, wheels: WheelSamples, start: Sequence[float] = (0.0, 0.0, 0.0)
+                ) -> 'Prediction':
+        """Restart at ``start`` and run every sample through :meth:`step`, as the node does."""
+        self.reset(start)
+        poses = np.empty((len(wheels), 3))
+        twists = np.empty((len(wheels), 3))
+        status = []
+        for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns, wheels.omega_l,
+                                                         wheels.omega_r)):
+            result = self.step(int(t_ns), omega_l, omega_r)
+            poses[i] = result.pose
+            twists[i] = result.twist
+            status.append(result.status)
+        offset_ns = self.output_offset_ns
+        return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns)
+
+
+def _propagator(config: OdometryConfig) -> PoseCovariancePropagator:
+    return PoseCovariancePropagator(config.active_noise, config['pose_covariance_diagonal'],
+                                    config['twist_covariance_diagonal'])
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Pose after every wheel sample (x, y, yaw), the held twist, and what happened to it.
+
+    ``t_ns`` are the stamps the node publishes: the sample stamps plus ``offset_ns``, the time
+    offset of an augmented model (0 for the five base models).
+    """
+
+    t_ns: np.ndarray
+    poses: np.ndarray
+    twists: np.ndarray
+    status: tuple[SampleStatus, ...]
+    offset_ns: int = 0
+
+    @property
+    def accepted(self) -> np.ndarray:
+        return np.array([s.accepted for s in self.status], dtype=bool)
+
+
+def predict_wheels(wheels: WheelSamples, source: TwistSource,
+                   limits: IntegratorLimits | None = None,
+                   start: Sequence[float] = (0.0, 0.0, 0.0)) -> Prediction:
+    """Run ``source`` over every wheel sample from ``start``, through the node's odometer."""
+    return Odometer(source, limits).predict(wheels, start)

@@ -1,0 +1,156 @@
+"""Wheel speeds from what drivers publish: the rules the node and the bag reader share.
+
+A robot reports its wheels in one of two ways, and both the live node and the offline tools must
+turn them into the same (t, omega_left, omega_right) samples, or replaying a recording through the
+node would not reproduce the offline prediction:
+
+1. A sensor_msgs/JointState listing every joint: find the wheel joints in the ``name`` list
+   (:func:`joint_indices`, once per distinct list: drivers repeat it), check there is a velocity
+   per name (:func:`check_velocity_count`), and take each side's speed as the mean of its joints'
+   velocities (:func:`side_speed`; identical values come back unchanged, so a single encoder per
+   side survives the mean bit for bit).
+2. Two std_msgs/Float64 topics, one per side, without a stamp: a left and a right value are
+   paired when they arrive within ``pair_tolerance`` of each other and stamped with the later
+   receive time (:class:`WheelPairer`); a value whose partner does not come in time is dropped.
+   The node feeds it as messages arrive; :func:`pair_wheel_streams` feeds it a recording's
+   messages in receive order.
+
+Times are integer nanoseconds; speeds rad/s.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from typing import Iterable, Sequence
+
+__all__ = [
+    'SIDES',
+    'MissingJointError',
+    'MalformedMessageError',
+    'joint_indices',
+    'check_velocity_count',
+    'side_speed',
+    'speeds_at',
+    'Pairing',
+    'WheelPairer',
+    'pair_wheel_streams',
+]
+
+SIDES = ('left', 'right')
+
+
+class MalformedMessageError(ValueError):
+    """A message whose fields contradict each other (e.g. fewer velocities than names)."""
+
+
+class MissingJointError(ValueError):
+    """A JointState that lacks one of the configured wheel joints."""
+
+
+def joint_indices(names: Sequence[str], left_joints: Sequence[str],
+                  right_joints: Sequence[str]) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Return where the left and right wheel joints are in a JointState's ``name`` list.
+
+    Raises MissingJointError when a configured joint is absent. Drivers send the same name list
+    every time, so callers look the indices up once per distinct list.
+    """
+    index = {name: i for i, name in enumerate(names)}
+    missing = [joint for joint in (*left_joints, *right_joints) if joint not in index]
+    if missing:
+        raise MissingJointError(
+            f'JointState lacks wheel joint(s) {missing} (it has {list(names)}); check '
+            'left_wheel_joints / right_wheel_joints')
+    return (tuple(index[joint] for joint in left_joints),
+            tuple(index[joint] for joint in right_joints))
+
+
+def check_velocity_count(n_names: int, n_velocities: int) -> None:
+    """Raise MalformedMessageError when a JointState has fewer velocities than names."""
+    if n_velocities < n_names:
+        raise MalformedMessageError(
+            f'JointState has {n_names} names but only {n_velocities} velocities; expected '
+            'one velocity (rad/s) per joint name')
+
+
+def side_speed(values: Sequence[float]) -> float:
+    """Return the mean of one side's wheel speeds (rad/s), correctly rounded (math.fsum).
+
+    Identical values return that value unchanged, so a single-wheel reading survives the mean
+    bit for bit.
+    """
+    first = float(values[0])
+    if all(float(v) == first for v in values):
+        return first
+    return math.fsum(float(v) for v in values) / len(values)
+
+
+def speeds_at(velocity: Sequence[float], left: Sequence[int],
+              right: Sequence[int]) -> tuple[float, float]:
+    """Return (omega_left, omega_right) in rad/s: each the mean of its joints' velocities."""
+    return side_speed([velocity[i] for i in left]), side_speed([velocity[i] for i in right])
+
+
+class Pairing(enum.Enum):
+    """What :meth:`WheelPairer.offer` did with one side's value."""
+
+    PAIRED = 'paired'      # it completed a pair: (t, omega_l, omega_r) is returned
+    WAITING = 'waiting'    # it waits for the other side
+    UNPAIRED = 'unpaired'  # it waits, and an earlier value was dropped: its partner came too late
+
+
+class WheelPairer:
+    """Pair a left and a right wheel speed that arrive as two unstamped streams.
+
+    ``offer(side, t_ns, omega)`` with ``t_ns`` the receive time: when the other side has a value
+    waiting received within ``tolerance_ns``, both form a sample stamped with the later of the two
+    times. Otherwise the value waits; if this side already had one waiting, or the other side's
+    waiting value is too old, that earlier value is dropped (UNPAIRED).
+    """
+
+    def __init__(self, tolerance_ns: float) -> None:
+        self.tolerance_ns = tolerance_ns
+        self._pending: dict[str, tuple[int, float] | None] = {'left': None, 'right': None}
+        self.last_seen_ns: dict[str, int | None] = {'left': None, 'right': None}
+
+    def clear(self) -> None:
+        """Drop the values waiting for a partner (after a reset)."""
+        self._pending = {'left': None, 'right': None}
+
+    def offer(self, side: str, t_ns: int, omega: float
+              ) -> tuple[Pairing, tuple[int, float, float] | None]:
+        """Take one side's value; return what happened and the sample it completed, if any."""
+        other = 'right' if side == 'left' else 'left'
+        self.last_seen_ns[side] = t_ns
+        tolerance_ns = self.tolerance_ns
+        partner = self._pending[other]
+        if partner is not None and abs(t_ns - partner[0]) <= tolerance_ns:
+            self._pending[other] = None
+            t_pair = max(t_ns, partner[0])
+            if side == 'left':
+                return Pairing.PAIRED, (t_pair, omega, partner[1])
+            return Pairing.PAIRED, (t_pair, partner[1], omega)
+        outcome = (Pairing.UNPAIRED if self._pending[side] is not None or partner is not None
+                   else Pairing.WAITING)
+        self._pending[side] = (t_ns, omega)
+        if partner is not None and t_ns - partner[0] > tolerance_ns:
+            self._pending[other] = None
+        return outcome, None
+
+
+def pair_wheel_streams(messages: Iterable[tuple[str, int, float]], tolerance_ns: float
+                       ) -> tuple[list[tuple[int, float, float]], int]:
+    """Pair a recording's (side, receive ns, omega) messages, in receive order, as the node does.
+
+    Returns the samples (t_ns, omega_l, omega_r) and the number of UNPAIRED events.
+    """
+    pairer = WheelPairer(tolerance_ns)
+    samples = []
+    unpaired = 0
+    for side, t_ns, omega in messages:
+        outcome, sample = pairer.offer(side, t_ns, omega)
+        if sample is not None:
+            samples.append(sample)
+        elif outcome is Pairing.UNPAIRED:
+            unpaired += 1
+    return samples, unpaired
