@@ -1,7 +1,10 @@
 """Loading a SOURCE: the lidar extrinsic must come from /tf_static or the user (fault row C17)."""
 
+import math
+
 import numpy as np
 import pytest
+from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, load_source, SourceOptions
 from skidkin_ros.errors import DataError
@@ -38,3 +41,50 @@ def test_extrinsic_from_xyz_rpy_is_a_rigid_transform():
     np.testing.assert_allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3), atol=1e-12)
     with pytest.raises(DataError, match='6 finite numbers'):
         extrinsic_from_xyz_rpy([0.0, 0.0, float('nan'), 0.0, 0.0, 0.0])
+
+
+def _rx(a):
+    return np.array([[1.0, 0.0, 0.0], [0.0, math.cos(a), -math.sin(a)],
+                     [0.0, math.sin(a), math.cos(a)]])
+
+
+def _ry(a):
+    return np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0],
+                     [-math.sin(a), 0.0, math.cos(a)]])
+
+
+def _rz(a):
+    return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0],
+                     [0.0, 0.0, 1.0]])
+
+
+def _quaternion_rpy(roll, pitch, yaw):
+    """(x, y, z, w) of Rz(yaw) Ry(pitch) Rx(roll), as tf2's Quaternion.setRPY computes it."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
+
+
+RPY = (0.3, -0.7, 2.1)  # roll, pitch, yaw (rad): every axis, none of them special
+
+
+def test_extrinsic_rpy_is_yaw_then_pitch_then_roll():
+    """--extrinsic X Y Z ROLL PITCH YAW means Rz(yaw) Ry(pitch) Rx(roll), as URDF and tf2 do."""
+    t = extrinsic_from_xyz_rpy([0.3, -0.1, 0.5, *RPY])
+    np.testing.assert_allclose(t[:3, :3], _rz(RPY[2]) @ _ry(RPY[1]) @ _rx(RPY[0]),
+                               rtol=0, atol=1e-15)
+    np.testing.assert_allclose(t[3], [0.0, 0.0, 0.0, 1.0])
+
+
+def test_tf_static_quaternion_becomes_the_same_rotation(tmp_path):
+    with BagWriter(tmp_path / 'bag') as bag:
+        q = _quaternion_rpy(*RPY)
+        bag.write_tf_static(1, 'base_link', 'lidar', [0.3, -0.1, 0.5], [2.0 * v for v in q])
+    with open_recording(tmp_path / 'bag') as bag:
+        t = bag.read_extrinsic('base_link', 'lidar')
+    np.testing.assert_allclose(t[:3, :3], _rz(RPY[2]) @ _ry(RPY[1]) @ _rx(RPY[0]),
+                               rtol=0, atol=1e-15)
+    np.testing.assert_allclose(t[:3, 3], [0.3, -0.1, 0.5])
+    np.testing.assert_allclose(t, extrinsic_from_xyz_rpy([0.3, -0.1, 0.5, *RPY]), atol=1e-15)

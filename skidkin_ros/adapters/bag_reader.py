@@ -56,6 +56,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.serde import SerdeError
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
+from scipy.spatial.transform import Rotation
 
 from skidkin_ros.adapters.pointcloud import interpret_point_times, read_xyz_and_times
 from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
@@ -829,20 +830,16 @@ class BagRecording:
 
 
 def _transform_matrix(transform: Any) -> np.ndarray | None:
+    """Return a geometry_msgs/Transform as a 4x4 matrix; None when not finite or no rotation."""
     t, q = transform.translation, transform.rotation
-    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
-    values = [float(t.x), float(t.y), float(t.z), x, y, z, w]
-    norm = math.sqrt(x * x + y * y + z * z + w * w)
-    if not all(math.isfinite(v) for v in values) or norm < 1e-9:
+    quaternion = [float(q.x), float(q.y), float(q.z), float(q.w)]  # scipy's order: x, y, z, w
+    translation = [float(t.x), float(t.y), float(t.z)]
+    if (not all(math.isfinite(v) for v in translation + quaternion)
+            or math.hypot(*quaternion) < 1e-9):
         return None
-    x, y, z, w = x / norm, y / norm, z / norm, w / norm
     matrix = np.eye(4)
-    matrix[:3, :3] = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
-    matrix[:3, 3] = values[:3]
+    matrix[:3, :3] = Rotation.from_quat(quaternion).as_matrix()  # normalizes the quaternion
+    matrix[:3, 3] = translation
     return matrix
 
 

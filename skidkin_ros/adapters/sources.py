@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from skidkin_ros.adapters.bag_reader import check_overlap, open_recording
 from skidkin_ros.adapters.lidar_gt import bag_identity, IcpConfig, lidar_ground_truth
@@ -45,13 +46,10 @@ def extrinsic_from_xyz_rpy(values: Sequence[float]) -> np.ndarray:
         raise DataError('the extrinsic needs 6 finite numbers: x y z (m) roll pitch yaw (rad) '
                         'of the lidar in base_link')
     x, y, z, roll, pitch, yaw = (float(v) for v in values)
-    cr, sr, cp, sp, cy, sy = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch),
-                              np.cos(yaw), np.sin(yaw))
-    rot = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                    [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                    [-sp, cp * sr, cp * cr]])
     out = np.eye(4)
-    out[:3, :3] = rot
+    # Intrinsic z-y'-x'' (yaw, then pitch, then roll): R = Rz(yaw) Ry(pitch) Rx(roll), as URDF
+    # and tf2 read rpy.
+    out[:3, :3] = Rotation.from_euler('ZYX', [yaw, pitch, roll]).as_matrix()
     out[:3, 3] = [x, y, z]
     return out
 
