@@ -19,6 +19,11 @@ def _imports(path):
             yield node.module.split('.')[0]
 
 
+def _module(path):
+    parts = path.relative_to(PACKAGE.parent).with_suffix('').parts
+    return '.'.join(parts[:-1] if parts[-1] == '__init__' else parts)
+
+
 def _files(sub):
     return sorted((PACKAGE / sub).rglob('*.py')) if sub else sorted(PACKAGE.rglob('*.py'))
 
@@ -52,12 +57,19 @@ def test_library_code_does_not_print():
 CORE_ORDER = ('kinematics', 'odometry', 'calibration', 'estimation')
 
 
-def _skidkin_imports(path):
+def _skidkin_imports(path, names=False):
+    """Yield the skidkin_ros modules a file imports.
+
+    With ``names``, also ``module.name`` for each ``from module import name`` (a name may be a
+    module).
+    """
     tree = ast.parse(path.read_text())
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             if node.module.startswith('skidkin_ros'):
                 yield node.module
+                if names:
+                    yield from (f'{node.module}.{alias.name}' for alias in node.names)
         elif isinstance(node, ast.Import):
             for alias in node.names:
                 if alias.name.startswith('skidkin_ros'):
@@ -74,7 +86,7 @@ def _core_rank(module):
 def test_core_folders_only_use_earlier_folders():
     offenders = []
     for f in _files('core'):
-        module = '.'.join(f.relative_to(PACKAGE.parent).with_suffix('').parts)
+        module = _module(f)
         rank = _core_rank(module)
         for target in _skidkin_imports(f):
             other = _core_rank(target)
@@ -87,38 +99,19 @@ def test_core_folders_only_use_earlier_folders():
     assert offenders == []
 
 
-def _module(path):
-    parts = path.relative_to(PACKAGE.parent).with_suffix('').parts
-    return '.'.join(parts[:-1] if parts[-1] == '__init__' else parts)
-
-
-def _imported_modules(path):
-    """Yield every skidkin_ros module a file imports, ``from pkg import module`` included."""
-    tree = ast.parse(path.read_text())
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            if node.module.startswith('skidkin_ros'):
-                yield node.module
-                for alias in node.names:
-                    yield f'{node.module}.{alias.name}'
-        elif isinstance(node, ast.Import):
-            for alias in node.names:
-                if alias.name.startswith('skidkin_ros'):
-                    yield alias.name
-
-
 def test_a_cli_command_never_imports_another_command():
     """Shared CLI code lives in cli/common.py; a command is a leaf (the registry lists them)."""
     commands = {_module(f) for f in _files('cli') if f.name.startswith('cmd_')}
     offenders = [(_module(f), target) for f in _files('cli') if f.name.startswith('cmd_')
-                 for target in _imported_modules(f)
+                 for target in _skidkin_imports(f, names=True)
                  if target in commands and target != _module(f)]
     assert offenders == []
 
 
 def test_the_simulator_never_imports_adapters():
     """The simulator produces data; writing it as a rosbag2 is adapters.sim_writer's job."""
-    offenders = [(_module(f), target) for f in _files('sim') for target in _imported_modules(f)
+    offenders = [(_module(f), target) for f in _files('sim')
+                 for target in _skidkin_imports(f, names=True)
                  if target.startswith(('skidkin_ros.adapters', 'skidkin_ros.cli',
                                        'skidkin_ros.node'))]
     assert offenders == []
@@ -130,7 +123,7 @@ KNOWN_CYCLES = ({'skidkin_ros.report.estimation', 'skidkin_ros.studies.estimatio
 
 
 def test_no_import_cycles():
-    graph = {_module(f): set(_imported_modules(f)) for f in _files('')}
+    graph = {_module(f): set(_skidkin_imports(f, names=True)) for f in _files('')}
     # A module's own packages are imported before it anyway: not an edge.
     graph = {m: {t for t in targets if t in graph and t != m and not m.startswith(t + '.')}
              for m, targets in graph.items()}

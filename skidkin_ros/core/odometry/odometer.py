@@ -77,6 +77,9 @@ class Estimate(NamedTuple):
     twist_covariance: list[float]
 
 
+_new_estimate = tuple.__new__
+
+
 def _ignore(*args: object, **kwargs: object) -> None:
     """Ignore an event (the listener of offline prediction)."""
 
@@ -199,11 +202,13 @@ class Odometer:
         """Integrate a stamped sample; return what to publish for it, if anything."""
         result = self.step(t_ns, omega_l, omega_r)
         status = result.status
-        if not status.accepted:
-            return None
+        if status is not SampleStatus.INTEGRATED:  # the usual case first: this runs per sample
+            if not status.accepted:
+                return None
+            if status is SampleStatus.DUPLICATE_STAMP:
+                self._fresh()
+                return None
         self._fresh()
-        if status is SampleStatus.DUPLICATE_STAMP:
-            return None
         return self._estimate(t_ns + self.integrator.output_offset_ns, result)
 
     def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
@@ -241,7 +246,8 @@ class Odometer:
             return None
         self.counters['published'] += 1
         self.last_published_t_ns = t_ns
-        return Estimate(t_ns, result.pose, result.twist, pose_cov, twist_cov)
+        # tuple.__new__ skips the named tuple's Python-level __new__ (once per sample).
+        return _new_estimate(Estimate, (t_ns, result.pose, result.twist, pose_cov, twist_cov))
 
     def _reject(self, cause: str, message: str) -> None:
         self.counters[cause] += 1
