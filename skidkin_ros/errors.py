@@ -13,7 +13,20 @@ __all__ = [
     'RecordingError',
     'FitError',
     'OutputError',
+    'brief',
 ]
+
+# Longest text of a user's value echoed in a message: a parameter given as a list of a million
+# numbers must not make a message of megabytes.
+BRIEF_CHARS = 120
+
+
+def brief(value: object, limit: int = BRIEF_CHARS) -> str:
+    """Return ``repr(value)`` cut to about ``limit`` characters, saying how long it was."""
+    text = repr(value)
+    if len(text) <= limit:
+        return text
+    return f'{text[:limit]}... ({len(text)} characters in all)'
 
 
 class SkidkinError(Exception):

@@ -104,3 +104,75 @@ def test_unreadable_params_files_name_the_path(tmp_path, text, needle):
     assert str(path) in str(err.value) and needle in str(err.value)
     with pytest.raises(ConfigError, match='does not exist'):
         read_params_file(tmp_path / 'missing.yaml')
+
+
+@pytest.mark.parametrize('flat,needle', [
+    ({'max_rate': 1e-300}, 'max_rate'), ({'max_rate': 0.05}, 'at least 0.1 Hz'),
+    ({'odom_frame_id': ''}, 'odom_frame_id'), ({'base_frame_id': ' base_link'}, 'base_frame_id'),
+    ({'odom_frame_id': '/odom'}, 'starts with "/"'),
+    ({'odom_frame_id': 'base_link'}, 'two different frames'),
+    ({'max_stamp_step_back': 0.0}, 'max_stamp_step_back'),
+    ({'max_wheel_acceleration': -1.0}, 'max_wheel_acceleration')])
+def test_a_silent_publish_rate_and_unusable_frame_ids_are_refused(flat, needle):
+    """Issue 12 item 6 (N32): max_rate 1e-300 silenced /odom, an empty frame id was taken."""
+    with pytest.raises(ParameterError) as err:
+        OdometryConfig.from_flat(flat)
+    assert needle in str(err.value)
+    assert OdometryConfig.from_flat({'max_rate': 0.1})['max_rate'] == 0.1
+
+
+def test_empty_params_file_refused_and_a_duplicate_key_warned(tmp_path, caplog):
+    """Issue 12 item 7 (C21): the node took an empty file, and a duplicate key won silently."""
+    for text in ('', '# only a comment\n', '---\n'):
+        empty = tmp_path / 'empty.yaml'
+        empty.write_text(text)
+        with pytest.raises(ConfigError, match='empty'):
+            OdometryConfig.from_file(empty)
+    dup = tmp_path / 'dup.yaml'
+    dup.write_text('/**:\n  ros__parameters:\n    max_dt: 0.3\n    max_dt: 0.4\n')
+    config = OdometryConfig.from_file(dup)
+    assert config['max_dt'] == 0.4  # the last value, as rcl takes it
+    assert "'max_dt' is given twice (line 4); the last value wins" in caplog.text
+
+
+def _alias_bomb(depth):
+    lines = ['a0: &a0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]']
+    for i in range(1, depth):
+        lines.append(f'a{i}: &a{i} [' + ', '.join([f'*a{i - 1}'] * 9) + ']')
+    lines.append(f'/**:\n  ros__parameters:\n    max_dt: *a{depth - 1}\n')
+    return '\n'.join(lines)
+
+
+def test_alias_bomb_refused_at_once_and_echoed_values_are_short(tmp_path):
+    """Issue 12 item 9 (C22): 726 bytes of aliases ended in a MemoryError after 42 s."""
+    bomb = tmp_path / 'bomb.yaml'
+    bomb.write_text(_alias_bomb(9))
+    assert len(bomb.read_bytes()) < 800
+    with pytest.raises(ConfigError, match=r'alias \*a0 is not allowed'):
+        read_params_file(bomb)
+    merge = tmp_path / 'merge.yaml'
+    merge.write_text('/**:\n  ros__parameters:\n    <<: {max_dt: 0.3}\n')
+    with pytest.raises(ConfigError, match='merge keys'):
+        read_params_file(merge)
+    with pytest.raises(ParameterError) as err:
+        OdometryConfig.from_flat({'max_dt': [[0.5] * 1000] * 1000})
+    assert len(str(err.value)) < 400 and 'characters in all' in str(err.value)
+    with pytest.raises(ParameterError) as err:
+        OdometryConfig.from_flat({'left_wheel_joints': ['x' * 10**6, '']})
+    assert len(str(err.value)) < 400
+
+
+def test_params_file_that_is_not_a_regular_small_file_is_refused(tmp_path):
+    """Issue 12 item 13 (C31): /dev/zero as a file to read must not be read for ever."""
+    with pytest.raises(ConfigError, match='not a regular file'):
+        read_params_file('/dev/zero')
+    with pytest.raises(ConfigError, match='directory'):
+        read_params_file(tmp_path)
+    big = tmp_path / 'big.yaml'
+    big.write_text('/**:\n  ros__parameters:\n    robot: "' + 'x' * (9 * 1024 * 1024) + '"\n')
+    with pytest.raises(ConfigError, match='larger than 8 MiB'):
+        read_params_file(big)
+    deep = tmp_path / 'deep.yaml'
+    deep.write_text('/**:\n  ros__parameters:\n    robot: ' + '[' * 100000 + ']' * 100000 + '\n')
+    with pytest.raises(ConfigError, match='nests too deeply|not valid YAML'):
+        read_params_file(deep)

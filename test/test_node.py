@@ -359,3 +359,23 @@ def test_float64_bag_replayed_through_the_node_reproduces_predict(make_rig, tmp_
     np.testing.assert_allclose(node[:, 2], expected.poses[published, 2], rtol=0, atol=1e-15)
     assert np.array_equal([m.twist.twist.angular.z for m in rig.odom],
                           expected.twists[published, 2])
+
+
+def test_params_file_the_offline_tools_refuse_stops_the_node_and_a_duplicate_warns(tmp_path,
+                                                                                   capfd):
+    """Issue 12 items 7 and 9 (N33): an empty file started the node with Husky defaults."""
+    empty = tmp_path / 'empty.yaml'
+    empty.write_text('# nothing here\n')
+    assert main(['odom_node', '--ros-args', '--params-file', str(empty)]) == 2
+    err = capfd.readouterr().err
+    assert str(empty) in err and 'empty' in err and 'Traceback' not in err
+    bomb = tmp_path / 'bomb.yaml'
+    bomb.write_text('a: &a [1.0, 1.0]\n/**:\n  ros__parameters:\n    max_dt: *a\n')
+    problems = check_params_files(['--ros-args', '--params-file', str(bomb)])
+    assert len(problems) == 1 and 'alias *a is not allowed' in problems[0]
+    dup = tmp_path / 'dup.yaml'
+    dup.write_text('/**:\n  ros__parameters:\n    max_dt: 0.3\n    max_dt: 0.4\n')
+    warnings = []
+    assert check_params_files(['--ros-args', '--params-file', str(dup)], warnings) == []
+    assert warnings == [f"parameters file {dup}: key 'max_dt' is given twice (line 4); the last "
+                        'value wins']

@@ -4,11 +4,15 @@ import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from node_harness import best_effort_publisher, NS_PER_S, wall_ns
 import numpy as np
 import pytest
 from rclpy.clock import ClockType
+from rclpy.parameter import Parameter
+from skidkin_ros.errors import ConfigError
 from std_msgs.msg import Float64
+from std_srvs.srv import Trigger
 
 pytestmark = pytest.mark.ros
 
@@ -295,3 +299,101 @@ def test_joint_order_may_change_between_messages(make_rig):
     for msg in rig.odom:
         assert msg.twist.twist.angular.z == pytest.approx(
             geometry.wheel_radius * 2.0 / geometry.track_width)
+
+
+def _set_pose(rig, x, y, variance=0.0):
+    msg = PoseWithCovarianceStamped()
+    msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+    msg.pose.pose.orientation.w = 1.0
+    msg.pose.covariance[0] = variance
+    rig.wait_matched(rig.set_pose_pub)
+    rig.set_pose_pub.publish(msg)
+
+
+def test_n30_set_pose_the_odometry_cannot_hold_is_rejected_and_odom_goes_on(make_rig):
+    """Issue 12 item 4: x = y = 1e308 was taken, and no /odom came until ~/reset."""
+    rig = make_rig()
+    t0 = start_ns()
+    rig.send_joint(t0, 1.0, 1.0)
+    rig.send_joint(t0 + DT, 1.0, 1.0)
+    for k, (x, y, variance) in enumerate([(1e308, 1e308, 0.0), (2e9, 0.0, 0.0),
+                                          (0.0, 0.0, 1e308)], start=1):
+        _set_pose(rig, x, y, variance)
+        rig.spin_until(lambda: rig.node.counters['set_pose_rejected'] == k, what='rejection')
+        if k == 1:
+            assert 'beyond 1e+09 m' in rig.node.last_warnings['set_pose_rejected']
+    assert 'beyond 1e+12' in rig.node.last_warnings['set_pose_rejected']  # the last one
+    rig.send_joint(t0 + 2 * DT, 1.0, 1.0)
+    rig.drain()
+    assert len(rig.odom) == 3 and all_finite(rig)
+    assert rig.odom[-1].pose.pose.position.x == pytest.approx(R * 0.04, abs=1e-12)
+    _set_pose(rig, 1e9, -1e9)  # the bound itself is taken, and odometry goes on from it
+    rig.spin_until(lambda: rig.node.counters['set_pose'] == 1, what='set_pose')
+    rig.send_joint(t0 + 3 * DT, 1.0, 1.0)
+    rig.send_joint(t0 + 4 * DT, 1.0, 1.0)
+    rig.drain()
+    assert len(rig.odom) == 5 and all_finite(rig)
+    assert rig.odom[-1].pose.pose.position.x > 1e9
+
+
+def test_n31_driver_clock_stepping_back_resets_instead_of_locking_out(make_rig):
+    """Issue 12 item 5: a driver restart locked the node out until its stamps caught up."""
+    rig = make_rig({'max_stamp_step_back': 2.0})
+    t0 = start_ns()
+    for k in range(5):
+        rig.send_joint(t0 + k * DT, 1.0, 1.0)
+    rig.send_joint(-5 * NS_PER_S, 1.0, 1.0)   # a negative stamp: refused
+    restart = 10 * NS_PER_S                   # the driver restarted: its clock is at 10 s
+    for k in range(6):
+        rig.send_joint(restart + k * DT, 1.0, 1.0)
+    rig.drain()
+    counters = rig.node.counters
+    assert counters['negative_stamp'] == 1
+    assert 'negative' in rig.node.last_warnings['negative_stamp']
+    assert counters['stamp_step_back'] == 2 and counters['stamp_reset'] == 1
+    assert 'stepped back' in rig.node.last_warnings['stamp_reset']
+    stamps = [m.header.stamp.sec * NS_PER_S + m.header.stamp.nanosec for m in rig.odom]
+    assert stamps[5:] == [restart + k * DT for k in range(2, 6)]
+    assert rig.odom[-1].pose.pose.position.x == pytest.approx(R * 3 * DT / NS_PER_S, abs=1e-12)
+    # ~/reset keeps the last stamp in mind: a stale stamp right after it is not published.
+    future = rig.reset_client.call_async(Trigger.Request())
+    rig.spin_until(future.done, what='reset')
+    rig.send_joint(1, 1.0, 1.0)
+    rig.drain()
+    assert counters['stamp_step_back'] == 3 and len(rig.odom) == 9
+    status = {kv.key: kv.value for kv in rig.node.diagnostic_status().values}
+    assert status['count.stamp_reset'] == '1'
+
+
+def test_n32_silent_publish_rate_or_empty_frame_refused_at_start_and_at_runtime(make_rig):
+    """Issue 12 item 6: max_rate 1e-300 silenced /odom; odom_frame_id '' was taken."""
+    with pytest.raises(ConfigError, match='max_rate'):
+        make_rig({'max_rate': 1e-300})
+    with pytest.raises(ConfigError, match='odom_frame_id'):
+        make_rig({'odom_frame_id': ''})
+    rig = make_rig()
+    for name, value, needle in (('max_rate', 1e-300, 'at least 0.1 Hz'),
+                                ('odom_frame_id', '', 'frame id'),
+                                ('base_frame_id', 'odom', 'two different frames')):
+        result = rig.node.set_parameters([Parameter(name, value=value)])[0]
+        assert not result.successful and needle in result.reason
+    t0 = start_ns()
+    rig.send_joint(t0, 1.0, 1.0)
+    rig.send_joint(t0 + DT, 1.0, 1.0)
+    rig.drain()
+    assert len(rig.odom) == 2 and rig.odom[-1].header.frame_id == 'odom'
+
+
+def test_n34_wheel_speed_jump_rejected_naming_the_side(make_rig):
+    """Issue 12 item 13: a 90 rad/s spike under max_wheel_speed was integrated."""
+    rig = make_rig()
+    t0 = start_ns()
+    step = 50_000_000
+    for k, (left, right) in enumerate([(2.0, 2.0)] * 3 + [(90.0, 2.0)] + [(2.0, 2.0)] * 2):
+        rig.send_joint(t0 + k * step, left, right)
+    rig.drain()
+    assert rig.node.counters['wheel_jump'] == 1 and len(rig.odom) == 5
+    assert rig.odom[-1].pose.pose.position.x == pytest.approx(R * 2.0 * 0.25, abs=1e-12)
+    warning = rig.node.last_warnings['wheel_jump']
+    assert 'left wheel speed jumped from 2 to 90' in warning
+    assert 'max_wheel_acceleration' in warning

@@ -83,7 +83,8 @@ def test_predict_is_the_node_pipeline_sample_for_sample():
     t_ns[120:] += NS               # a gap
     wl, wr = rng.uniform(-3, 3, 200), rng.uniform(-3, 3, 200)
     wl[80] = np.nan
-    config = OdometryConfig.from_flat(CALIBRATED)
+    wr[150] = 60.0                 # a spike: a wheel glitch (uniform speeds jump 6 rad/s at most)
+    config = OdometryConfig.from_flat({**CALIBRATED, 'max_wheel_acceleration': 1000.0})
     live = Odometer.from_config(config)
     estimates = {}
     for t, left, right in zip(t_ns.tolist(), wl, wr):
@@ -95,13 +96,13 @@ def test_predict_is_the_node_pipeline_sample_for_sample():
     for i, t in enumerate(prediction.t_ns.tolist()):
         if prediction.accepted[i]:
             rows.setdefault(t, i)  # a duplicate stamp publishes its first sample only
-    assert len(estimates) == 198  # 200 less the NaN and the duplicate's second sample
+    assert len(estimates) == 197  # 200 less the NaN, the spike and the duplicate's second sample
     for t, estimate in estimates.items():
         assert estimate.pose == tuple(prediction.poses[rows[t]])
         assert estimate.twist == tuple(prediction.twists[rows[t]])
     assert live.counters == collections.Counter(
-        {'integrated': 196, 'first': 1, 'gap': 1, 'duplicate': 1, 'non_finite': 1,
-         'published': 198})
+        {'integrated': 195, 'first': 1, 'gap': 1, 'duplicate': 1, 'non_finite': 1,
+         'wheel_jump': 1, 'published': 197})
     plain = predict_wheels(WheelSamples(t_ns, wl, wr), config.bound_model(), config.limits)
     assert np.array_equal(plain.poses, prediction.poses)
 
@@ -123,6 +124,84 @@ def test_configure_keeps_pose_and_covariance_and_reset_sets_them():
 
 
 def test_limits_come_from_the_configuration():
-    config = OdometryConfig.from_flat({'max_dt': 0.25, 'max_wheel_speed': 40.0})
-    assert config.limits == IntegratorLimits(max_dt_s=0.25, max_wheel_speed_rad_s=40.0)
+    config = OdometryConfig.from_flat({'max_dt': 0.25, 'max_wheel_speed': 40.0,
+                                       'max_wheel_acceleration': 300.0})
+    assert config.limits == IntegratorLimits(max_dt_s=0.25, max_wheel_speed_rad_s=40.0,
+                                             max_wheel_acceleration_rad_s2=300.0)
     assert Odometer.from_config(config).integrator.limits == config.limits
+
+
+def test_a_pose_or_covariance_the_odometry_cannot_hold_is_refused_and_changes_nothing():
+    """Issue 12 item 4 (N30): a pose of 1e308 m was taken, and nothing was published after it."""
+    odo = odometer()
+    odo.joint_sample(NOW, 1.0, 1.0, NOW)
+    odo.joint_sample(NOW + DT, 1.0, 1.0, NOW + DT)
+    pose = odo.pose
+    refused = [((1e308, 1e308, 0.0), None), ((1.1e9, 0.0, 0.0), None),
+               ((0.0, 0.0, float('nan')), None), ((0.0, 0.0, 0.0), np.diag([1e308, 1.0, 1.0])),
+               ((0.0, 0.0, 0.0), np.diag([float('inf'), 1.0, 1.0])),
+               ((0.0, 0.0, 0.0), np.array([[1.0, 5.0, 0.0], [5.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))]
+    for bad_pose, covariance in refused:
+        with pytest.raises(ValueError):
+            odo.reset(bad_pose, covariance)
+        assert np.array_equal(odo.pose, pose)
+    odo.reset((1e9, -1e9, 3.0), np.diag([1e12, 1e12, 1e12]))  # the limits themselves are taken
+    published = [odo.joint_sample(NOW + k * DT, 1.0, 1.0, NOW + k * DT) for k in range(2, 5)]
+    assert published[-1] is not None and np.isfinite(published[-1].pose_covariance).all()
+
+
+def test_a_stepped_back_input_clock_resets_once_confirmed_and_one_bad_stamp_is_refused():
+    """Issue 12 item 5 (N31): a driver restart locked the node out until its stamps caught up."""
+    odo = odometer()
+    for k in range(50):
+        odo.joint_sample(NOW + k * DT, 1.0, 1.0, NOW + k * DT)
+    last = NOW + 49 * DT
+    x = odo.pose[0]
+    # One corrupt stamp 900 s behind: refused, nothing reset.
+    assert odo.joint_sample(NOW - 900 * NS, 1.0, 1.0, last) is None
+    assert odo.counters['stamp_step_back'] == 1 and odo.pose[0] == x
+    assert odo.joint_sample(last + DT, 1.0, 1.0, last + DT) is not None
+    # A driver restart: its clock starts again at 5 s; three samples in a row confirm it.
+    restart = 5 * NS
+    out = [odo.joint_sample(restart + k * DT, 1.0, 1.0, last + (k + 2) * DT) for k in range(6)]
+    assert out[:2] == [None, None] and odo.counters['stamp_reset'] == 1
+    assert [e.t_ns for e in out[3:]] == [restart + k * DT for k in range(3, 6)]
+    assert odo.pose[0] == pytest.approx(0.1651 * 3 * DT / NS)  # from the origin, new clock
+    # A step back shorter than max_stamp_step_back is refused as older, never a reset.
+    assert odo.joint_sample(restart + 5 * DT - NS, 1.0, 1.0, last) is None
+    assert odo.counters['older'] == 1 and odo.counters['stamp_reset'] == 1
+
+
+def test_negative_and_stale_stamps_after_a_reset_are_refused():
+    """Issue 12 item 5: after ~/reset the first stamp was published whatever it was."""
+    odo = odometer()
+    for k in range(5):
+        odo.joint_sample(NOW + k * DT, 1.0, 1.0, NOW + k * DT)
+    odo.reset()
+    assert odo.joint_sample(-3 * NS, 1.0, 1.0, NOW) is None
+    assert odo.counters['negative_stamp'] == 1
+    assert odo.joint_sample(1, 1.0, 1.0, NOW) is None  # 1 ns: a stale stamp, not a new clock
+    assert odo.counters['stamp_step_back'] == 1
+    estimate = odo.joint_sample(NOW + 5 * DT, 1.0, 1.0, NOW + 5 * DT)
+    assert estimate is not None and estimate.t_ns == NOW + 5 * DT
+    odo.clock_changed()  # a sim-time jump: the old stamps mean nothing, any stamp starts anew
+    assert odo.joint_sample(7 * NS, 1.0, 1.0, 7 * NS) is not None
+
+
+def test_a_wheel_speed_that_jumps_is_rejected_naming_the_side():
+    """Issue 12 item 13: 90 rad/s spikes under max_wheel_speed were integrated."""
+    warnings = []
+    odo = odometer(warn=lambda cause, message, error=False: warnings.append((cause, message)))
+    speeds = [(2.0, 2.0)] * 5 + [(2.0, 90.0)] + [(2.0, 2.0)] * 5
+    for k, (left, right) in enumerate(speeds):
+        odo.joint_sample(NOW + 50 * k * 1_000_000, left, right, NOW + 50 * k * 1_000_000)
+    assert odo.counters['wheel_jump'] == 1 and odo.counters['integrated'] == 9
+    assert odo.pose[0] == pytest.approx(0.1651 * 2.0 * 0.5)  # the spike never moved the robot
+    cause, message = warnings[0]
+    assert cause == 'wheel_jump' and 'right wheel speed jumped from 2 to 90' in message
+    assert 'left' not in message
+    # A real step in speed is taken once it is plausible over the time since the last sample.
+    odo = odometer({'max_wheel_acceleration': 100.0})
+    odo.joint_sample(NOW, 0.0, 0.0, NOW)
+    assert odo.joint_sample(NOW + DT, 5.0, 5.0, NOW + DT) is None       # 250 rad/s^2
+    assert odo.joint_sample(NOW + 3 * DT, 5.0, 5.0, NOW + 3 * DT) is not None  # 83 rad/s^2

@@ -49,10 +49,11 @@ def planar_pose_from_msg(pose: Any) -> tuple[float, float, float]:
     return float(values[0]), float(values[1]), quaternion_to_yaw(*(q / norm))
 
 
-def planar_covariance_from_msg(covariance: Sequence[float]) -> np.ndarray | None:
-    """Return the (x, y, yaw) block of a 6x6 row-major covariance, or None if unusable."""
+def planar_covariance_from_msg(covariance: Sequence[float]) -> np.ndarray:
+    """Return the (x, y, yaw) block of a 6x6 row-major covariance, as given.
+
+    It is checked (finite, bounded, positive semi-definite) where it is used:
+    :meth:`skidkin_ros.core.odometry.odometer.Odometer.reset`.
+    """
     full = np.asarray(covariance, dtype=float).reshape(6, 6)
-    block = full[np.ix_([0, 1, 5], [0, 1, 5])]
-    if not np.all(np.isfinite(block)) or np.any(np.diag(block) < 0.0):
-        return None
-    return 0.5 * (block + block.T)
+    return full[np.ix_([0, 1, 5], [0, 1, 5])]

@@ -25,7 +25,8 @@ optional TF (needs tf2_ros); /diagnostics at 1 Hz on a steady clock.
 Services and topics: ``~/reset`` (std_srvs/Trigger) zeroes the pose and covariance and always
 succeeds. ``~/set_pose`` (geometry_msgs/PoseWithCovarianceStamped, like robot_localization's
 set_pose; there is no standard service carrying a pose) sets the pose; a request with a NaN or
-infinite field is rejected with a warning and counted in diagnostics.
+infinite field, x or y beyond 1e9 m, or a covariance that is not finite, bounded (1e12) and
+positive semi-definite is rejected with a warning and counted in diagnostics.
 
 While the input is stale (no accepted sample for ``input_timeout``), the pose is kept, nothing new
 is published and /diagnostics reports STALE. When samples return, integration resumes from the
@@ -371,14 +372,14 @@ class OdomNode(Node):
 
     @_guarded
     def _on_set_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        try:
-            pose = planar_pose_from_msg(msg.pose.pose)
-        except ValueError as err:
-            with self._lock:
-                self._reject('set_pose_rejected', f'set_pose rejected: {err}')
-            return
         with self._lock:
-            self._reset_state(pose, planar_covariance_from_msg(msg.pose.covariance))
+            try:
+                pose = planar_pose_from_msg(msg.pose.pose)
+                # Checks the pose and covariance (bounded, finite) before changing anything.
+                self._reset_state(pose, planar_covariance_from_msg(msg.pose.covariance))
+            except ValueError as err:
+                self._reject('set_pose_rejected', f'set_pose rejected, the pose is kept: {err}')
+                return
             self.counters['set_pose'] += 1
         self.get_logger().info(f'pose set to x {pose[0]:.3f} m, y {pose[1]:.3f} m, '
                                f'yaw {pose[2]:.3f} rad')
@@ -391,7 +392,7 @@ class OdomNode(Node):
         """Reset on a backward jump or a clock change (e.g. a bag replayed in a loop, N12)."""
         clock_change, delta_ns = jump.clock_change, int(jump.delta.nanoseconds)
         with self._lock:
-            self._reset_state((0.0, 0.0, 0.0))
+            self._odometer.clock_changed()  # the stamps of the old clock mean nothing now
             self.counters['clock_jump'] += 1
         if delta_ns < 0:
             self.get_logger().warning(
@@ -500,7 +501,10 @@ class OdomNode(Node):
 def main(args: Sequence[str] | None = None) -> int:
     """Run the node; return 0, or 2 on a configuration error (one log line, no traceback)."""
     logger = rclpy.logging.get_logger(NODE_NAME)
-    problems = check_params_files(sys.argv if args is None else args)
+    warnings: list[str] = []
+    problems = check_params_files(sys.argv if args is None else args, warnings)
+    for warning in warnings:
+        logger.warning(warning)
     if problems:
         for problem in problems:
             logger.fatal(f'{problem}; the node did not start')

@@ -4,7 +4,8 @@ Every parameter comes from :func:`skidkin_ros.core.odometry.config.parameter_sch
 names the calibrator writes). Values given on the command line or in a parameters file are
 validated by :meth:`OdometryConfig.from_flat` before anything is declared, so a typo or an
 out-of-range value gives one clear message naming the parameter and its range instead of
-rclpy's type or range exception. ``--params-file`` paths are checked before rclpy parses them.
+rclpy's type or range exception. ``--params-file`` files are read first as the offline tools read
+them (empty, aliases, too large: refused; a duplicate key: a warning), so both agree.
 """
 
 from __future__ import annotations
@@ -18,9 +19,9 @@ from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from skidkin_ros.core.kinematics.specs import Geometry, GEOMETRY_SPECS
-from skidkin_ros.core.odometry.config import OdometryConfig, parameter_schema, SchemaEntry
+from skidkin_ros.core.odometry.config import (OdometryConfig, parameter_schema,
+                                              read_params_document, SchemaEntry)
 from skidkin_ros.errors import ConfigError
-import yaml
 
 __all__ = ['READ_ONLY', 'parameter_descriptor', 'declare_schema', 'current_flat', 'plain_value',
            'check_params_files']
@@ -109,8 +110,13 @@ def _check_overrides(node: Node) -> None:
     OdometryConfig.from_flat(overrides)
 
 
-def check_params_files(argv: Sequence[str]) -> list[str]:
-    """Return one problem per ``--params-file`` path that is missing or unreadable (N16)."""
+def check_params_files(argv: Sequence[str], warnings: list[str] | None = None) -> list[str]:
+    """Return one problem per ``--params-file`` that the offline tools would refuse (N16, N31).
+
+    Each file is read as ``skidkin`` reads it (:func:`read_params_document`): missing,
+    unreadable, not a regular file, too large, empty, aliases: a problem. A duplicate key is
+    appended to ``warnings`` (the last value wins, in rcl as in the offline tools).
+    """
     problems = []
     args = list(argv)
     for i, arg in enumerate(args):
@@ -119,17 +125,11 @@ def check_params_files(argv: Sequence[str]) -> list[str]:
         if i + 1 >= len(args):
             problems.append('--params-file is given without a path')
             continue
-        path = args[i + 1]
         try:
-            with open(path, encoding='utf-8') as stream:
-                yaml.safe_load(stream)
-        except FileNotFoundError:
-            problems.append(f'parameters file {path} does not exist')
-        except IsADirectoryError:
-            problems.append(f'parameters file {path} is a directory, expected a YAML file')
-        except (OSError, UnicodeDecodeError) as err:
-            problems.append(f'parameters file {path} cannot be read: {err}')
-        except yaml.YAMLError as err:
-            problems.append(f'parameters file {path} is not valid YAML: '
-                            f'{" ".join(str(err).split())}')
+            _, found = read_params_document(args[i + 1])
+        except ConfigError as err:
+            problems.append(str(err))
+            continue
+        if warnings is not None:
+            warnings.extend(found)
     return problems

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import datetime
+import logging
 import math
 from pathlib import Path
 from typing import Any, Mapping
@@ -22,7 +23,7 @@ from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SP
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
-from skidkin_ros.errors import ConfigError, ParameterError
+from skidkin_ros.errors import brief, ConfigError, ParameterError
 import yaml
 
 __all__ = [
@@ -36,6 +37,8 @@ __all__ = [
     'nest',
     'parse_extensions',
     'read_params_file',
+    'read_params_document',
+    'parse_params_text',
     'write_params_file',
     'params_document',
 ]
@@ -44,6 +47,13 @@ SCHEMA_VERSION = 1
 INPUT_MODES = ('joint_state', 'wheel_topics')
 DEFAULT_LEFT_JOINTS = ['front_left_wheel_joint', 'rear_left_wheel_joint']
 DEFAULT_RIGHT_JOINTS = ['front_right_wheel_joint', 'rear_right_wheel_joint']
+# A publish-rate cap below this would silence /odom for minutes (1e-300 Hz: for ever).
+MIN_RATE_HZ = 0.1
+# A parameters file is a few kB; anything near this is not one (and would be read into memory).
+MAX_PARAMS_FILE_BYTES = 8 * 1024 * 1024
+FRAME_PARAMETERS = ('odom_frame_id', 'base_frame_id')
+
+LOG = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -80,7 +90,15 @@ NODE_SPECS: tuple[ParamSpec, ...] = (
           lower_open=True),
     _spec('future_tolerance', 's', 0.5, 0.0, 3600.0,
           'stamps further than this ahead of the node clock are rejected', lower_open=True),
-    _spec('max_rate', 'Hz', 0.0, 0.0, 1e5, 'cap on the odometry publish rate (0: every sample)'),
+    _spec('max_rate', 'Hz', 0.0, 0.0, 1e5,
+          f'cap on the odometry publish rate (0: every sample; else at least {MIN_RATE_HZ:g} Hz)'),
+    _spec('max_stamp_step_back', 's', 3.0, 0.0, 3600.0,
+          'input stamps this far behind the last accepted one (driver restarted, its clock '
+          'stepped back) reset the odometry once 3 samples in a row confirm it; a smaller step '
+          'back is rejected as older', lower_open=True),
+    _spec('max_wheel_acceleration', 'rad/s^2', 500.0, 0.0, 1e6,
+          'a wheel speed that changes faster than this from the last accepted sample (measured '
+          'over at least 10 ms) is rejected as a glitch', lower_open=True),
 )
 
 
@@ -176,28 +194,40 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
     return entries
 
 
+def _number(spec: ParamSpec, value: Any, prefix: str = '') -> float:
+    """Return a numeric parameter checked against its spec; the value echoed is kept short."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ParameterError(
+            f'parameter {prefix + spec.name!r} must be a number in {spec.range_text()} '
+            f'{spec.unit}, got {brief(value)} ({type(value).__name__})')
+    return check_value(spec, value, prefix=prefix)
+
+
 def _check_entry(entry: SchemaEntry, value: Any) -> Any:
     if entry.spec is not None:
         if entry.kind == 'int':
             if isinstance(value, bool) or not isinstance(value, int):
-                raise ParameterError(f'parameter {entry.name!r} must be an integer, got {value!r}')
+                raise ParameterError(
+                    f'parameter {entry.name!r} must be an integer, got {brief(value)}')
             return value
-        return check_value(entry.spec, value, prefix=entry.name[:-len(entry.spec.name)])
+        return _number(entry.spec, value, prefix=entry.name[:-len(entry.spec.name)])
     if entry.kind == 'bool' and not isinstance(value, bool):
-        raise ParameterError(f'parameter {entry.name!r} must be true or false, got {value!r}')
+        raise ParameterError(f'parameter {entry.name!r} must be true or false, got {brief(value)}')
     if entry.kind == 'int' and (isinstance(value, bool) or not isinstance(value, int)):
-        raise ParameterError(f'parameter {entry.name!r} must be an integer, got {value!r}')
+        raise ParameterError(f'parameter {entry.name!r} must be an integer, got {brief(value)}')
     if entry.kind == 'string':
         if not isinstance(value, str):
-            raise ParameterError(f'parameter {entry.name!r} must be a string, got {value!r}')
+            raise ParameterError(f'parameter {entry.name!r} must be a string, got {brief(value)}')
         if entry.choices and value not in entry.choices:
             raise ParameterError(
-                f'parameter {entry.name!r} = {value!r} is not one of: {", ".join(entry.choices)}')
+                f'parameter {entry.name!r} = {brief(value)} is not one of: '
+                f'{", ".join(entry.choices)}')
     if entry.kind == 'string_array':
         if (not isinstance(value, (list, tuple)) or not value
                 or not all(isinstance(v, str) and v for v in value)):
             raise ParameterError(
-                f'parameter {entry.name!r} must be a non-empty list of joint names, got {value!r}')
+                f'parameter {entry.name!r} must be a non-empty list of joint names, got '
+                f'{brief(value)}')
         return list(value)
     if entry.kind == 'double_array':
         if (not isinstance(value, (list, tuple)) or len(value) != entry.length
@@ -205,7 +235,7 @@ def _check_entry(entry: SchemaEntry, value: Any) -> Any:
                            for v in value)):
             raise ParameterError(
                 f'parameter {entry.name!r} must be a list of {entry.length} numbers, '
-                f'got {value!r}')
+                f'got {brief(value)}')
         values = [float(v) for v in value]
         if not all(math.isfinite(v) and v > 0.0 for v in values):
             raise ParameterError(
@@ -213,6 +243,29 @@ def _check_entry(entry: SchemaEntry, value: Any) -> Any:
                 f'(a zero variance makes a filter trust the value blindly), got {values}')
         return values
     return value
+
+
+def _check_node_values(values: Mapping[str, Any]) -> None:
+    """Cross-checks of the node's own parameters that a range alone cannot express."""
+    rate = values['max_rate']
+    if 0.0 < rate < MIN_RATE_HZ:
+        raise ParameterError(
+            f"parameter 'max_rate' = {rate!r} Hz would publish odometry less than once every "
+            f'{1.0 / MIN_RATE_HZ:g} s; give 0 (every sample) or at least {MIN_RATE_HZ:g} Hz')
+    for name in FRAME_PARAMETERS:
+        frame = values[name]
+        if not frame or frame != frame.strip() or any(c.isspace() for c in frame):
+            raise ParameterError(
+                f'parameter {name!r} = {brief(frame)} is not a frame id; expected a non-empty '
+                'name without spaces (e.g. "odom", "base_link")')
+        if frame.startswith('/'):
+            raise ParameterError(
+                f'parameter {name!r} = {brief(frame)} starts with "/", which tf2 refuses in '
+                f'frame ids; write {frame.lstrip("/")!r}')
+    if values['odom_frame_id'] == values['base_frame_id']:
+        raise ParameterError(
+            f'odom_frame_id and base_frame_id are both {values["odom_frame_id"]!r}; the odometry '
+            'is the pose of one frame in another: give two different frames')
 
 
 @dataclass(frozen=True)
@@ -244,9 +297,10 @@ class OdometryConfig:
 
     @property
     def limits(self) -> IntegratorLimits:
-        """Return the plausibility limits of the integrator: max_dt and max_wheel_speed."""
-        return IntegratorLimits(max_dt_s=self.values['max_dt'],
-                                max_wheel_speed_rad_s=self.values['max_wheel_speed'])
+        """Return the integrator's plausibility limits: max_dt, wheel speed and acceleration."""
+        return IntegratorLimits(
+            max_dt_s=self.values['max_dt'], max_wheel_speed_rad_s=self.values['max_wheel_speed'],
+            max_wheel_acceleration_rad_s2=self.values['max_wheel_acceleration'])
 
     @property
     def active_noise(self) -> NoiseModel | None:
@@ -271,18 +325,19 @@ class OdometryConfig:
         """
         geometry_values = {}
         for spec in GEOMETRY_SPECS:
-            geometry_values[spec.name] = check_value(spec, flat.get(
+            geometry_values[spec.name] = _number(spec, flat.get(
                 spec.name, spec.default_for(None)))
         geometry = Geometry(**geometry_values)
         schema = {entry.name: entry for entry in parameter_schema(geometry)}
         unknown = sorted(set(flat) - set(schema) - {'use_sim_time'}
                          - {n for n in flat if n.startswith(('provenance.', 'qos_overrides.'))})
         if unknown:
-            raise ParameterError(f'unknown parameter(s) {unknown}; see the README for the '
-                                 'parameters the node accepts')
+            raise ParameterError(f'unknown parameter(s) {brief(unknown, 400)}; see the README for '
+                                 'the parameters the node accepts')
         values = {}
         for name, entry in schema.items():
             values[name] = _check_entry(entry, flat.get(name, entry.default))
+        _check_node_values(values)
         if values['schema_version'] != SCHEMA_VERSION:
             raise ConfigError(
                 f'parameters file schema_version is {values["schema_version"]}, this version of '
@@ -341,22 +396,105 @@ def nest(flat: Mapping[str, Any]) -> dict[str, Any]:
     return tree
 
 
-def read_params_file(path: str | Path) -> dict[str, Any]:
-    """Read a ROS 2 parameters file and return the flat parameters of its first node entry."""
-    source = Path(path)
-    if not source.is_file():
-        raise ConfigError(f'parameters file {source} does not exist or is not a file')
+class _ParamsLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, made to read a parameters file as ROS does.
+
+    Aliases (``*name``) and merge keys (``<<``) are refused before anything is expanded: ROS's
+    parser refuses them too, and a few hundred bytes of nested aliases expand to gigabytes (an
+    "alias bomb"). A key given twice in one mapping is noted in ``duplicates`` (the last value
+    wins, in ROS as here).
+    """
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self.duplicates: list[str] = []
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(
+                None, None, f'the alias *{event.anchor} is not allowed in a parameters file (ROS '
+                'refuses aliases too); write the value out', event.start_mark)
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        seen: set[str] = set()
+        for key_node, _ in node.value:
+            if key_node.tag == 'tag:yaml.org,2002:merge':
+                raise yaml.constructor.ConstructorError(
+                    None, None, 'merge keys (<<) are not allowed in a parameters file (ROS does '
+                    'not expand them); write the values out', key_node.start_mark)
+            if isinstance(key_node, yaml.ScalarNode):
+                if key_node.value in seen:
+                    self.duplicates.append(f'key {brief(key_node.value)} is given twice (line '
+                                           f'{key_node.start_mark.line + 1}); the last value wins')
+                seen.add(key_node.value)
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_params_text(text: str, source: str | Path) -> tuple[Mapping[str, Any], list[str]]:
+    """Parse the text of a parameters file; return (document, warnings) or raise ConfigError.
+
+    Refused, as the node refuses them: an empty document or one that is not a mapping, aliases
+    and merge keys. A duplicate key is a warning (the last value wins, in the node too).
+    """
+    loader = _ParamsLoader(text)
     try:
-        document = yaml.safe_load(source.read_text(encoding='utf-8'))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
-        raise ConfigError(f'parameters file {source} cannot be read as YAML: {err}') from err
+        document = loader.get_single_data()
+    except yaml.YAMLError as err:
+        raise ConfigError(f'parameters file {source} is not valid YAML: '
+                          f'{" ".join(str(err).split())}') from err
+    except RecursionError as err:
+        raise ConfigError(f'parameters file {source} nests too deeply to be a parameters '
+                          'file') from err
+    finally:
+        loader.dispose()
     if not isinstance(document, Mapping) or not document:
         raise ConfigError(f'parameters file {source} is empty or not a mapping; expected '
                           '"/**: ros__parameters: ..."')
+    return document, [f'parameters file {source}: {text}' for text in loader.duplicates]
+
+
+def read_params_document(path: str | Path) -> tuple[Mapping[str, Any], list[str]]:
+    """Read and parse a parameters file (see :func:`parse_params_text`); refuse what is not one.
+
+    The path must be a regular file (not a folder, a device like /dev/zero or a pipe) of at
+    most ``MAX_PARAMS_FILE_BYTES``, in UTF-8.
+    """
+    source = Path(path)
+    if not source.exists():
+        raise ConfigError(f'parameters file {source} does not exist')
+    if source.is_dir():
+        raise ConfigError(f'parameters file {source} is a directory, expected a YAML file')
+    if not source.is_file():
+        raise ConfigError(f'parameters file {source} is not a regular file (a device or a pipe?); '
+                          'expected a YAML file')
+    try:
+        with source.open('rb') as stream:
+            data = stream.read(MAX_PARAMS_FILE_BYTES + 1)
+        if len(data) > MAX_PARAMS_FILE_BYTES:
+            raise ConfigError(f'parameters file {source} is larger than '
+                              f'{MAX_PARAMS_FILE_BYTES // (1024 * 1024)} MiB; a parameters file '
+                              'is a few kB: is it the right file?')
+        text = data.decode('utf-8')
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f'parameters file {source} cannot be read: {err}') from err
+    return parse_params_text(text, source)
+
+
+def read_params_file(path: str | Path) -> dict[str, Any]:
+    """Read a ROS 2 parameters file and return the flat parameters of its first node entry.
+
+    Warnings (a duplicate key) are logged.
+    """
+    source = Path(path)
+    document, warnings = read_params_document(source)
+    for warning in warnings:
+        LOG.warning(warning)
     for node_name, body in document.items():
         if isinstance(body, Mapping) and isinstance(body.get('ros__parameters'), Mapping):
             return flatten(body['ros__parameters'])
-        raise ConfigError(f'parameters file {source}: entry {node_name!r} has no '
+        raise ConfigError(f'parameters file {source}: entry {brief(node_name)} has no '
                           '"ros__parameters" mapping')
     raise ConfigError(f'parameters file {source} has no node entry')
 

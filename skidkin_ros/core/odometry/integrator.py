@@ -26,6 +26,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from skidkin_ros.core.odometry.wheels import jump_limit, jumped_sides
+
 __all__ = [
     'SMALL_ANGLE_RAD',
     'body_increment',
@@ -263,6 +265,7 @@ class SampleStatus(enum.Enum):
     GAP = 'gap'                      # dt > max_dt: not integrated across, restarted here
     NON_FINITE_SPEED = 'non_finite'  # NaN or inf wheel speed: rejected
     IMPLAUSIBLE_SPEED = 'implausible'  # |speed| > max_wheel_speed: rejected
+    WHEEL_JUMP = 'wheel_jump'        # speed changed faster than max_wheel_acceleration: rejected
     NON_FINITE_STATE = 'non_finite_state'  # integration produced NaN/inf: rolled back
 
     @property
@@ -273,10 +276,15 @@ class SampleStatus(enum.Enum):
 
 @dataclass(frozen=True)
 class IntegratorLimits:
-    """Plausibility limits: max_dt_s bounds the integration step, max_wheel_speed the input."""
+    """Plausibility limits: max_dt_s bounds the integration step, the others the input.
+
+    ``max_wheel_acceleration_rad_s2`` (inf: no check) rejects speeds that jump (see
+    :mod:`skidkin_ros.core.odometry.wheels`).
+    """
 
     max_dt_s: float = 0.5
     max_wheel_speed_rad_s: float = 100.0
+    max_wheel_acceleration_rad_s2: float = math.inf
 
 
 Triple = tuple[float, float, float]
@@ -398,16 +406,20 @@ class StreamingIntegrator:
         if dt_ns < 0:
             return self._result(SampleStatus.OLDER_STAMP,
                                 detail=f'stamp older than previous by {-dt_ns / 1e9:.6f} s')
-        if dt_ns == 0:
-            self._hold(t_ns, omega_l, omega_r)
-            return self._result(SampleStatus.DUPLICATE_STAMP,
-                                detail='duplicate stamp (dt = 0)')
         dt_s = dt_ns * 1e-9
         if dt_s > self.limits.max_dt_s:
             self._hold(t_ns, omega_l, omega_r, restart=True)
             return self._result(SampleStatus.GAP, dt_s,
                                 f'gap of {dt_s:.3f} s > max_dt {self.limits.max_dt_s:g} s: '
                                 'not integrated across')
+        held_l, held_r = self.held_speeds
+        limit = jump_limit(dt_s, self.limits.max_wheel_acceleration_rad_s2)
+        if not (abs(omega_l - held_l) <= limit and abs(omega_r - held_r) <= limit):
+            return self._jump(omega_l, omega_r, dt_s)
+        if dt_ns == 0:
+            self._hold(t_ns, omega_l, omega_r)
+            return self._result(SampleStatus.DUPLICATE_STAMP,
+                                detail='duplicate stamp (dt = 0)')
         step_twist = self._twist
         new_state = self.state
         if self._stateful:
@@ -429,6 +441,16 @@ class StreamingIntegrator:
         self._hold(t_ns, omega_l, omega_r)
         return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
                           step_twist)
+
+    def _jump(self, omega_l: float, omega_r: float, dt_s: float) -> StepResult:
+        sides = jumped_sides(self.held_speeds, omega_l, omega_r, dt_s,
+                             self.limits.max_wheel_acceleration_rad_s2)
+        told = ' and '.join(f'{side} wheel speed jumped from {before:.3g} to {after:.3g} rad/s'
+                            for side, before, after in sides)
+        return self._result(SampleStatus.WHEEL_JUMP, detail=(
+            f'{told} in {dt_s:.3f} s (more than max_wheel_acceleration '
+            f'{self.limits.max_wheel_acceleration_rad_s2:g} rad/s^2): a glitch of the '
+            f'{" and ".join(side for side, _, _ in sides)} wheel reading'))
 
 
 def _offset_ns(source: TwistSource) -> int:

@@ -6,10 +6,16 @@ between is here, and ``skidkin predict`` runs the very same steps over recorded 
 node and the offline prediction agree by construction. For one sample:
 
 1. Stamp it (:meth:`Odometer.joint_sample`): a zero header stamp is refused, or replaced by the
-   receive time when ``zero_stamp_uses_receive_time``; a stamp more than ``future_tolerance``
-   ahead of the node clock is refused. Two Float64 wheel topics carry no stamp: their values are
-   paired within ``pair_tolerance`` and stamped with the receive time
+   receive time when ``zero_stamp_uses_receive_time``; a negative stamp is refused, and so is a
+   stamp more than ``future_tolerance`` ahead of the node clock. Two Float64 wheel topics carry
+   no stamp: their values are paired within ``pair_tolerance`` and stamped with the receive time
    (:meth:`Odometer.wheel_sample`, :class:`~skidkin_ros.core.odometry.wheels.WheelPairer`).
+   A stamp more than ``max_stamp_step_back`` behind the last accepted one is refused, unless
+   ``STEP_BACK_CONFIRM`` samples in a row (increasing, each within ``max_dt`` of the previous)
+   say the input clock itself stepped back (a driver restarted): then the odometry is reset to
+   the origin, as for a sim-time jump, and goes on from the new clock. The last accepted stamp
+   is remembered across :meth:`Odometer.reset` (~/reset, ~/set_pose), so a stale or tiny stamp
+   right after a reset is refused too; :meth:`Odometer.clock_changed` forgets it.
 2. Integrate it (:meth:`Odometer.step`): the streaming integrator checks the speeds and the
    stamp (duplicate, older, gap), advances the pose, and the covariance is propagated over the
    integrated step. Every outcome is counted by cause; rejections are reported to ``warn``.
@@ -41,9 +47,18 @@ from skidkin_ros.core.odometry.noise import FALLBACK_POSE_DIAGONAL, FALLBACK_TWI
 from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
 from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer
 
-__all__ = ['SampleRules', 'Estimate', 'Odometer', 'Prediction', 'predict_wheels']
+__all__ = ['SampleRules', 'Estimate', 'Odometer', 'Prediction', 'predict_wheels',
+           'check_pose', 'check_covariance', 'POSE_LIMIT_M', 'VARIANCE_LIMIT',
+           'STEP_BACK_CONFIRM']
 
 NS_PER_S = 1_000_000_000
+# A pose set from outside is refused beyond this (m): a step from 1e308 m cannot stay finite, and
+# no odometry frame is a million kilometres wide.
+POSE_LIMIT_M = 1e9
+# Largest variance (m^2, rad^2) a set covariance may hold: beyond it, propagation overflows.
+VARIANCE_LIMIT = 1e12
+# Samples in a row that confirm a stepped-back input clock (one corrupt stamp is not a restart).
+STEP_BACK_CONFIRM = 3
 Triple = tuple[float, float, float]
 Warn = Callable[..., None]  # warn(cause, message, error=False)
 
@@ -56,11 +71,12 @@ class SampleRules:
     future_tolerance_s: float = node_default('future_tolerance')
     pair_tolerance_s: float = node_default('pair_tolerance')
     max_rate_hz: float = node_default('max_rate')
+    max_stamp_step_back_s: float = node_default('max_stamp_step_back')
 
     @classmethod
     def from_config(cls, config: OdometryConfig) -> 'SampleRules':
         return cls(config['zero_stamp_uses_receive_time'], config['future_tolerance'],
-                   config['pair_tolerance'], config['max_rate'])
+                   config['pair_tolerance'], config['max_rate'], config['max_stamp_step_back'])
 
 
 class Estimate(NamedTuple):
@@ -82,6 +98,38 @@ _new_estimate = tuple.__new__
 
 def _ignore(*args: object, **kwargs: object) -> None:
     """Ignore an event (the listener of offline prediction)."""
+
+
+def check_pose(pose: Sequence[float]) -> tuple[float, float, float]:
+    """Return (x, y, yaw) as floats, or raise ValueError for a pose the odometry cannot hold.
+
+    x and y must be finite and within ``POSE_LIMIT_M``, yaw finite and within the same bound in
+    radians: from further out, the next step could not stay finite (or exact).
+    """
+    x, y, yaw = (float(v) for v in pose)
+    if not all(math.isfinite(v) and abs(v) <= POSE_LIMIT_M for v in (x, y, yaw)):
+        raise ValueError(f'pose (x {x:g} m, y {y:g} m, yaw {yaw:g} rad) is not finite or beyond '
+                         f'{POSE_LIMIT_M:g} m (rad); expected finite values within it')
+    return x, y, yaw
+
+
+def check_covariance(covariance: np.ndarray) -> np.ndarray:
+    """Return a 3 x 3 (x, y, yaw) covariance made symmetric, or raise ValueError.
+
+    It must be finite, positive semi-definite, with variances up to ``VARIANCE_LIMIT``: a larger
+    one overflows when propagated, and the odometry would never be published again.
+    """
+    block = np.asarray(covariance, dtype=float).reshape(3, 3)
+    if not np.all(np.isfinite(block)):
+        raise ValueError('covariance has a non-finite value; expected finite variances')
+    if np.abs(block).max() > VARIANCE_LIMIT:
+        raise ValueError(f'covariance holds {np.abs(block).max():g}, beyond {VARIANCE_LIMIT:g} '
+                         '(m^2, rad^2); give variances within it')
+    block = 0.5 * (block + block.T)
+    if np.linalg.eigvalsh(block).min() < -1e-9 * max(1.0, float(np.abs(block).max())):
+        raise ValueError('covariance (x, y, yaw block) is not positive semi-definite; expected '
+                         'non-negative variances and consistent correlations')
+    return block
 
 
 class Odometer:
@@ -109,6 +157,9 @@ class Odometer:
         self.set_rules(rules or SampleRules())
         self.period_s = 0.0
         self.last_published_t_ns: int | None = None
+        # The last accepted input stamp, kept across reset() (see the module docstring).
+        self.last_input_t_ns: int | None = None
+        self._step_back_run: list[int] = []
 
     @classmethod
     def from_config(cls, config: OdometryConfig, model: str | None = None, *,
@@ -135,6 +186,7 @@ class Odometer:
         self._future_ns = rules.future_tolerance_s * NS_PER_S
         self._min_period_ns = NS_PER_S / rules.max_rate_hz if rules.max_rate_hz > 0.0 else 0.0
         self.pairer.tolerance_ns = rules.pair_tolerance_s * NS_PER_S
+        self._step_back_ns = rules.max_stamp_step_back_s * NS_PER_S
 
     def configure(self, config: OdometryConfig) -> None:
         """Switch to a validated configuration; the pose and its covariance are kept."""
@@ -150,16 +202,25 @@ class Odometer:
         """Set the pose (default: the origin) and restart from it.
 
         The covariance restarts from (almost) zero, plus ``covariance`` (a 3 x 3 (x, y, yaw)
-        block) when given; held speeds, the last stamp and wheel values waiting for a partner
-        are forgotten.
+        block) when given; held speeds, the integrator's last stamp and wheel values waiting for
+        a partner are forgotten. A pose or covariance the odometry cannot hold
+        (:func:`check_pose`, :func:`check_covariance`) raises ValueError and changes nothing.
         """
+        pose = check_pose(pose)
+        block = None if covariance is None else check_covariance(covariance)
         self.integrator.reset(pose)
         self.covariance.reset()
-        if covariance is not None:
-            self.covariance.cov = self.covariance.cov + covariance
+        if block is not None:
+            self.covariance.cov = self.covariance.cov + block
         self.period_s = 0.0
         self.last_published_t_ns = None
         self.pairer.clear()
+        self._step_back_run.clear()
+
+    def clock_changed(self) -> None:
+        """Reset to the origin and forget the last input stamp (the clock itself jumped)."""
+        self.reset()
+        self.last_input_t_ns = None
 
     # ------------------------------------------------------------------ inputs
     def joint_sample(self, t_ns: int, omega_l: float, omega_r: float,
@@ -172,6 +233,10 @@ class Odometer:
                              'instead)')
                 return None
             t_ns = now_ns
+        elif t_ns < 0:
+            self._reject('negative_stamp', f'JointState stamp is negative ({t_ns / NS_PER_S:.3f} '
+                         's); sample rejected: ROS time starts at 0, check the driver clock')
+            return None
         ahead_ns = t_ns - now_ns
         if ahead_ns > self._future_ns:
             self._reject('future_stamp',
@@ -200,16 +265,50 @@ class Odometer:
     # ------------------------------------------------------------------ the pipeline
     def update(self, t_ns: int, omega_l: float, omega_r: float) -> Estimate | None:
         """Integrate a stamped sample; return what to publish for it, if anything."""
+        last = self.last_input_t_ns
+        if last is not None and last - t_ns > self._step_back_ns:
+            if not self._clock_restarted(t_ns):
+                return None
+        elif self._step_back_run:
+            self._step_back_run.clear()
         result = self.step(t_ns, omega_l, omega_r)
         status = result.status
         if status is not SampleStatus.INTEGRATED:  # the usual case first: this runs per sample
             if not status.accepted:
                 return None
+            self.last_input_t_ns = t_ns
             if status is SampleStatus.DUPLICATE_STAMP:
                 self._fresh()
                 return None
+        self.last_input_t_ns = t_ns
         self._fresh()
         return self._estimate(t_ns + self.integrator.output_offset_ns, result)
+
+    def _clock_restarted(self, t_ns: int) -> bool:
+        """Take a stamp far behind the last accepted one: True once a clock restart is confirmed.
+
+        Until ``STEP_BACK_CONFIRM`` such samples in a row (increasing, each within max_dt of the
+        previous) confirm it, the sample is rejected; then the odometry is reset to the origin
+        and the sample is taken as the first of the new clock.
+        """
+        run = self._step_back_run
+        if run and not 0 < t_ns - run[-1] <= self.integrator.limits.max_dt_s * NS_PER_S:
+            run.clear()
+        run.append(t_ns)
+        behind_s = (self.last_input_t_ns - t_ns) / NS_PER_S
+        if len(run) < STEP_BACK_CONFIRM:
+            self._reject('stamp_step_back',
+                         f'stamp {behind_s:.3f} s behind the last accepted one (more than '
+                         f'max_stamp_step_back {self.rules.max_stamp_step_back_s:g} s): sample '
+                         f'rejected; {STEP_BACK_CONFIRM} such samples in a row mean the driver '
+                         'clock stepped back, and the odometry is reset')
+            return False
+        self.clock_changed()
+        self.counters['stamp_reset'] += 1
+        self._warn('stamp_reset', f'the input clock stepped back by {behind_s:.3f} s '
+                   f'({STEP_BACK_CONFIRM} samples in a row; driver restarted?): odometry reset to '
+                   'the origin')
+        return True
 
     def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
         """Integrate one sample and propagate the covariance; count and report the outcome."""

@@ -14,6 +14,15 @@ node would not reproduce the offline prediction:
    receive time (:class:`WheelPairer`); a value whose partner does not come in time is dropped.
    The node feeds it as messages arrive; :func:`pair_wheel_streams` feeds it a recording's
    messages in receive order.
+3. A wheel speed that jumps is a glitch (a driver's spike, a bit flip), even below
+   ``max_wheel_speed``: a sample whose speed changed faster than ``max_wheel_acceleration`` from
+   the last accepted one, measured over at least ``MIN_JUMP_INTERVAL_S`` (so encoder quantization
+   at kHz rates does not trip it), is rejected (:func:`jumped_sides`). The node's integrator
+   rejects it as it comes; the bag reader drops it with :func:`drop_jumps`, so neither a fit nor
+   the lidar ground truth's check against the wheels ever sees a spike. The reference is the last
+   accepted sample, so a real step in speed is taken after at most |step| / max_wheel_acceleration
+   seconds; the first sample (and the first after a gap longer than ``max_dt``) has no reference
+   and is taken as it is.
 
 Times are integer nanoseconds; speeds rad/s.
 """
@@ -35,9 +44,16 @@ __all__ = [
     'Pairing',
     'WheelPairer',
     'pair_wheel_streams',
+    'MIN_JUMP_INTERVAL_S',
+    'jump_limit',
+    'jumped_sides',
+    'drop_jumps',
 ]
 
 SIDES = ('left', 'right')
+# Wheel accelerations are measured over at least this long (s): at kHz rates one encoder count
+# between two samples is a large acceleration, not a glitch.
+MIN_JUMP_INTERVAL_S = 0.01
 
 
 class MalformedMessageError(ValueError):
@@ -154,3 +170,42 @@ def pair_wheel_streams(messages: Iterable[tuple[str, int, float]], tolerance_ns:
         elif outcome is Pairing.UNPAIRED:
             unpaired += 1
     return samples, unpaired
+
+
+def jump_limit(dt_s: float, max_acceleration: float) -> float:
+    """Return the largest plausible change of a wheel speed (rad/s) over ``dt_s`` seconds."""
+    return max_acceleration * (dt_s if dt_s > MIN_JUMP_INTERVAL_S else MIN_JUMP_INTERVAL_S)
+
+
+def jumped_sides(held: tuple[float, float], omega_l: float, omega_r: float, dt_s: float,
+                 max_acceleration: float) -> list[tuple[str, float, float]]:
+    """Return (side, from, to) for each side whose speed jumped beyond :func:`jump_limit`."""
+    limit = jump_limit(dt_s, max_acceleration)
+    return [(side, before, after)
+            for side, before, after in (('left', held[0], omega_l), ('right', held[1], omega_r))
+            if abs(after - before) > limit]
+
+
+def drop_jumps(t_ns: Sequence[int], omega_l: Sequence[float], omega_r: Sequence[float],
+               max_acceleration: float, max_dt_s: float) -> tuple[list[bool], dict[str, int]]:
+    """Return which samples to keep (stamps increasing) and how many jumps each side had.
+
+    The integrator's rule, run over a recording: a sample that jumps from the last kept one is
+    dropped; after a gap longer than ``max_dt_s`` the next sample is kept as it is.
+    """
+    keep = []
+    sides = {'left': 0, 'right': 0}
+    last_t: int | None = None
+    held = (0.0, 0.0)
+    for t, wl, wr in zip(t_ns, omega_l, omega_r):
+        t = int(t)
+        if last_t is not None and (t - last_t) * 1e-9 <= max_dt_s:
+            jumped = jumped_sides(held, wl, wr, (t - last_t) * 1e-9, max_acceleration)
+            if jumped:
+                for side, _, _ in jumped:
+                    sides[side] += 1
+                keep.append(False)
+                continue
+        keep.append(True)
+        last_t, held = t, (float(wl), float(wr))
+    return keep, sides
