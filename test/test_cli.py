@@ -2,7 +2,9 @@
 
 import argparse
 import csv
+import os
 from pathlib import Path
+import stat
 
 import numpy as np
 import pytest
@@ -10,7 +12,7 @@ from skidkin_ros.adapters.sim_writer import write_truth_csv
 from skidkin_ros.cli import cmd_demo
 from skidkin_ros.cli.main import main
 from skidkin_ros.core.drive import WheelSamples
-from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file
+from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
 from skidkin_ros.sim.simulate import SimConfig, simulate
 
 HUSKY = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
@@ -191,3 +193,71 @@ def test_diagnose_from_the_command_line_on_two_cores(tmp_path, capsys):
         main(['diagnose', *train, '--params', str(params), '--out', str(tmp_path / 'x.yaml'),
               '--jobs', '0'])
     assert 'expected a whole number of processes >= 1' in capsys.readouterr().err
+
+
+def test_output_errors_exit_5_before_any_work_without_a_traceback(sim_table, tmp_path, capsys):
+    """Issue 12 item 10 (C23): these escaped as tracebacks with exit code 1."""
+    table, _ = sim_table
+    params = tmp_path / 'params.yaml'
+    write_params_file(params, {})
+    folder = tmp_path / 'a_folder'
+    folder.mkdir()
+    existing = tmp_path / 'a_file.txt'
+    existing.write_text('precious')
+    missing = str(tmp_path / 'missing.csv')  # reached only if the output check came too late
+    cases = [
+        (['predict', str(table), '--params', str(params), '--out', str(folder), '--force'],
+         'is a folder'),
+        (['predict', str(table), '--params', str(params), '--out', '/proc/pred.csv'],
+         'cannot write in folder /proc'),
+        (['predict', str(table), '--params', str(params), '--out', str(tmp_path / ('p' * 300))],
+         'longer than the file system takes'),
+        (['predict', str(table), '--params', str(params), '--out', str(existing / 'p.csv')],
+         'is not a folder'),
+        (['calibrate', missing, '--out', '/proc/params.yaml'], 'cannot write in folder /proc'),
+        (['calibrate', missing, '--out', str(tmp_path / 'p.yaml'), '--report', str(existing)],
+         'is not a folder'),
+        (['evaluate', missing, '--params', str(params), '--report', str(existing)],
+         'is not a folder'),
+        (['demo', '--out', str(existing)], 'is not a folder'),
+        (['simulate', '--out', str(tmp_path / 'bag'), '--truth', '/proc/truth.csv'],
+         'cannot write in folder /proc'),
+    ]
+    for argv, needle in cases:
+        assert main(argv) == 5, argv
+        err = capsys.readouterr().err
+        assert needle in err and 'Traceback' not in err, (argv, err)
+    assert existing.read_text() == 'precious' and list(folder.iterdir()) == []
+
+
+def test_outputs_honour_the_umask_and_a_replaced_file_keeps_its_mode(sim_table, tmp_path):
+    """Issue 12 item 11 (C24): every output was created 0600, and --force made a 0644 file 0600."""
+    table, _ = sim_table
+    params = tmp_path / 'params.yaml'
+    old_mask = os.umask(0o022)
+    try:
+        write_params_file(params, {})
+        assert stat.S_IMODE(params.stat().st_mode) == 0o644
+        out = tmp_path / 'pred.csv'
+        assert main(['predict', str(table), '--params', str(params), '--out', str(out)]) == 0
+        assert stat.S_IMODE(out.stat().st_mode) == 0o644
+        out.chmod(0o640)
+        assert main(['predict', str(table), '--params', str(params), '--out', str(out),
+                     '--force']) == 0
+        assert stat.S_IMODE(out.stat().st_mode) == 0o640
+        os.umask(0o077)
+        private = tmp_path / 'private.csv'
+        assert main(['predict', str(table), '--params', str(params), '--out', str(private)]) == 0
+        assert stat.S_IMODE(private.stat().st_mode) == 0o600
+    finally:
+        os.umask(old_mask)
+
+
+def test_demo_force_removes_only_what_the_demo_wrote(tmp_path, capsys):
+    """C23: --force on a folder of the user's files deleted them all (shutil.rmtree)."""
+    out = tmp_path / 'mine'
+    out.mkdir()
+    (out / 'thesis.tex').write_text('precious')
+    assert main(['demo', '--out', str(out), '--force']) == 5
+    assert 'did not write' in capsys.readouterr().err
+    assert (out / 'thesis.tex').read_text() == 'precious'

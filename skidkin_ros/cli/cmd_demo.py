@@ -20,6 +20,7 @@ import numpy as np
 
 from skidkin_ros.adapters.sim_writer import write_bag
 from skidkin_ros.adapters.sources import load_source, SourceOptions
+from skidkin_ros.atomic import check_writable_dir
 from skidkin_ros.cli.common import (calibration_provenance, default_cache_dir,
                                     input_parameters, print_calibration, say)
 from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_pose_errors
@@ -43,12 +44,29 @@ def _stats_line(label: str, eps_t: np.ndarray, eps_th: np.ndarray) -> str:
             f'eps_theta {th.median:.3f} deg/m [{th.q25:.3f}, {th.q75:.3f}]   ({t.count} segs)')
 
 
+# What the demo writes in its folder: the only entries --force removes.
+DEMO_ENTRIES = ('train_bag', 'eval_bag', 'train_bag_truth.csv', 'eval_bag_truth.csv',
+                'params.yaml', 'report')
+
+
 def _prepare(out: Path, force: bool) -> None:
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise OutputError(f'{out} exists and is not empty; pass --force to replace it')
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
+    """Make the output folder; with ``force`` remove an earlier demo's outputs, and only them."""
+    check_writable_dir(out, force, '--out')
+    if out.is_dir():
+        strangers = sorted(p.name for p in out.iterdir() if p.name not in DEMO_ENTRIES)
+        if strangers:
+            raise OutputError(f'{out} holds files the demo did not write ({strangers[:5]}); '
+                              'refusing to delete them: choose another --out')
+        for name in DEMO_ENTRIES:
+            entry = out / name
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            elif entry.exists() or entry.is_symlink():
+                entry.unlink()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f'cannot create {out}: {err}') from err
 
 
 def run(args: argparse.Namespace) -> int:

@@ -12,7 +12,7 @@ __all__ = ['add_parser']
 
 
 def run(args: argparse.Namespace) -> int:
-    check_report_dir(args.out, args.force)
+    check_report_dir(args.out, args.force, '--out')
     study = run_estimation_study(args.out, seed=args.seed, quick=args.quick)
     for line in study.summary_lines():
         say(line)

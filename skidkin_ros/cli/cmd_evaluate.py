@@ -14,7 +14,7 @@ from skidkin_ros.cli.tables import error_table
 from skidkin_ros.core.calibration.evaluation import evaluate_models
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.errors import DataError
+from skidkin_ros.errors import DataError, OutputError
 from skidkin_ros.report.figures import error_distributions
 
 __all__ = ['add_parser']
@@ -38,7 +38,10 @@ def run(args: argparse.Namespace) -> int:
     table = error_table(evaluation, best=config.model)
     say(table)
     if args.report is not None:
-        args.report.mkdir(parents=True, exist_ok=True)
+        try:
+            args.report.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(f'cannot create report folder {args.report}: {err}') from err
         shim = SimpleNamespace(evaluation=evaluation, eval_segments=segments,
                                options=SimpleNamespace(h_e=args.h_e))
         error_distributions(shim, args.report / 'errors.png')

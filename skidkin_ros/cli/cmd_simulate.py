@@ -6,8 +6,9 @@ import argparse
 from pathlib import Path
 
 from skidkin_ros.adapters.sim_writer import write_bag
+from skidkin_ros.atomic import check_writable, check_writable_dir
 from skidkin_ros.cli.common import say
-from skidkin_ros.errors import ParameterError
+from skidkin_ros.errors import OutputError, ParameterError
 from skidkin_ros.sim.effects import EFFECTS, make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
 
@@ -25,11 +26,15 @@ def _effects(items: list[str] | None) -> tuple:
 
 
 def run(args: argparse.Namespace) -> int:
+    truth_csv = args.truth or Path(str(args.out).rstrip('/') + '_truth.csv')
+    check_writable(truth_csv, args.force, '--truth')  # before the simulation, not after it
+    if args.out.exists() and not args.force:
+        raise OutputError(f'{args.out} already exists; pass --force to replace it')
+    check_writable_dir(args.out.parent if str(args.out.parent) else Path('.'), True, '--out')
     config = SimConfig(duration_s=args.duration, seed=args.seed, wheel_radius=args.wheel_radius,
                        track_width=args.track_width, effects=_effects(args.effect),
                        encoder_noise_rad_s=args.encoder_noise)
     sim = simulate(config)
-    truth_csv = args.truth or Path(str(args.out).rstrip('/') + '_truth.csv')
     bag, csv = write_bag(sim, args.out, storage=args.storage, overwrite=args.force,
                          truth_csv=truth_csv)
     say(f'simulated {args.duration:g} s of driving (seed {args.seed}, true model '

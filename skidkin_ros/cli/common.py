@@ -14,10 +14,10 @@ from typing import Any, Iterable, Sequence
 
 from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, LoadedSource, SourceOptions
+from skidkin_ros.atomic import check_writable_dir
 from skidkin_ros.cli.tables import error_table, parameter_lines
 from skidkin_ros.core.calibration.pipeline import CalibrationResult
 from skidkin_ros.core.kinematics.specs import Geometry
-from skidkin_ros.errors import OutputError
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
            'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'RoundBars',
@@ -142,11 +142,13 @@ def source_options(args: argparse.Namespace, geometry: Geometry | None = None) -
         geometry=geometry)
 
 
-def check_report_dir(path: Path | None, force: bool) -> None:
-    """Refuse a report folder that holds files unless ``force`` (before any work is done)."""
-    if path is not None and path.exists() and any(path.iterdir()) and not force:
-        raise OutputError(f'report folder {path} exists and is not empty; pass --force to '
-                          'overwrite its files')
+def check_report_dir(path: Path | None, force: bool, what: str = '--report') -> None:
+    """Refuse a report folder that cannot be written, or holds files without ``force``.
+
+    Checked before any work is done (:func:`skidkin_ros.atomic.check_writable_dir`).
+    """
+    if path is not None:
+        check_writable_dir(path, force, what)
 
 
 def input_parameters(sources: Sequence[LoadedSource]) -> dict[str, Any]:

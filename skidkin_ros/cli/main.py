@@ -18,6 +18,9 @@ from skidkin_ros.errors import SkidkinError
 
 __all__ = ['main', 'build_parser']
 
+# Longest error message printed: a message quoting a user's value must not flood the terminal.
+MAX_MESSAGE_CHARS = 2000
+
 EPILOG = """examples:
   skidkin simulate --out train_bag --duration 120 --seed 1
   skidkin calibrate train_bag --eval eval_bag --out params.yaml --report report/
@@ -53,6 +56,13 @@ def _configure_logging(verbose: bool, quiet: bool) -> None:
         logging.getLogger(noisy).setLevel(logging.WARNING)
 
 
+def _capped(text: str) -> str:
+    """Return an error message cut to MAX_MESSAGE_CHARS (values echoed in it are the user's)."""
+    if len(text) <= MAX_MESSAGE_CHARS:
+        return text
+    return f'{text[:MAX_MESSAGE_CHARS]}... ({len(text) - MAX_MESSAGE_CHARS} more characters cut)'
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -60,7 +70,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.run(args) or 0)
     except SkidkinError as err:
-        print(f'skidkin {args.command}: error: {err}', file=sys.stderr)
+        print(f'skidkin {args.command}: error: {_capped(str(err))}', file=sys.stderr)
         return err.exit_code
     except BrokenPipeError:  # output piped into `head`: not an error
         sys.stderr.close()
