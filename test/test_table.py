@@ -95,3 +95,55 @@ def test_real_husky_layout_is_read():
     assert all(len(d.wheels) == 40 for d in drives)
     assert all(math.isfinite(d.truth.x[-1]) for d in drives)
     assert all(len(d.truth) < 40 for d in drives[:20])
+
+
+def _with(lines, row, column, value):
+    fields = lines[row].split(',')
+    fields[HEADER.split(',').index(column)] = value
+    lines[row] = ','.join(fields)
+    return lines
+
+
+@pytest.mark.parametrize('t0, needle', [(1.7e12, 'milliseconds since 1970 (divide by 1e3)'),
+                                        (1.7e15, 'microseconds since 1970 (divide by 1e6)'),
+                                        (1.7e18, 'nanoseconds since 1970 (divide by 1e9)'),
+                                        (-1e10, 'cannot be seconds')])
+def test_times_that_cannot_be_seconds_say_so(tmp_path, t0, needle):
+    """Issue 12 item 12 (C25): epoch milliseconds gave 't = -9.22e9 s after -9.22e9 s'."""
+    lines = [HEADER] + _rows(0, 0)
+    for k in range(1, len(lines)):
+        _with(lines, k, 't', repr(t0 + k * (1e-3 * t0 if t0 > 0 else 1.0)))
+    with pytest.raises(RecordingError, match='cannot be seconds') as info:
+        read_table(_write(tmp_path / 'ms.csv', lines))
+    assert needle in str(info.value) and "line 2, column 't'" in str(info.value)
+    one = _with([HEADER] + _rows(0, 0), 3, 't', '1e10')  # one corrupt time among seconds
+    with pytest.raises(RecordingError, match=r"line 4, column 't': t = 1e\+10 cannot be seconds"):
+        read_table(_write(tmp_path / 'one.csv', one))
+    epoch = [HEADER] + _rows(0, 0)
+    for k in range(1, len(epoch)):
+        _with(epoch, k, 't', f'{1.7e9 + 0.05 * k:.3f}')  # epoch seconds are seconds
+    assert len(read_table(_write(tmp_path / 'epoch.csv', epoch))[0].wheels) == 6
+
+
+@pytest.mark.parametrize('column, value, match', [
+    ('x', '1_0', 'not a number'), ('wheel_left', '١٠', 'not a number'),
+    ('y', '0x10', 'not a number'), ('x', '1e300', 'beyond any plausible x'),
+    ('wheel_right', '-2e4', 'beyond any plausible wheel_right'),
+    ('yaw', '-1e10', 'beyond any plausible yaw'), ('t', 'Infinity', 'not finite')])
+def test_numbers_are_plain_decimals_within_physical_bounds(tmp_path, column, value, match):
+    """Issue 12 item 13 (C26): '1_0' read as 10; a row of 1e300 passed (overflow warnings)."""
+    lines = _with([HEADER] + _rows(0, 0), 3, column, value)
+    with pytest.raises(RecordingError, match=match) as info:
+        read_table(_write(tmp_path / 'bad.csv', lines))
+    assert f"line 4, column '{column}'" in str(info.value)
+
+
+def test_byte_order_mark_and_repeated_columns(tmp_path):
+    """Issue 12 item 13 (C26): a UTF-8 byte-order mark hid the t column."""
+    path = tmp_path / 'bom.csv'
+    path.write_bytes(('\ufeff' + '\n'.join([HEADER] + _rows(0, 0)) + '\n').encode('utf-8'))
+    drives = read_table(path)
+    assert drives[0].wheels.t_ns[1] == 50_000_000
+    twice = _write(tmp_path / 'twice.csv', [HEADER + ',x'] + [r + ',9' for r in _rows(0, 0)])
+    with pytest.raises(RecordingError, match='column.s. x more than once'):
+        read_table(twice)

@@ -1,12 +1,18 @@
 """Read a trajectory table (CSV) into drives: wheel speeds plus ground-truth poses.
 
-Columns (header row required, any order, extra columns ignored):
+Columns (header row required, any order, extra columns ignored; UTF-8, a byte-order mark is
+skipped):
 
 - ``t`` (s), ``wheel_left``, ``wheel_right`` (rad/s), ``x``, ``y`` (m), ``yaw`` (rad): required;
 - ``segment``: optional; rows of one segment are one continuous trajectory in its own frame,
   different segments are independent (each becomes one :class:`Drive`);
 - ``calib_step``, ``cmd_left``, ``cmd_right`` are kept in ``Drive.meta``; ``imu_yaw_rate``
   becomes :class:`ImuSamples`.
+
+Values are plain decimal numbers (``1.5``, ``-2e-3``; not ``1_0``, not other scripts' digits)
+within physical bounds (:data:`VALUE_LIMITS`: a position of 1e300 m is a corrupt row, and would
+overflow every sum it enters); ``t`` must be seconds: a time beyond the int64 nanosecond range
+(about 9.2e9 s) is refused with the unit it looks like (milliseconds since 1970, ...).
 
 Sample-and-held ground truth. Lidar/ICP poses often come slower than the wheel samples and are
 held onto the table's time grid (the DRIVE Husky table: ICP at ~10 Hz held onto 20 Hz rows), so
@@ -25,11 +31,14 @@ import csv
 import logging
 import math
 from pathlib import Path
+import re
 from typing import Sequence
 
 import numpy as np
 
 from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.core.odometry.config import NODE_SPECS
+from skidkin_ros.core.odometry.odometer import POSE_LIMIT_M
 from skidkin_ros.errors import RecordingError
 
 __all__ = ['REQUIRED_COLUMNS', 'META_COLUMNS', 'read_table', 'fresh_pose_mask']
@@ -39,6 +48,18 @@ LOG = logging.getLogger(__name__)
 REQUIRED_COLUMNS: tuple[str, ...] = ('t', 'wheel_left', 'wheel_right', 'x', 'y', 'yaw')
 META_COLUMNS: tuple[str, ...] = ('calib_step', 'cmd_left', 'cmd_right')
 OPTIONAL_COLUMNS: tuple[str, ...] = ('segment', 'imu_yaw_rate') + META_COLUMNS
+
+# A plain decimal number, ASCII digits only (float() also takes '1_0' and non-ASCII digits).
+_NUMBER = re.compile(r'[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?', re.ASCII)
+# Largest time in s that integer nanoseconds hold (int64): about the year 2262 since 1970.
+MAX_TIME_S = 9.2e9
+_WHEEL_LIMIT = next(spec.upper for spec in NODE_SPECS if spec.name == 'max_wheel_speed')
+# Bounds of the values of a column (unit): beyond them a value is a corrupt row.
+VALUE_LIMITS: dict[str, tuple[float, str]] = {
+    'wheel_left': (_WHEEL_LIMIT, 'rad/s'), 'wheel_right': (_WHEEL_LIMIT, 'rad/s'),
+    'cmd_left': (_WHEEL_LIMIT, 'rad/s'), 'cmd_right': (_WHEEL_LIMIT, 'rad/s'),
+    'imu_yaw_rate': (_WHEEL_LIMIT, 'rad/s'), 'x': (POSE_LIMIT_M, 'm'), 'y': (POSE_LIMIT_M, 'm'),
+    'yaw': (POSE_LIMIT_M, 'rad'), 't': (MAX_TIME_S, 's')}
 
 
 def fresh_pose_mask(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
@@ -54,7 +75,7 @@ def _read_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     if not path.is_file():
         raise RecordingError(f'trajectory table {path} is not a file')
     try:
-        with path.open(newline='', encoding='utf-8') as handle:
+        with path.open(newline='', encoding='utf-8-sig') as handle:
             reader = csv.reader(handle)
             header = next(reader, None)
             rows = list(reader)
@@ -63,7 +84,12 @@ def _read_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     if header is None:
         raise RecordingError(f'trajectory table {path} is empty; expected a header row with '
                              f'{", ".join(REQUIRED_COLUMNS)}')
-    return [name.strip() for name in header], rows
+    names = [name.strip() for name in header]
+    repeated = sorted({name for name in names if names.count(name) > 1 and name})
+    if repeated:
+        raise RecordingError(f'trajectory table {path} has column(s) {", ".join(repeated)} more '
+                             'than once; keep one of each (which one is meant is not clear)')
+    return names, rows
 
 
 def _numeric_columns(path: Path, header: list[str], rows: list[list[str]],
@@ -76,17 +102,46 @@ def _numeric_columns(path: Path, header: list[str], rows: list[list[str]],
             raise RecordingError(f'{path}: line {line} has {len(row)} fields, the header has '
                                  f'{len(header)}; fix or remove the truncated row')
         for name, col in index.items():
-            text = row[col].strip()
-            try:
-                number = float(text)
-            except ValueError:
-                raise RecordingError(f'{path}: line {line}, column {name!r}: {text!r} is not a '
-                                     'number') from None
-            if not math.isfinite(number):
-                raise RecordingError(f'{path}: line {line}, column {name!r}: value {text!r} is '
-                                     'not finite; remove or repair the row')
-            values[name][row_no] = number
+            values[name][row_no] = _number(path, line, name, row[col].strip())
     return values
+
+
+def _number(path: Path, line: int, name: str, text: str) -> float:
+    """Return one cell as a float, or raise RecordingError naming line and column."""
+    where = f'{path}: line {line}, column {name!r}'
+    if not _NUMBER.fullmatch(text):
+        try:
+            special = float(text)
+        except ValueError:
+            special = 0.0
+        if not math.isfinite(special):
+            raise RecordingError(f'{where}: value {text[:40]!r} is not finite; remove or repair '
+                                 'the row')
+        raise RecordingError(f'{where}: {text[:40]!r} is not a number (expected a plain decimal '
+                             'number such as 1.5 or -2e-3)')
+    number = float(text)
+    limit, unit = VALUE_LIMITS.get(name, (math.inf, ''))
+    if not math.isfinite(number):
+        raise RecordingError(f'{where}: value {text[:40]!r} is not finite; remove or repair the '
+                             'row')
+    if abs(number) > limit:
+        if name == 't':
+            raise RecordingError(f'{where}: t = {number:.6g} cannot be seconds (beyond '
+                                 f'{MAX_TIME_S:.3g} s, the year 2262 since 1970); it looks like '
+                                 f'{_time_unit(number)}: convert t to seconds')
+        raise RecordingError(f'{where}: value {number:.6g} is beyond any plausible {name} '
+                             f'(|{name}| <= {limit:g} {unit}); remove or repair the row')
+    return number
+
+
+def _time_unit(t: float) -> str:
+    """Name the unit a time stamp far beyond seconds most likely has."""
+    for limit, unit in ((1e14, 'milliseconds since 1970 (divide by 1e3)'),
+                        (1e17, 'microseconds since 1970 (divide by 1e6)'),
+                        (1e20, 'nanoseconds since 1970 (divide by 1e9)')):
+        if abs(t) < limit:
+            return unit
+    return 'a corrupt value'
 
 
 def _segment_order(segment: np.ndarray) -> list[float]:

@@ -27,7 +27,7 @@ def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
 def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
     loaded = load_source(args.source, _reading(args, config), need_truth=True)
     print_notes([loaded])
-    with args.source.open(newline='', encoding='utf-8') as handle:
+    with args.source.open(newline='', encoding='utf-8-sig') as handle:
         rows = list(csv.reader(handle))
     header, body = rows[0], rows[1:]
     extra = [['', '', ''] for _ in body]
