@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
 import shutil
+import sqlite3
 import tracemalloc
 
 import numpy as np
@@ -395,3 +397,64 @@ def test_c19_streaming_memory_stays_far_below_the_bag_size(tmp_path, storage):
     # mcap chunk), whatever the number of frames read.
     assert peak_all < bag_bytes / 2, f'peak {peak_all} B while streaming a {bag_bytes} B bag'
     assert peak_all < 1.5 * peak_few + 200_000, f'{peak_few} B for 10 frames, {peak_all} for 60'
+
+
+def test_c27_unreadable_metadata_is_not_blamed_on_the_storage_file(tmp_path):
+    """Issue 12 item 13: a broken metadata.yaml got the remedy `sqlite3 .recover` on the .db3."""
+    bag = _drive_bag(tmp_path / 'bag', n=20, clouds=2)
+    for text in ('rosbag2_bagfile_information: [', 'foo: 1\n', ''):
+        (bag / 'metadata.yaml').write_text(text)
+        with open_recording(bag) as rec:
+            assert len(rec.read_wheels()) == 20
+            note = ' '.join(rec.notes)
+        assert 'metadata.yaml cannot be read' in note and 'ros2 bag reindex' in note
+        assert 'sqlite3' not in note and '.recover' not in note
+    (bag / 'metadata.yaml').write_text('foo: 1\n')
+    _storage_file(bag).write_bytes(b'not a database at all' * 100)
+    with pytest.raises(RecordingError, match='metadata.yaml cannot be read.*failed too'):
+        open_recording(bag)
+
+
+def test_c28_a_device_or_pipe_as_a_recording_is_refused(tmp_path):
+    """Issue 12 item 13: /dev/zero as a source ended in a NotADirectoryError traceback."""
+    with pytest.raises(RecordingError, match='neither a file nor a folder'):
+        open_recording('/dev/zero')
+    fifo = tmp_path / 'pipe'
+    os.mkfifo(fifo)
+    with pytest.raises(RecordingError, match='neither a file nor a folder'):
+        open_recording(fifo)
+
+
+def test_c29_a_topic_whose_messages_were_removed_says_so(tmp_path):
+    """Issue 12 item 13: a removed JointState topic was reported as 'joints seen: []'."""
+    bag = _drive_bag(tmp_path / 'bag', n=20, clouds=2)
+    with sqlite3.connect(_storage_file(bag)) as db:
+        for topic in ('/joint_states', '/imu'):
+            db.execute('DELETE FROM messages WHERE topic_id = '
+                       '(SELECT id FROM topics WHERE name = ?)', (topic,))
+    with open_recording(bag) as rec:
+        with pytest.raises(RecordingError) as err:
+            rec.read_wheels()
+        assert 'no message on /joint_states could be read, though the recording lists 20' in str(
+            err.value)
+        assert 'joints seen' not in str(err.value)
+        with pytest.raises(RecordingError, match='no message on /imu could be read'):
+            rec.read_imu()
+
+
+def test_c30_wheel_speed_jumps_are_dropped_naming_the_side(tmp_path):
+    """Issue 12 item 13: 90 rad/s spikes under max_wheel_speed reached the fit and lidar check."""
+    spikes = {20: (2.0, 90.0), 40: (-85.0, 2.0), 60: (2.0, 95.0)}
+    with BagWriter(tmp_path / 'bag') as bag:
+        for i in range(100):
+            t = T0_NS + i * 50 * MS
+            bag.write_joint_state('/joint_states', t, ['left', 'right'],
+                                  list(spikes.get(i, (2.0, 2.0))), stamp_ns=t)
+    with open_recording(tmp_path / 'bag') as rec:
+        wheels = rec.read_wheels()
+        note = next(n for n in rec.notes if 'jumped' in n)
+    assert len(wheels) == 97 and np.abs(wheels.omega_l).max() == np.abs(wheels.omega_r).max() == 2
+    assert 'dropped 3 of 100 samples of /joint_states' in note
+    assert '1 on the left wheel, 2 on the right wheel' in note and 'not the lidar' in note
+    with open_recording(tmp_path / 'bag') as rec:  # the node's parameter decides
+        assert len(rec.read_wheels(max_wheel_acceleration=1e6)) == 100

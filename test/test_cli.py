@@ -261,3 +261,16 @@ def test_demo_force_removes_only_what_the_demo_wrote(tmp_path, capsys):
     assert main(['demo', '--out', str(out), '--force']) == 5
     assert 'did not write' in capsys.readouterr().err
     assert (out / 'thesis.tex').read_text() == 'precious'
+
+
+def test_a_device_as_a_source_is_a_data_error_not_a_traceback(tmp_path, capsys):
+    """Issue 12 item 13 (C28): /dev/zero as a source ended in a NotADirectoryError traceback."""
+    params = tmp_path / 'params.yaml'
+    write_params_file(params, {})
+    assert main(['predict', '/dev/zero', '--params', str(params), '--out',
+                 str(tmp_path / 'p.csv')]) == 3
+    err = capsys.readouterr().err
+    assert 'neither a file nor a folder' in err and 'Traceback' not in err
+    assert main(['predict', str(tmp_path / 'p.csv'), '--params', '/dev/zero', '--out',
+                 str(tmp_path / 'q.csv')]) == 2
+    assert 'not a regular file' in capsys.readouterr().err

@@ -14,7 +14,9 @@ Entry point: ``open_recording(path) -> BagRecording`` (a context manager)::
 What it does with faulty recordings (fault rows of docs/fault-matrix.md):
 
 - C1: a missing path is a RecordingError; a folder without metadata.yaml but with .db3 / .mcap
-  files is read file by file (in order of their first message) and a note says so.
+  files is read file by file (in order of their first message) and a note says so; so is a
+  folder whose metadata.yaml cannot be read (the note names the error and ``ros2 bag reindex``).
+  A path that is neither a file nor a folder (/dev/zero, a pipe) is a RecordingError.
 - C2 / C3: a truncated mcap or a malformed sqlite3 file is a RecordingError naming the file and the
   remedy (``mcap recover`` / sqlite ``.recover``, then ``ros2 bag reindex``).
 - C4: storage errors met while iterating (apsw, mcap parsing) and undecodable messages are skipped
@@ -22,7 +24,11 @@ What it does with faulty recordings (fault rows of docs/fault-matrix.md):
   stream resumes just past the last good message, jumping ahead (1 ns, 2 ns, 4 ns ... of bag time)
   until the storage reads again, so a few neighbours of the corrupt message may be lost too.
 - C5: every decoded value is validated (finite, bounded wheel speeds, non-zero stamps, stamps in
-  order) and bad messages are dropped and counted; the counts go to ``notes``.
+  order) and bad messages are dropped and counted; the counts go to ``notes``. Wheel samples
+  whose speed jumps (faster than ``max_wheel_acceleration``: the node's rule, shared in
+  :mod:`skidkin_ros.core.odometry.wheels`) are dropped too, and a note names the wheel side at
+  fault: no fit and no check of the lidar ground truth against the wheels sees a spike. A topic
+  the metadata lists but whose messages cannot be read says so.
   Stamps in order: the longest non-decreasing run of stamps is kept, so one corrupted stamp far
   in the future drops that message only, not everything after it; repeated stamps keep the first.
 - C6: a message type neither in ROS 2 Jazzy nor defined in the bag is a RecordingError naming the
@@ -61,7 +67,7 @@ from scipy.spatial.transform import Rotation
 from skidkin_ros.adapters.pointcloud import interpret_point_times, read_xyz_and_times
 from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.odometry.config import node_default
-from skidkin_ros.core.odometry.wheels import (check_velocity_count, joint_indices,
+from skidkin_ros.core.odometry.wheels import (check_velocity_count, drop_jumps, joint_indices,
                                               MalformedMessageError, MissingJointError,
                                               pair_wheel_streams, speeds_at)
 from skidkin_ros.core.rotation import quaternion_to_yaw
@@ -99,6 +105,8 @@ STORAGE_SUFFIXES = ('.db3', '.mcap')
 DEFAULT_MAX_CORRUPT = 10
 DEFAULT_MAX_WHEEL_SPEED_RAD_S = node_default('max_wheel_speed')
 DEFAULT_PAIR_TOLERANCE_S = node_default('pair_tolerance')
+DEFAULT_MAX_WHEEL_ACCELERATION = node_default('max_wheel_acceleration')
+DEFAULT_MAX_DT_S = node_default('max_dt')
 NS_PER_S = 1_000_000_000
 # A damaged storage region is jumped over in doubling steps up to this much bag time.
 _MAX_JUMP_NS = 600 * 10**9
@@ -225,6 +233,15 @@ def format_summary(topics: Sequence[TopicSummary]) -> str:
     return '\n'.join(lines) if lines else '(no topics)'
 
 
+class _MetadataError(RecordingError):
+    """A rosbag2 folder whose metadata.yaml cannot be read (its storage files may be fine)."""
+
+
+# How rosbags' Reader.open begins the message of an unreadable or incomplete metadata.yaml.
+_METADATA_ERRORS = ('Could not load YAML', 'Could not read metadata', 'A metadata key is missing',
+                    'Invalid bag metadata')
+
+
 def _storage_remedy(path: Path) -> str:
     if path.suffix == '.mcap':
         return (f'it looks truncated (recording killed?); recover it with '
@@ -265,6 +282,9 @@ class BagRecording:
                                  '(with metadata.yaml) or a .db3 / .mcap file')
         if path.is_file() and path.name == 'metadata.yaml':
             path = self.path = path.parent
+        if not path.is_file() and not path.is_dir():
+            raise RecordingError(f'{path} is neither a file nor a folder (a device or a pipe?); '
+                                 'expected a rosbag2 folder or a .db3 / .mcap file')
         if path.is_file():
             if path.suffix not in STORAGE_SUFFIXES:
                 raise RecordingError(f'{path} is not a rosbag2 recording; expected a folder with '
@@ -285,11 +305,14 @@ class BagRecording:
     def _open_one(self, target: Path) -> Reader:
         files = ([target] if target.is_file()
                  else sorted(p for p in target.iterdir() if p.suffix in STORAGE_SUFFIXES))
+        errors = (ReaderError, apsw.Error, sqlite3.Error, OSError, struct.error, ValueError,
+                  OverflowError, KeyError, IndexError, EOFError, TypeError)
         try:
             reader = Reader(target)
-            reader.open()
-        except (ReaderError, apsw.Error, sqlite3.Error, OSError, struct.error, ValueError,
-                OverflowError, KeyError, IndexError, EOFError) as err:
+            reader.open()  # reads metadata.yaml of a folder, then the storage
+        except errors as err:
+            if target.is_dir() and str(err).startswith(_METADATA_ERRORS):
+                raise _MetadataError(' '.join(str(err).split())) from err
             names = ', '.join(str(f) for f in files) or str(target)
             remedy = _storage_remedy(files[0]) if files else 'check the recording'
             raise RecordingError(f'cannot open recording {names}: {err} -- {remedy}') from err
@@ -299,6 +322,8 @@ class BagRecording:
         targets, bare = self._storage_files()
         try:
             readers = [self._open_one(target) for target in targets]
+        except _MetadataError as err:
+            readers, targets = self._open_without_metadata(err)
         except RecordingError:
             self.close()
             raise
@@ -308,6 +333,24 @@ class BagRecording:
         if bare and len(targets) == 1 and self.path.is_file():
             self.notes.append(f'reading storage file {self.path} directly (no metadata.yaml)')
         self._register_bag_types()
+
+    def _open_without_metadata(self, err: _MetadataError) -> tuple[list[Reader], list[Path]]:
+        """Read a folder whose metadata.yaml is broken from its storage files (C1)."""
+        folder = self.path
+        files = sorted(p for p in folder.iterdir() if p.suffix in STORAGE_SUFFIXES and p.is_file())
+        if not files:
+            raise RecordingError(f'{folder}/metadata.yaml cannot be read ({err}) and the folder '
+                                 'has no .db3 / .mcap file; point to a rosbag2 recording') from err
+        try:
+            readers = [self._open_one(f) for f in files]
+        except RecordingError as inner:
+            self.close()
+            raise RecordingError(f'{folder}/metadata.yaml cannot be read ({err}), and reading the '
+                                 f'storage files directly failed too: {inner}') from inner
+        self.notes.append(f'{folder}/metadata.yaml cannot be read ({err}); reading its '
+                          f'{len(files)} storage file(s) directly. The storage files are not at '
+                          f'fault: run `ros2 bag reindex {folder}` to rewrite the metadata')
+        return readers, files
 
     def close(self) -> None:
         """Close the storage files."""
@@ -513,23 +556,52 @@ class BagRecording:
                     right_joints: Sequence[str] | None = None,
                     left_topic: str | None = None, right_topic: str | None = None,
                     max_wheel_speed_rad_s: float = DEFAULT_MAX_WHEEL_SPEED_RAD_S,
-                    pair_tolerance_s: float = DEFAULT_PAIR_TOLERANCE_S) -> WheelSamples:
+                    pair_tolerance_s: float = DEFAULT_PAIR_TOLERANCE_S,
+                    max_wheel_acceleration: float = DEFAULT_MAX_WHEEL_ACCELERATION,
+                    max_dt_s: float = DEFAULT_MAX_DT_S) -> WheelSamples:
         """Return wheel speeds (rad/s) from a JointState topic or two Float64 topics.
 
         JointState: stamps from header.stamp (a bag whose stamps are all zero uses receive
         time, noted); a side's speed is the mean of its joints' velocities, as the node takes it
         (:mod:`skidkin_ros.core.odometry.wheels`); joints default to those whose names contain
-        'left' / 'right'. Float64 pairs: see :meth:`_read_float_pair`.
+        'left' / 'right'. Float64 pairs: see :meth:`_read_float_pair`. Either way, samples whose
+        speed jumps faster than ``max_wheel_acceleration`` (rad/s^2) are dropped and noted
+        (:meth:`_drop_jumps`).
         """
         if left_topic is not None or right_topic is not None:
-            return self._read_float_pair(left_topic, right_topic, max_wheel_speed_rad_s,
-                                         pair_tolerance_s)
-        if topic is None and JOINT_STATE not in self.topics().values():
-            pair = self._detect_float_pair()
+            wheels = self._read_float_pair(left_topic, right_topic, max_wheel_speed_rad_s,
+                                           pair_tolerance_s)
+        else:
+            pair = None
+            if topic is None and JOINT_STATE not in self.topics().values():
+                pair = self._detect_float_pair()
             if pair is not None:
-                return self._read_float_pair(*pair, max_wheel_speed_rad_s, pair_tolerance_s)
-        chosen = self.select(JOINT_STATE, topic, 'wheel speeds')
-        return self._read_joint_states(chosen, left_joints, right_joints, max_wheel_speed_rad_s)
+                wheels = self._read_float_pair(*pair, max_wheel_speed_rad_s, pair_tolerance_s)
+            else:
+                chosen = self.select(JOINT_STATE, topic, 'wheel speeds')
+                wheels = self._read_joint_states(chosen, left_joints, right_joints,
+                                                 max_wheel_speed_rad_s)
+        return self._drop_jumps(wheels, max_wheel_acceleration, max_dt_s)
+
+    def _drop_jumps(self, wheels: WheelSamples, max_acceleration: float,
+                    max_dt_s: float) -> WheelSamples:
+        """Drop samples whose speed jumps, as the node rejects them; name the wheel at fault."""
+        keep, sides = drop_jumps(wheels.t_ns, wheels.omega_l, wheels.omega_r, max_acceleration,
+                                 max_dt_s)
+        dropped = len(keep) - sum(keep)
+        if not dropped:
+            return wheels
+        source = self.wheel_input.get('topic') or ' and '.join(
+            self.wheel_input.get(k, '') for k in ('left_topic', 'right_topic'))
+        at_fault = ', '.join(f'{n} on the {side} wheel' for side, n in sides.items() if n)
+        self.notes.append(
+            f'wheel speeds: dropped {dropped} of {len(keep)} samples of {source} whose speed '
+            f'jumped faster than max_wheel_acceleration {max_acceleration:g} rad/s^2 '
+            f'({at_fault}): glitches of the wheel readings (the driver or the encoders are at '
+            'fault, not the lidar); the node rejects them too')
+        mask = np.array(keep, dtype=bool)
+        return WheelSamples(wheels.t_ns[mask], np.asarray(wheels.omega_l)[mask],
+                            np.asarray(wheels.omega_r)[mask])
 
     def _detect_joints(self, topic: str, names: Sequence[str]) -> tuple[list[str], list[str]]:
         left = [n for n in names if 'left' in n.lower() and 'right' not in n.lower()]
@@ -552,7 +624,9 @@ class BagRecording:
         omega_r: list[float] = []
         index_cache: tuple[list[str], tuple[int, ...], tuple[int, ...]] | None = None
         seen_names: set[str] = set()
+        read = 0
         for t_ns, msg in self.messages(topic):
+            read += 1
             names = list(msg.name)
             seen_names.update(names)
             if left is None or right is None:
@@ -585,6 +659,11 @@ class BagRecording:
             receive.append(t_ns)
             omega_l.append(wl)
             omega_r.append(wr)
+        if not read:
+            raise RecordingError(
+                f'wheel speeds: no message on {topic} could be read, though the recording lists '
+                f'{self._count(topic)}: its messages were removed or cannot be read. Record the '
+                'topic again, or check the recording (`ros2 bag reindex` rewrites its metadata)')
         if not stamps:
             wanted = (left or []) + (right or []) or 'named *left* / *right*'
             if self.counts[(topic, 'without wheel joints')] or left is None:
@@ -602,7 +681,8 @@ class BagRecording:
 
     def _reasons(self, topic: str) -> str:
         parts = [f'{n} {reason}' for (t, reason), n in self.counts.items() if t == topic]
-        return ', '.join(parts) or 'no reason recorded'
+        return ', '.join(parts) or (f'no message on {topic} could be read, though the recording '
+                                    f'lists {self._count(topic)}')
 
     def _header_or_receive(self, topic: str, stamps: np.ndarray, receive: np.ndarray
                            ) -> np.ndarray:

@@ -73,6 +73,8 @@ class SourceOptions:
     icp: IcpConfig = field(default_factory=IcpConfig)
     max_wheel_speed_rad_s: float = node_default('max_wheel_speed')
     pair_tolerance_s: float = node_default('pair_tolerance')
+    max_wheel_acceleration: float = node_default('max_wheel_acceleration')
+    max_dt_s: float = node_default('max_dt')
     min_overlap_s: float = 10.0
     geometry: Geometry | None = None
 
@@ -111,7 +113,9 @@ def _load_bag(path: Path, options: SourceOptions, need_truth: bool) -> LoadedSou
                                  right_joints=options.right_joints,
                                  left_topic=options.left_topic, right_topic=options.right_topic,
                                  max_wheel_speed_rad_s=options.max_wheel_speed_rad_s,
-                                 pair_tolerance_s=options.pair_tolerance_s)
+                                 pair_tolerance_s=options.pair_tolerance_s,
+                                 max_wheel_acceleration=options.max_wheel_acceleration,
+                                 max_dt_s=options.max_dt_s)
         if len(wheels) < 2:
             raise DataError(f'{path}: fewer than 2 wheel samples; nothing to integrate')
         imu = None

@@ -18,10 +18,12 @@ __all__ = ['add_parser']
 
 
 def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
-    """Return how to read the recording: with the node's speed limit and wheel pairing."""
+    """Return how to read the recording: with the node's wheel limits and pairing."""
     return dataclasses.replace(source_options(args),
                                max_wheel_speed_rad_s=config['max_wheel_speed'],
-                               pair_tolerance_s=config['pair_tolerance'])
+                               pair_tolerance_s=config['pair_tolerance'],
+                               max_wheel_acceleration=config['max_wheel_acceleration'],
+                               max_dt_s=config['max_dt'])
 
 
 def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
