@@ -134,8 +134,8 @@ def test_frame_ids_changed_at_runtime_reach_the_output(make_rig):
 
 def test_joint_state_the_reader_refuses_goes_to_rclpy_and_is_counted(make_rig):
     # Data the node's reader does not take (here: a frame_id length that runs past the end) is
-    # handed to rclpy's deserialization; what that cannot read is counted as a callback error.
-    # Serialized and message-object input are both taken.
+    # handed to rclpy's deserialization; what that cannot read is dropped and counted as a
+    # malformed message (fault matrix N23). Serialized and message-object input are both taken.
     from rclpy.serialization import serialize_message
     rig = make_rig()
     t0 = wall_ns() - NS_PER_S
@@ -143,7 +143,8 @@ def test_joint_state_the_reader_refuses_goes_to_rclpy_and_is_counted(make_rig):
     rig.node._on_joint_state(bytes(good))
     assert rig.node.counters['first'] == 1
     rig.node._on_joint_state(b'\x00\x01\x00\x00' + bytes(8) + b'\xff\xff\x00\x00')
-    assert rig.node.counters['callback_error'] == 1
+    assert rig.node.counters['malformed_message'] == 1
+    assert rig.node.counters['callback_error'] == 0
     rig.node._on_joint_state(rig.joint_state(t0 + 20_000_000, 1.0, 1.0))  # a message object
     assert rig.node.counters['integrated'] == 1
 

@@ -9,7 +9,10 @@ the /diagnostics status is built in :mod:`skidkin_ros.node.diagnostics`.
 Inputs (parameter ``input``, read-only after start-up):
 
 * ``joint_state`` (default): sensor_msgs/JointState on ``joint_states``, integrated on
-  ``header.stamp``; a side's speed is the mean of the velocities of its joints.
+  ``header.stamp``; a side's speed is the mean of the velocities of its joints. Messages are
+  read from their serialized form by :mod:`skidkin_ros.node.wire`; what it does not read goes
+  to rclpy's deserializer, and what that refuses too is dropped and counted
+  (``malformed_message``).
 * ``wheel_topics``: std_msgs/Float64 on ``wheel/left/velocity`` and ``wheel/right/velocity``
   (rad/s), stamped with the node clock on receipt (honours use_sim_time) and paired within
   ``pair_tolerance``.
@@ -68,7 +71,8 @@ from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_ms
 from skidkin_ros.node.diagnostics import StatusReport
 from skidkin_ros.node.parameters import (check_params_files, current_flat, declare_schema,
                                          parameter_descriptor, plain_value)
-from skidkin_ros.node.wire import JointStateReader, OdometryWriter, WireFormatError
+from skidkin_ros.node.wire import (JointStateFields, JointStateReader, OdometryWriter,
+                                   WireFormatError)
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
@@ -119,9 +123,11 @@ class OdomNode(Node):
         self._stale = True
         self._stale_reported = False
         # The wheel joints' places in the last JointState name list (drivers repeat the list),
-        # keyed by that list (its serialized bytes when the message came serialized).
-        self._joint_key: Any = None
+        # keyed by that list (a tuple of names; the reader returns the same tuple while the
+        # serialized list is unchanged, so the comparison is cheap).
+        self._joint_names: tuple[str, ...] | None = None
         self._joint_reader = JointStateReader()
+        self._rclpy_read_logged = False
         self._joint_index: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())
         self._side_seen_mono_ns: dict[str, int | None] = {'left': None, 'right': None}
         self._status_report = StatusReport()
@@ -188,7 +194,7 @@ class OdomNode(Node):
     def _apply_config(self, config: OdometryConfig) -> None:
         """Switch to a validated configuration; the pose and its covariance are kept."""
         self._odometer.configure(config)
-        self._joint_key = None  # the wheel joints may have changed
+        self._joint_names = None  # the wheel joints may have changed
         if config['publish_tf'] and self._tf_broadcaster is None:
             self._tf_broadcaster = self._make_tf_broadcaster(True)
         self._config = config
@@ -208,13 +214,14 @@ class OdomNode(Node):
     @_guarded
     def _on_joint_state(self, msg: bytes | JointState) -> None:
         """Take a JointState, serialized (the subscription's form) or as a message."""
-        t_ns, n_names, key, names, velocity = self._joint_state_fields(msg)
         with self._lock:
             self.counters['received'] += 1
-            check_velocity_count(n_names, len(velocity))  # raises: reported by _guarded
-            if key != self._joint_key:
-                if names is None:
-                    names = self._joint_reader.names(key)
+            fields = self._joint_state_fields(msg)
+            if fields is None:
+                return
+            names, velocity = fields.names, fields.velocity
+            check_velocity_count(len(names), len(velocity))  # raises: reported by _guarded
+            if names != self._joint_names:
                 config = self._config
                 try:
                     self._joint_index = joint_indices(names, config['left_wheel_joints'],
@@ -222,30 +229,41 @@ class OdomNode(Node):
                 except MissingJointError as err:
                     self._reject('missing_joint', str(err))
                     return
-                self._joint_key = key
+                self._joint_names = names
             omega_l, omega_r = speeds_at(velocity, *self._joint_index)
             now_ns = self._clock_now_ns()
             if now_ns is None:
                 return
-            estimate = self._odometer.joint_sample(t_ns, omega_l, omega_r, now_ns)
+            estimate = self._odometer.joint_sample(fields.stamp_ns, omega_l, omega_r, now_ns)
             if estimate is not None:
                 self._publish(estimate)
 
-    def _joint_state_fields(self, msg: bytes | JointState
-                            ) -> tuple[int, int, Any, list[str] | None, Sequence[float]]:
-        """Return (stamp ns, name count, name-list key, names or None, velocities).
+    def _joint_state_fields(self, msg: bytes | JointState) -> JointStateFields | None:
+        """Return the fields the node uses, or None (counted, reported) if the message is bad.
 
-        Serialized input is read by node.wire (names decoded later, only when the key changes);
-        what it cannot read is deserialized by rclpy, like a message object.
+        Serialized input is read by node.wire; what it does not read is deserialized by rclpy
+        (never dropped for the fast path's sake), and what rclpy refuses too is dropped.
         """
         if isinstance(msg, bytes):
             try:
-                t_ns, n_names, key, velocity = self._joint_reader.read(msg)
-                return t_ns, n_names, key, None, velocity
-            except WireFormatError:  # not plain CDR: rclpy's deserialization decides
+                return self._joint_reader.read(msg)
+            except WireFormatError as err:
+                reason = str(err)
+            try:
                 msg = deserialize_message(msg, JointState)
-        names = list(msg.name)
-        return stamp_to_ns(msg.header.stamp), len(names), tuple(names), names, msg.velocity
+            except RuntimeError as err:  # rclpy's RMWError: the message does not deserialize
+                self._reject('malformed_message',
+                             f'JointState dropped: it does not deserialize ({reason}; rclpy: '
+                             f'{" ".join(str(err).split())})')
+                return None
+            self.counters['read_by_rclpy'] += 1
+            if not self._rclpy_read_logged:
+                self._rclpy_read_logged = True
+                self.get_logger().info(f'a JointState was read by rclpy instead of the fast '
+                                       f'reader ({reason}); such messages cost more CPU, '
+                                       'counted as read_by_rclpy in /diagnostics')
+        return JointStateFields(stamp_to_ns(msg.header.stamp), tuple(msg.name),
+                                tuple(msg.position), tuple(msg.velocity))
 
     @_guarded
     def _on_left_wheel(self, msg: Float64) -> None:

@@ -10,18 +10,32 @@ unchanged.
 
 Both codecs follow the plain CDR encoding (XCDR1) every ROS 2 middleware uses for ROS messages:
 a 4-byte encapsulation header (byte 1 says big or little endian), then the fields in order, each
-aligned to its size counted from the end of that header. Anything else (an unknown encapsulation,
-a message that does not parse) makes :meth:`JointStateReader.read` raise :class:`WireFormatError`,
-and the node falls back to rclpy's own deserialization. :class:`OdometryWriter` checks itself
-once against rclpy when it is built and is not used if they disagree.
+aligned to its size counted from the end of that header.
+
+The reader is the node's door for data from any publisher on the graph, so it holds to one rule:
+what it returns is exactly what rclpy's deserializer returns for the same bytes, and what it does
+not return it refuses with :class:`WireFormatError`, after which the node hands the bytes to rclpy
+(which decides, and may refuse them too). rclpy's deserializer (Fast CDR through
+rosidl_typesupport_fastrtps_c, found by experiment, ``test/test_wire.py`` keeps checking it)
+refuses a message when any string or sequence runs past the end of the data, the effort array
+included; it accepts bytes after the last field, any padding contents, any encapsulation options,
+strings of length 0 or without their NUL, and names that are not UTF-8 (decoded with
+replacement characters). The reader refuses everything rclpy refuses and, of the rest, leaves to
+rclpy what it would have to imitate rather than read: encapsulations other than plain CDR and
+names that are not NUL-terminated UTF-8. Every count is checked against the bytes left before
+anything is read: the work is bounded by the size of the message, never by a forged count.
+
+:class:`OdometryWriter` checks itself once against rclpy when it is built and is not used if they
+disagree.
 """
 
 from __future__ import annotations
 
 import struct
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
-__all__ = ['WireFormatError', 'JointStateReader', 'OdometryWriter', 'encapsulation_prefix']
+__all__ = ['WireFormatError', 'JointStateFields', 'JointStateReader', 'OdometryWriter',
+           'encapsulation_prefix']
 
 HEADER_BYTES = 4  # encapsulation: 0x00, 0x00 (big endian) or 0x01 (little endian), options
 _PLAIN_CDR = {b'\x00\x00': '>', b'\x00\x01': '<'}
@@ -48,90 +62,125 @@ def _aligned(offset: int, size: int) -> int:
     return (offset + size - 1) // size * size
 
 
-class JointStateReader:
-    """Read the stamp, the joint-name list and the velocities of a serialized JointState.
+class JointStateFields(NamedTuple):
+    """The fields of a sensor_msgs/JointState the node uses, as rclpy would give them.
 
-    ``read`` returns ``(stamp_ns, n_names, names_key, velocity)``: ``names_key`` is the byte
-    order and the raw bytes of the name list, so a driver that repeats its names (they all do)
-    is recognised by a byte comparison, and :meth:`names` decodes them only when the key
-    changes. ``velocity`` is a tuple of floats (possibly shorter than the names: the caller
-    checks).
+    ``stamp_ns``: ``header.stamp`` in integer nanoseconds (sec * 1e9 + nanosec);
+    ``names``: the joint names; ``position`` and ``velocity``: the two sequences as tuples of
+    floats. Each sequence may be empty or of any length (the message type allows it): the
+    caller checks them against the names. (A named tuple: one is made per message.)
+    """
+
+    stamp_ns: int
+    names: tuple[str, ...]
+    position: tuple[float, ...]
+    velocity: tuple[float, ...]
+
+
+_new_fields = tuple.__new__
+# Per byte order (encapsulation byte 1): unpackers of the stamp and of a uint32, and the struct
+# prefix for sequences of doubles.
+_LAYOUTS = ((struct.Struct('>iI').unpack_from, struct.Struct('>I').unpack_from, '>'),
+            (struct.Struct('<iI').unpack_from, struct.Struct('<I').unpack_from, '<'))
+_FRAME_ID_AT = HEADER_BYTES + 8  # the header.frame_id length, after header.stamp
+_MIN_NAME_BYTES = 4  # a CDR string is at least its uint32 length (rclpy accepts length 0)
+
+
+class JointStateReader:
+    """Read a serialized JointState exactly as far as rclpy's deserializer does, or refuse it.
+
+    :meth:`read` walks the whole message, as rclpy (Fast CDR) does: the header, every name,
+    then position, velocity and effort, each count checked against the bytes left before
+    anything is read (a forged count is refused at once), and refuses with
+    :class:`WireFormatError` any message rclpy refuses (a sequence or a string that runs past
+    the end of the data). Bytes after the effort array are ignored, as rclpy ignores them.
+
+    The fast path reads only what it can read without guessing; it refuses, so that the caller
+    hands the message to rclpy, what rclpy would accept but decode its own way: names that are
+    not NUL-terminated UTF-8 (rclpy cuts them at the first NUL and replaces invalid bytes),
+    encapsulations other than plain CDR (XCDR2, parameter lists). A driver repeats its name
+    list: the list's bytes are kept and, when the next message holds the same bytes, the names
+    are not decoded again.
     """
 
     def __init__(self) -> None:
-        self._last_key = b''  # the names_key of the last message read
+        # The last name list read: (byte order, its serialized bytes, the names). One attribute,
+        # replaced whole, so a reader shared by threads never pairs bytes and names wrongly.
+        self._last_names: tuple[int, bytes, tuple[str, ...]] = (-1, b'', ())
 
-    def read(self, data: bytes) -> tuple[int, int, bytes, tuple[float, ...]]:
-        """Return (stamp_ns, number of names, names_key, velocities)."""
-        order = encapsulation_prefix(data)
+    def read(self, data: bytes) -> JointStateFields:
+        """Return the fields of a serialized JointState; WireFormatError if not read here."""
+        size = len(data)
+        if size < _FRAME_ID_AT + 4 or data[0] or data[1] > 1:
+            encapsulation_prefix(data)  # raises, naming the encapsulation, when that is the cause
+            raise WireFormatError(f'JointState of {size} bytes ends inside its header')
+        little = data[1]
+        stamp, uint32, order = _LAYOUTS[little]
         try:
-            sec, nanosec = struct.unpack_from(order + 'iI', data, HEADER_BYTES)
-            offset = self._skip_string(data, order, 8)  # header.frame_id
-            names_start = offset = _aligned(offset, 4)
-            key = self._last_key
-            # The same name list as last time (the usual case): the same bytes, the same key.
-            if key[:1] == order.encode() and data.startswith(key[1:], HEADER_BYTES + offset):
-                offset += len(key) - 1
-                (n_names,) = struct.unpack_from(order + 'I', key, 1)
+            sec, nanosec = stamp(data, HEADER_BYTES)
+            (length,) = uint32(data, _FRAME_ID_AT)
+            offset = _FRAME_ID_AT + 4 + length
+            if offset > size:
+                raise WireFormatError(f'header.frame_id of {length} bytes runs past the end of '
+                                      f'the data ({size} bytes)')
+            offset = (offset + 3) & ~3  # the name count: 4-aligned (the header is 4 bytes)
+            known_order, known, names = self._last_names
+            if little == known_order and data.startswith(known, offset):
+                offset += len(known)  # the name list of the last message (the usual case)
             else:
-                (n_names,) = struct.unpack_from(order + 'I', data, HEADER_BYTES + offset)
-                offset += 4
-                for _ in range(n_names):
-                    offset = self._skip_string(data, order, _aligned(offset, 4))
-                key = order.encode() + data[HEADER_BYTES + names_start:HEADER_BYTES + offset]
-                self._last_key = key
-            offset, _ = self._doubles(data, order, offset, keep=False)  # position
-            _, velocity = self._doubles(data, order, offset, keep=True)
-        except struct.error as err:
-            raise WireFormatError(f'JointState does not parse as plain CDR: {err}') from err
-        return sec * 1_000_000_000 + nanosec, n_names, key, velocity
+                names, end = _names(data, uint32, offset)
+                self._last_names = (little, data[offset:end], names)
+                offset = end
+            position, offset = _doubles(data, uint32, order, offset, 'position', True)
+            velocity, offset = _doubles(data, uint32, order, offset, 'velocity', True)
+            _doubles(data, uint32, order, offset, 'effort', False)
+        except struct.error as err:  # a count or a length cut by the end of the data
+            raise WireFormatError(f'JointState ends inside a field: {err}') from err
+        return _new_fields(JointStateFields, (sec * 1_000_000_000 + nanosec, names, position,
+                                              velocity))
 
-    @staticmethod
-    def names(names_key: bytes) -> list[str]:
-        """Decode the joint names of a ``names_key`` returned by :meth:`read`."""
-        order = names_key[:1].decode('ascii')
-        names_key = names_key[1:]
+
+def _names(data: bytes, uint32: Any, offset: int) -> tuple[tuple[str, ...], int]:
+    """Decode the name sequence at ``offset``; return the names and the offset after them."""
+    size = len(data)
+    (count,) = uint32(data, offset)
+    offset += 4
+    if count > (size - offset) // _MIN_NAME_BYTES:
+        raise WireFormatError(f'JointState claims {count} joint names but only {size - offset} '
+                              f'bytes follow (a name takes at least {_MIN_NAME_BYTES})')
+    names = []
+    for i in range(count):
+        offset = (offset + 3) & ~3
+        (length,) = uint32(data, offset)
+        start = offset + 4
+        offset = start + length
+        if offset > size:
+            raise WireFormatError(f'joint name {i} of {length} bytes runs past the end of the '
+                                  f'data ({size} bytes)')
+        raw = data[start:offset - 1]
+        if not length or data[offset - 1] or b'\x00' in raw:
+            raise WireFormatError(f'joint name {i} is not a NUL-terminated string: left to rclpy')
         try:
-            (count,) = struct.unpack_from(order + 'I', names_key, 0)
-            offset = 4
-            out = []
-            for _ in range(count):
-                offset = _aligned(offset, 4)
-                (length,) = struct.unpack_from(order + 'I', names_key, offset)
-                raw = names_key[offset + 4:offset + 4 + length]
-                if length == 0 or len(raw) != length or raw[-1] != 0:
-                    raise WireFormatError('a joint name is not a terminated CDR string')
-                out.append(raw[:-1].decode('utf-8'))
-                offset += 4 + length
-        except (struct.error, UnicodeDecodeError) as err:
-            raise WireFormatError(f'JointState names do not parse: {err}') from err
-        return out
+            names.append(raw.decode('utf-8'))
+        except UnicodeDecodeError as err:
+            raise WireFormatError(f'joint name {i} is not UTF-8 ({err}): left to rclpy') from None
+    return tuple(names), offset
 
-    @staticmethod
-    def _skip_string(data: bytes, order: str, offset: int) -> int:
-        """Return the body offset just after the CDR string at body offset ``offset``."""
-        (length,) = struct.unpack_from(order + 'I', data, HEADER_BYTES + offset)
-        end = offset + 4 + length
-        if HEADER_BYTES + end > len(data):
-            raise struct.error(f'a string of {length} bytes runs past the end of the data')
-        return end
 
-    @staticmethod
-    def _doubles(data: bytes, order: str, offset: int, keep: bool
-                 ) -> tuple[int, tuple[float, ...]]:
-        """Read a sequence<double> at body offset ``offset``; return (end offset, values)."""
-        offset = _aligned(offset, 4)
-        (count,) = struct.unpack_from(order + 'I', data, HEADER_BYTES + offset)
-        offset += 4
-        if count == 0:
-            return offset, ()
-        offset = _aligned(offset, 8)
-        end = offset + 8 * count
-        if HEADER_BYTES + end > len(data):
-            raise struct.error(f'a sequence of {count} doubles runs past the end of the data')
-        values = (struct.unpack_from(f'{order}{count}d', data, HEADER_BYTES + offset)
-                  if keep else ())
-        return end, values
+def _doubles(data: bytes, uint32: Any, order: str, offset: int, field: str, keep: bool
+             ) -> tuple[tuple[float, ...], int]:
+    """Read a sequence<double> at ``offset``; return its values (if ``keep``) and its end."""
+    offset = (offset + 3) & ~3
+    (count,) = uint32(data, offset)
+    offset += 4
+    if not count:  # no alignment padding for an empty sequence (as rclpy reads it)
+        return (), offset
+    offset = ((offset + 3) & ~7) + 4  # 8-aligned counted from the end of the 4-byte header
+    end = offset + 8 * count
+    if end > len(data):
+        raise WireFormatError(f'JointState {field} claims {count} values but only '
+                              f'{max(len(data) - offset, 0)} bytes follow')
+    return (struct.unpack_from(f'{order}{count}d', data, offset) if keep else ()), end
 
 
 class OdometryWriter:
