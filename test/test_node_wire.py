@@ -1,4 +1,4 @@
-"""Fault rows N23-N26 of docs/fault-matrix.md: hostile or odd JointStates against the real node.
+"""Fault rows N23-N28 of docs/fault-matrix.md: hostile or odd JointStates against the real node.
 
 The node subscribes to serialized JointStates and reads them with node.wire; these tests publish
 bytes (``Publisher.publish(bytes)``), as a hostile or careless driver on the graph could.
@@ -103,3 +103,34 @@ def test_n26_forged_name_count_is_refused_and_the_next_sample_integrated(make_ri
     assert rig.node.counters['malformed_message'] == 1
     assert 'claims 4294967295 joint names' in rig.node.last_warnings['malformed_message']
     assert len(rig.odom) == 2 and rig.node.counters['integrated'] == 1
+
+
+def test_n27_wheel_joint_listed_twice_is_refused_naming_it(make_rig):
+    rig = make_rig({'model': 'ideal_dd'})
+    t0 = start_ns()
+    rig.send(serialized(rig, t0, 1.0, 2.0, extra=['front_left_wheel_joint']))
+    rig.drain()
+    assert not rig.odom and rig.node.counters['duplicate_joint'] == 1
+    assert "'front_left_wheel_joint' at [0, 4]" in rig.node.last_warnings['duplicate_joint']
+    rig.send(serialized(rig, t0 + DT, 1.0, 2.0))  # the same joints once each: integrated
+    rig.drain()
+    assert len(rig.odom) == 1
+
+
+def test_n28_other_joint_listed_twice_is_integrated_with_one_warning(make_rig):
+    rig = make_rig({'model': 'ideal_dd'})
+    warned = []
+    warn = rig.node._warn
+
+    def counting_warn(cause, message, error=False):
+        warned.append(cause)
+        warn(cause, message, error)
+
+    rig.node._warn = counting_warn
+    t0 = start_ns()
+    for i in range(3):
+        rig.send(serialized(rig, t0 + i * DT, 1.0, 2.0, extra=['caster', 'arm', 'caster']))
+    rig.drain()
+    assert len(rig.odom) == 3 and rig.node.counters['duplicate_joint'] == 0
+    assert warned == ['repeated_joint']  # once for the name list, not once per message
+    assert "['caster']" in rig.node.last_warnings['repeated_joint']

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.bag_writer import BagWriter
-from skidkin_ros.core.odometry.wheels import (check_velocity_count, joint_indices,
-                                              MalformedMessageError, MissingJointError,
-                                              pair_wheel_streams, Pairing, side_speed,
-                                              speeds_at, WheelPairer)
+from skidkin_ros.core.odometry.wheels import (check_velocity_count, DuplicateJointError,
+                                              joint_indices, MalformedMessageError,
+                                              MissingJointError, pair_wheel_streams, Pairing,
+                                              repeated_names, side_speed, speeds_at,
+                                              WheelPairer)
 
 T0_NS = 1_700_000_000_000_000_000
 MS = 1_000_000
@@ -25,6 +26,31 @@ def test_joint_indices_find_the_wheels_and_name_what_is_missing():
     check_velocity_count(3, 4)
     with pytest.raises(MalformedMessageError, match='3 names but only 2 velocities'):
         check_velocity_count(3, 2)
+
+
+def test_a_wheel_joint_listed_twice_is_refused_naming_it_and_where():
+    names = ['front_left', 'rear_left', 'front_right', 'rear_right', 'front_left']
+    with pytest.raises(DuplicateJointError, match=r"'front_left' at \[0, 4\]"):
+        joint_indices(names, ['front_left', 'rear_left'], ['front_right', 'rear_right'])
+    # Another joint listed twice does not touch the wheels: the indices are found, and named.
+    names = ['caster', 'front_left', 'caster', 'front_right', 'arm', 'arm', 'caster']
+    assert joint_indices(names, ['front_left'], ['front_right']) == ((1,), (3,))
+    assert repeated_names(names) == ['caster', 'arm']
+    assert repeated_names(['a', 'b']) == []
+
+
+def test_bag_reader_drops_messages_with_a_wheel_joint_listed_twice(tmp_path):
+    """The node's rule offline: a repeated wheel joint is refused, a repeated other joint not."""
+    good = ['l1', 'r1', 'arm', 'arm']
+    with BagWriter(tmp_path / 'bag') as bag:
+        bag.write_joint_state('/joint_states', T0_NS, good, [1.0, 2.0, 0.0, 0.0])
+        bag.write_joint_state('/joint_states', T0_NS + 10 * MS, ['l1', 'r1', 'l1'],
+                              [1.0, 2.0, 9.0])
+        bag.write_joint_state('/joint_states', T0_NS + 20 * MS, good, [1.0, 2.0, 0.0, 0.0])
+    with open_recording(tmp_path / 'bag') as bag:
+        wheels = bag.read_wheels(left_joints=['l1'], right_joints=['r1'])
+        assert any('1 with a wheel joint listed twice' in note for note in bag.notes)
+    np.testing.assert_array_equal((wheels.t_ns - T0_NS) // MS, [0, 20])
 
 
 def test_side_speed_is_the_correctly_rounded_mean_and_keeps_identical_values():

@@ -67,7 +67,8 @@ from scipy.spatial.transform import Rotation
 from skidkin_ros.adapters.pointcloud import interpret_point_times, read_xyz_and_times
 from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.odometry.config import node_default
-from skidkin_ros.core.odometry.wheels import (check_velocity_count, drop_jumps, joint_indices,
+from skidkin_ros.core.odometry.wheels import (check_velocity_count, drop_jumps,
+                                              DuplicateJointError, joint_indices,
                                               MalformedMessageError, MissingJointError,
                                               pair_wheel_streams, speeds_at)
 from skidkin_ros.core.rotation import quaternion_to_yaw
@@ -641,6 +642,9 @@ class BagRecording:
                     index_cache = (names, *joint_indices(names, left, right))
                 except MissingJointError:
                     self._drop(topic, 'without wheel joints')
+                    continue
+                except DuplicateJointError:  # refused as the node refuses it
+                    self._drop(topic, 'with a wheel joint listed twice')
                     continue
             velocity = msg.velocity
             try:

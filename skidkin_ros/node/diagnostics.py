@@ -24,7 +24,8 @@ NS_PER_S = 1_000_000_000
 # Counter names reported on /diagnostics; which of them make the status WARN or ERROR.
 WARN_CAUSES = ('non_finite', 'implausible', 'wheel_jump', 'older', 'gap', 'zero_stamp',
                'negative_stamp', 'future_stamp', 'stamp_step_back', 'stamp_reset', 'missing_joint',
-               'malformed_message', 'unpaired', 'waiting_for_clock', 'set_pose_rejected')
+               'duplicate_joint', 'malformed_message', 'unpaired', 'waiting_for_clock',
+               'set_pose_rejected')
 ERROR_CAUSES = ('non_finite_state', 'non_finite_output', 'callback_error')
 
 

@@ -12,7 +12,7 @@ Inputs (parameter ``input``, read-only after start-up):
   ``header.stamp``; a side's speed is the mean of the velocities of its joints. Messages are
   read from their serialized form by :mod:`skidkin_ros.node.wire`; what it does not read goes
   to rclpy's deserializer, and what that refuses too is dropped and counted
-  (``malformed_message``).
+  (``malformed_message``). A wheel joint listed twice makes the sample refused.
 * ``wheel_topics``: std_msgs/Float64 on ``wheel/left/velocity`` and ``wheel/right/velocity``
   (rad/s), stamped with the node clock on receipt (honours use_sim_time) and paired within
   ``pair_tolerance``.
@@ -62,8 +62,9 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Estimate, Odometer
-from skidkin_ros.core.odometry.wheels import (check_velocity_count, joint_indices,
-                                              MissingJointError, speeds_at)
+from skidkin_ros.core.odometry.wheels import (check_velocity_count, DuplicateJointError,
+                                              joint_indices, MissingJointError,
+                                              repeated_names, speeds_at)
 from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_msg,
@@ -229,7 +230,15 @@ class OdomNode(Node):
                 except MissingJointError as err:
                     self._reject('missing_joint', str(err))
                     return
+                except DuplicateJointError as err:
+                    self._reject('duplicate_joint', str(err))
+                    return
                 self._joint_names = names
+                repeated = repeated_names(names)
+                if repeated:  # once per name list: these joints are not the wheels
+                    self._warn('repeated_joint', f'JointState lists joint(s) {repeated} more '
+                               'than once; they are not wheel joints, odometry is unaffected; '
+                               'fix the driver so that each joint is listed once')
             omega_l, omega_r = speeds_at(velocity, *self._joint_index)
             now_ns = self._clock_now_ns()
             if now_ns is None:

@@ -5,7 +5,9 @@ turn them into the same (t, omega_left, omega_right) samples, or replaying a rec
 node would not reproduce the offline prediction:
 
 1. A sensor_msgs/JointState listing every joint: find the wheel joints in the ``name`` list
-   (:func:`joint_indices`, once per distinct list: drivers repeat it), check there is a velocity
+   (:func:`joint_indices`, once per distinct list: drivers repeat it; a wheel joint listed twice
+   is refused, as its speed would be a guess, and :func:`repeated_names` names any other joint
+   listed twice, for a warning), check there is a velocity
    per name (:func:`check_velocity_count`), and take each side's speed as the mean of its joints'
    velocities (:func:`side_speed`; identical values come back unchanged, so a single encoder per
    side survives the mean bit for bit).
@@ -36,8 +38,10 @@ from typing import Iterable, Sequence
 __all__ = [
     'SIDES',
     'MissingJointError',
+    'DuplicateJointError',
     'MalformedMessageError',
     'joint_indices',
+    'repeated_names',
     'check_velocity_count',
     'side_speed',
     'speeds_at',
@@ -64,21 +68,46 @@ class MissingJointError(ValueError):
     """A JointState that lacks one of the configured wheel joints."""
 
 
+class DuplicateJointError(ValueError):
+    """A JointState that lists one of the configured wheel joints more than once."""
+
+
 def joint_indices(names: Sequence[str], left_joints: Sequence[str],
                   right_joints: Sequence[str]) -> tuple[tuple[int, ...], tuple[int, ...]]:
     """Return where the left and right wheel joints are in a JointState's ``name`` list.
 
-    Raises MissingJointError when a configured joint is absent. Drivers send the same name list
-    every time, so callers look the indices up once per distinct list.
+    Raises MissingJointError when a configured joint is absent, DuplicateJointError when one
+    is listed twice (two velocities for one wheel: which is right cannot be told). Drivers send
+    the same name list every time, so callers look the indices up once per distinct list.
     """
     index = {name: i for i, name in enumerate(names)}
-    missing = [joint for joint in (*left_joints, *right_joints) if joint not in index]
+    wheels = (*left_joints, *right_joints)
+    missing = [joint for joint in wheels if joint not in index]
     if missing:
         raise MissingJointError(
             f'JointState lacks wheel joint(s) {missing} (it has {list(names)}); check '
             'left_wheel_joints / right_wheel_joints')
+    twice = [joint for joint in repeated_names(names) if joint in wheels]
+    if twice:
+        where = '; '.join(f'{joint!r} at {[i for i, n in enumerate(names) if n == joint]}'
+                          for joint in twice)
+        raise DuplicateJointError(
+            f'JointState lists wheel joint(s) more than once ({where}): which velocity is the '
+            "wheel's cannot be told, sample rejected; fix the driver so that each joint is "
+            'listed once')
     return (tuple(index[joint] for joint in left_joints),
             tuple(index[joint] for joint in right_joints))
+
+
+def repeated_names(names: Sequence[str]) -> list[str]:
+    """Return the names listed more than once, each once, in the order they repeat."""
+    seen: set[str] = set()
+    repeated: dict[str, None] = {}
+    for name in names:
+        if name in seen:
+            repeated[name] = None
+        seen.add(name)
+    return list(repeated)
 
 
 def check_velocity_count(n_names: int, n_velocities: int) -> None:
