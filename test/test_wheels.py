@@ -28,6 +28,14 @@ def test_joint_indices_find_the_wheels_and_name_what_is_missing():
         check_velocity_count(3, 2)
 
 
+def test_a_missing_joint_message_shows_a_bounded_list_of_names():
+    names = [f'joint_{i}' for i in range(100_000)]  # a hostile driver's list
+    with pytest.raises(MissingJointError) as err:
+        joint_indices(names, ['left'], ['right'])
+    assert "it has 100000: ['joint_0', 'joint_1'," in str(err.value)
+    assert len(str(err.value)) < 1000
+
+
 def test_a_wheel_joint_listed_twice_is_refused_naming_it_and_where():
     names = ['front_left', 'rear_left', 'front_right', 'rear_right', 'front_left']
     with pytest.raises(DuplicateJointError, match=r"'front_left' at \[0, 4\]"):

@@ -211,6 +211,16 @@ def _lines_run(read, data: bytes) -> int:
     return lines
 
 
+def test_long_name_lists_are_left_to_rclpy() -> None:
+    """Past MAX_FAST_NAMES names rclpy's C loop is the faster reader; up to it, the fast path."""
+    diff = Differential()
+    for n, outcome in ((wire.MAX_FAST_NAMES, 'both read'),
+                       (wire.MAX_FAST_NAMES + 1, 'left to rclpy')):
+        names = [f'joint_{i}'.encode() + b'\x00' for i in range(n)]
+        data, _ = _two_joints(names=names, velocity=[0.5] * n)
+        assert diff.check(data) == outcome
+
+
 def test_forged_name_count_is_refused_before_any_name_is_read() -> None:
     hostile = _hostile_names(1_000_000)
     valid, _ = _two_joints()

@@ -84,6 +84,9 @@ _LAYOUTS = ((struct.Struct('>iI').unpack_from, struct.Struct('>I').unpack_from, 
             (struct.Struct('<iI').unpack_from, struct.Struct('<I').unpack_from, '<'))
 _FRAME_ID_AT = HEADER_BYTES + 8  # the header.frame_id length, after header.stamp
 _MIN_NAME_BYTES = 4  # a CDR string is at least its uint32 length (rclpy accepts length 0)
+# Longer name lists are left to rclpy, whose C loop decodes them about twice as fast as this
+# module's Python one: beyond any robot's joint count, a message costs no more than rclpy's own.
+MAX_FAST_NAMES = 256
 
 
 class JointStateReader:
@@ -98,7 +101,8 @@ class JointStateReader:
     The fast path reads only what it can read without guessing; it refuses, so that the caller
     hands the message to rclpy, what rclpy would accept but decode its own way: names that are
     not NUL-terminated UTF-8 (rclpy cuts them at the first NUL and replaces invalid bytes),
-    encapsulations other than plain CDR (XCDR2, parameter lists). A driver repeats its name
+    encapsulations other than plain CDR (XCDR2, parameter lists); and lists of more than
+    :data:`MAX_FAST_NAMES` names, which rclpy decodes faster. A driver repeats its name
     list: the list's bytes are kept and, when the next message holds the same bytes, the names
     are not decoded again.
     """
@@ -148,6 +152,9 @@ def _names(data: bytes, uint32: Any, offset: int) -> tuple[tuple[str, ...], int]
     if count > (size - offset) // _MIN_NAME_BYTES:
         raise WireFormatError(f'JointState claims {count} joint names but only {size - offset} '
                               f'bytes follow (a name takes at least {_MIN_NAME_BYTES})')
+    if count > MAX_FAST_NAMES:
+        raise WireFormatError(f'JointState lists {count} joint names, more than the fast reader '
+                              f'takes ({MAX_FAST_NAMES}): left to rclpy')
     names = []
     for i in range(count):
         offset = (offset + 3) & ~3

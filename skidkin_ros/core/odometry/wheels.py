@@ -35,6 +35,8 @@ import enum
 import math
 from typing import Iterable, Sequence
 
+from skidkin_ros.errors import brief
+
 __all__ = [
     'SIDES',
     'MissingJointError',
@@ -58,6 +60,8 @@ SIDES = ('left', 'right')
 # Wheel accelerations are measured over at least this long (s): at kHz rates one encoder count
 # between two samples is a large acceleration, not a glitch.
 MIN_JUMP_INTERVAL_S = 0.01
+# Longest text of a name list echoed in a message (a hostile list may hold millions of names).
+NAMES_SHOWN_CHARS = 400
 
 
 class MalformedMessageError(ValueError):
@@ -85,8 +89,9 @@ def joint_indices(names: Sequence[str], left_joints: Sequence[str],
     missing = [joint for joint in wheels if joint not in index]
     if missing:
         raise MissingJointError(
-            f'JointState lacks wheel joint(s) {missing} (it has {list(names)}); check '
-            'left_wheel_joints / right_wheel_joints')
+            f'JointState lacks wheel joint(s) {missing} (it has {len(names)}: '
+            f'{brief(list(names), NAMES_SHOWN_CHARS)}); check left_wheel_joints / '
+            'right_wheel_joints')
     twice = [joint for joint in repeated_names(names) if joint in wheels]
     if twice:
         where = '; '.join(f'{joint!r} at {[i for i, n in enumerate(names) if n == joint]}'
