@@ -12,6 +12,7 @@ from skidkin_ros.core.estimation.nees import (chi2_band, nees, nees_over_time, s
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.errors import DataError
+from skidkin_ros.report.estimation import write_estimation_figures
 from skidkin_ros.studies.estimation import run_estimation_study, StudyOptions
 
 NOISE = NoiseModel(4e-3, 1e-3, 2e-4, 5e-3)
@@ -93,7 +94,7 @@ def test_segment_nees_on_drives_too_short_is_refused():
 def test_estimation_study_odometry_and_filter_are_consistent_and_the_filter_wins(tmp_path):
     options = StudyOptions(train_s=240.0, calib_drives=4, test_drives=4, test_s=150.0,
                            other_horizons_m=(), models=('edd_asymmetric',), n_starts=1)
-    study = run_estimation_study(tmp_path / 'figures', seed=0, options=options)
+    study = run_estimation_study(seed=0, options=options)
     odometry = study.odometry_summary
     assert odometry.count > 60
     assert odometry.band[0] <= odometry.mean <= odometry.band[1], study.summary_lines()
@@ -104,7 +105,9 @@ def test_estimation_study_odometry_and_filter_are_consistent_and_the_filter_wins
     odom_position, odom_yaw = study.runs.odom_rmse()
     assert ekf_position < 0.5 * odom_position
     assert ekf_yaw < odom_yaw
-    for path in study.figures.values():
+    figures = write_estimation_figures(tmp_path / 'figures', study)
+    assert len(figures) == 3
+    for path in figures.values():
         assert path.exists() and path.stat().st_size > 10_000
     lines = study.summary_lines()
     assert any('average NEES' in line for line in lines)

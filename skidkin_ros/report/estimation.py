@@ -1,9 +1,12 @@
-"""Figures of the estimation study (matplotlib, Agg): errors and NEES against the chi2 band."""
+"""Figures of the estimation study (matplotlib, Agg): errors and NEES against the chi2 band.
+
+The study (:mod:`skidkin_ros.studies.estimation`) returns its numbers; this module draws them.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Mapping, TYPE_CHECKING
+from typing import Mapping
 
 import matplotlib
 matplotlib.use('Agg')
@@ -13,15 +16,13 @@ from scipy import stats  # noqa: E402
 
 from skidkin_ros.core.estimation.nees import NeesSummary, SegmentNees  # noqa: E402
 from skidkin_ros.report.figures import save_figure  # noqa: E402
-
-if TYPE_CHECKING:
-    from skidkin_ros.studies.estimation import FilterRuns
+from skidkin_ros.studies.estimation import EstimationStudy, FilterRuns  # noqa: E402
 
 __all__ = ['error_over_time', 'nees_over_time_figure', 'segment_nees_figure',
            'write_estimation_figures']
 
 
-def error_over_time(runs: 'FilterRuns', path: Path) -> Path:
+def error_over_time(runs: FilterRuns, path: Path) -> Path:
     """Position and yaw error vs time (RMS over the runs) for odometry alone and the filter."""
     fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
     for errors, covs, label, colour in ((runs.odom_errors, runs.odom_covs, 'odometry alone',
@@ -47,7 +48,7 @@ def error_over_time(runs: 'FilterRuns', path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def nees_over_time_figure(runs: 'FilterRuns', path: Path) -> Path:
+def nees_over_time_figure(runs: FilterRuns, path: Path) -> Path:
     """Run-averaged NEES vs time for both estimators with the chi2 95 % band for M runs."""
     ekf = runs.ekf_nees_over_time()
     odom = runs.odom_nees_over_time()
@@ -99,12 +100,12 @@ def segment_nees_figure(odometry: SegmentNees, horizons: Mapping[float, NeesSumm
     return save_figure(fig, path)
 
 
-def write_estimation_figures(out_dir: Path, odometry: SegmentNees,
-                             horizons: Mapping[float, NeesSummary],
-                             runs: 'FilterRuns') -> dict[str, Path]:
-    """Write the three figures into ``out_dir`` (created) and return name -> path."""
+def write_estimation_figures(out_dir: Path, study: EstimationStudy) -> dict[str, Path]:
+    """Write the study's three figures into ``out_dir`` (created) and return name -> path."""
+    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    runs = study.runs
     return {'error_over_time': error_over_time(runs, out_dir / 'estimation_error.png'),
             'nees_over_time': nees_over_time_figure(runs, out_dir / 'estimation_nees.png'),
-            'segment_nees': segment_nees_figure(odometry, horizons,
+            'segment_nees': segment_nees_figure(study.odometry, study.horizons,
                                                 out_dir / 'odometry_nees.png')}

@@ -1,6 +1,6 @@
 """The estimation study: whether the odometry uncertainty is honest and what a filter gains.
 
-``run_estimation_study(out_dir, seed, quick)`` is a recipe on simulated drives:
+``run_estimation_study(seed, quick)`` is a recipe on simulated drives:
 
 1. simulate a training drive and calibration hold-out drives (the simulator's default true
    model; wheels and the exact truth from ``Simulation.drive()``, optionally blurred by white
@@ -19,7 +19,9 @@ corrected
    by a simulated absolute fix every ``fix_period_s`` with white noise of known covariance) and
    odometry alone on every test drive from the true start pose: position and yaw RMSE, and the
    filter's NEES over time against the chi2 band for the number of runs;
-5. figures (error vs time, NEES vs time, NEES per horizon) into ``out_dir``.
+5. an :class:`EstimationStudy` with every number: its figures (error vs time, NEES vs time,
+   NEES per horizon) are drawn by :mod:`skidkin_ros.report.estimation`, its lines printed by
+   ``skidkin estimate``.
 
 Why the default fix is a 3 cm position fix: the noise rates are calibrated on windows of h_e
 (2 m), and the rate model (variance growing linearly with distance) fits the odometry's real
@@ -37,7 +39,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, replace
 import logging
 import math
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -190,7 +191,6 @@ class EstimationStudy:
     odometry: SegmentNees
     horizons: dict[float, NeesSummary]
     runs: FilterRuns = field(repr=False)
-    figures: dict[str, Path]
     sweep: dict[tuple[float, float | None], FilterRuns] = field(default_factory=dict, repr=False)
     provenance: dict[str, Any] = field(default_factory=dict)
 
@@ -261,7 +261,6 @@ class EstimationStudy:
             lines.append(f'  other fixes ({label}): position RMSE {position:.3f} m, yaw RMSE '
                          f'{math.degrees(yaw):.2f} deg, NEES {summary.mean:.2f} in '
                          f'[{summary.band[0]:.2f}, {summary.band[1]:.2f}]: {summary.verdict()}')
-        lines += [f'figure {name}: {path}' for name, path in self.figures.items()]
         return lines
 
 
@@ -354,9 +353,9 @@ def _simulate_drive(name: str, duration_s: float, seed: int, wheel_rate_hz: floa
     return simulate(config).drive(name)
 
 
-def run_estimation_study(out_dir: Path | None, seed: int = 0, quick: bool = False,
+def run_estimation_study(seed: int = 0, quick: bool = False,
                          options: StudyOptions | None = None) -> EstimationStudy:
-    """Run the whole study (module docstring); figures go to ``out_dir`` (None: no figures).
+    """Run the whole study (module docstring) and return what it found.
 
     Seeds: the training drive uses ``seed``, the calibration hold-out drives ``seed + 1 ...``,
     the test drives ``seed + 100 ...``; the ground-truth and fix noise draw from ``seed`` too.
@@ -394,12 +393,8 @@ def run_estimation_study(out_dir: Path | None, seed: int = 0, quick: bool = Fals
     for sigma_m, sigma_yaw in options.fix_sweep:
         other = replace(options, fix_sigma_m=sigma_m, fix_sigma_yaw_rad=sigma_yaw)
         sweep[(sigma_m, sigma_yaw)] = run_filter(tests, source, noise, other, rng)
-    figures: dict[str, Path] = {}
-    if out_dir is not None:
-        from skidkin_ros.report.estimation import write_estimation_figures
-        figures = write_estimation_figures(Path(out_dir), odometry, horizons, runs)
     provenance = {'options': options.as_dict(), 'seed': seed, 'model': model,
                   'values': dict(calibration.fits[model].values),
                   'noise': noise.as_dict(), 'calibration': calibration.provenance}
     return EstimationStudy(options, seed, calibration, model, noise, odometry, horizons, runs,
-                           figures, sweep, provenance)
+                           sweep, provenance)
