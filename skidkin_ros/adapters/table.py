@@ -19,7 +19,8 @@ held onto the table's time grid (the DRIVE Husky table: ICP at ~10 Hz held onto 
 consecutive rows repeat the same pose. A held pose is stale: using it as a segment end would
 compare the model at time t with where the robot was up to one ICP period earlier. With
 ``dedupe_held_truth=True`` (default) the ground truth keeps only the rows where the pose was
-refreshed (the first row of each run of identical (x, y, yaw)); segments then start and end on
+refreshed (the first row of each run of identical (x, y, yaw):
+:func:`skidkin_ros.core.drive.fresh_pose_mask`); segments then start and end on
 fresh poses only. We do not interpolate between fresh poses: their true stamps are unknown within
 one grid period anyway, and interpolation would invent poses the ICP never produced. Wheel speeds
 keep every row.
@@ -36,12 +37,12 @@ from typing import Sequence
 
 import numpy as np
 
-from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.core.drive import Drive, fresh_pose_mask, ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.odometry.config import NODE_SPECS
 from skidkin_ros.core.odometry.odometer import POSE_LIMIT_M
 from skidkin_ros.errors import RecordingError
 
-__all__ = ['REQUIRED_COLUMNS', 'META_COLUMNS', 'read_table', 'fresh_pose_mask']
+__all__ = ['REQUIRED_COLUMNS', 'META_COLUMNS', 'read_table']
 
 LOG = logging.getLogger(__name__)
 
@@ -60,12 +61,6 @@ VALUE_LIMITS: dict[str, tuple[float, str]] = {
     'cmd_left': (_WHEEL_LIMIT, 'rad/s'), 'cmd_right': (_WHEEL_LIMIT, 'rad/s'),
     'imu_yaw_rate': (_WHEEL_LIMIT, 'rad/s'), 'x': (POSE_LIMIT_M, 'm'), 'y': (POSE_LIMIT_M, 'm'),
     'yaw': (POSE_LIMIT_M, 'rad'), 't': (MAX_TIME_S, 's')}
-
-
-def fresh_pose_mask(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Return True for rows whose pose differs from the previous row (first row always True)."""
-    same = (np.diff(x) == 0.0) & (np.diff(y) == 0.0) & (np.diff(yaw) == 0.0)
-    return np.concatenate([[True], ~same])
 
 
 def _read_rows(path: Path) -> tuple[list[str], list[list[str]]]:

@@ -3,6 +3,10 @@
 Times are integer nanoseconds (``t_ns``) everywhere; convert to float seconds only for maths.
 A source (a bag, a trajectory table) yields a list of ``Drive`` objects: each is one continuous
 stretch of driving with its own ground-truth frame (a table's ``segment`` column starts a new one).
+
+Ground truth is often sample-and-held (ICP at 10 Hz held onto a 20 Hz grid): a repeated pose is
+stale, not a new measurement. :func:`fresh_pose_mask` is the one rule that tells the refreshed
+rows; the table reader drops the held ones and the diagnosis differentiates only the fresh ones.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import numpy as np
 
 from skidkin_ros.errors import DataError
 
-__all__ = ['WheelSamples', 'PoseTrack', 'ImuSamples', 'Drive']
+__all__ = ['WheelSamples', 'PoseTrack', 'ImuSamples', 'Drive', 'fresh_pose_mask']
 
 
 def _as_time(t_ns, what: str) -> np.ndarray:
@@ -27,6 +31,12 @@ def _as_time(t_ns, what: str) -> np.ndarray:
 def _check_sorted(t: np.ndarray, what: str) -> None:
     if t.size > 1 and np.any(np.diff(t) < 0):
         raise DataError(f'{what}: stamps must be non-decreasing; sort or clean the data first')
+
+
+def fresh_pose_mask(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Return True for rows whose pose differs from the previous row (first row always True)."""
+    same = (np.diff(x) == 0.0) & (np.diff(y) == 0.0) & (np.diff(yaw) == 0.0)
+    return np.concatenate([[True], ~same])
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis import (diagnose, DiagnosisOptions, DiagnosisResult,
                                                     ModelState)
-from skidkin_ros.core.calibration.evaluation import ErrorStats
+from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_errors
 from skidkin_ros.core.calibration.fitting import fit_model
 from skidkin_ros.core.calibration.predictor import SegmentPredictor
 from skidkin_ros.core.calibration.segments import cut_segments
@@ -98,11 +98,9 @@ def run_case(effect: Effect | None, duration_s: float = 120.0,
                       options)
     predictor = SegmentPredictor(evaluate, cut_segments(evaluate, options.eval_segments()))
     errors = predictor.errors(true_state(effect, duration_s).bind('edd_symmetric', GEOMETRY))
-    scored = predictor.segments.path_m >= options.min_eval_path_m
-    path = predictor.segments.path_m[scored]
-    truth_t = ErrorStats.of(np.hypot(errors[scored, 0], errors[scored, 1]) / path)
-    truth_th = ErrorStats.of(np.degrees(np.abs(errors[scored, 2])) / path)
-    return EffectCase(effect, result, truth_t, truth_th)
+    eps_t, eps_theta = relative_errors(errors, predictor.segments.path_m,
+                                       options.min_eval_path_m)
+    return EffectCase(effect, result, ErrorStats.of(eps_t), ErrorStats.of(eps_theta))
 
 
 def main() -> None:

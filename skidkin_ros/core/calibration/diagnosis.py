@@ -46,13 +46,12 @@ import numpy as np
 from scipy import optimize, stats
 
 from skidkin_ros import __version__
+from skidkin_ros.core.calibration.engine import trim_mask
 from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_errors
-from skidkin_ros.core.calibration.fitting import _trim_mask, FitOptions
 from skidkin_ros.core.calibration.holdout import resolve_holdout
 from skidkin_ros.core.calibration.predictor import SegmentPredictor
-from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
-                                                   SegmentSet)
-from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.calibration.segments import HorizonOptions, SegmentSet, usable_segments
+from skidkin_ros.core.drive import Drive, fresh_pose_mask
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel, BoundAugmented
 from skidkin_ros.core.kinematics.extensions import (EXTENSION_NAMES, get_extension, ordered,
                                                     SPARSE_FEATURES, sparse_features)
@@ -132,11 +131,6 @@ class DiagnosisOptions(HorizonOptions):
 
 
 # ---------------------------------------------------------------------------- differentiator
-def _fresh_mask(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    same = (np.diff(x) == 0.0) & (np.diff(y) == 0.0) & (np.diff(yaw) == 0.0)
-    return np.concatenate([[True], ~same])
-
-
 def body_velocities(t_ns: np.ndarray, poses: np.ndarray, half_window_s: float
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Differentiate poses (N, 3) by local quadratic fits; return body twists (N, 3) and valid.
@@ -182,7 +176,7 @@ def truth_velocities(drive: Drive, half_window_s: float
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (fresh ground-truth stamps, body twists (N, 3), valid) of one drive."""
     truth = drive.truth
-    fresh = _fresh_mask(truth.x, truth.y, truth.yaw) & truth.valid
+    fresh = fresh_pose_mask(truth.x, truth.y, truth.yaw) & truth.valid
     t_ns = truth.t_ns[fresh]
     twist, valid = body_velocities(t_ns, truth.poses[fresh], half_window_s)
     return t_ns, twist, valid
@@ -980,17 +974,6 @@ def _evaluate(predictor: SegmentPredictor, label: str, state: ModelState, base_n
     return ModelStep(label, state, eps_t, eps_th, ErrorStats.of(eps_t), ErrorStats.of(eps_th))
 
 
-def _segments(drives: Sequence[Drive], seg_options: SegmentOptions, what: str) -> SegmentSet:
-    if not drives:
-        raise DataError(f'no {what} drive given')
-    segments = cut_segments(drives, seg_options)
-    if len(segments) < 6:
-        raise DataError(f'{len(segments)} usable {what} segment(s) out of {len(drives)} '
-                        f'drive(s) ({segments.counts.as_dict()}); a diagnosis needs at least 6: '
-                        'drive longer with ground truth')
-    return segments
-
-
 def _wheel_period_s(drives: Sequence[Drive]) -> float:
     """Return the median wheel sample period (s) of the drives, 0 without samples."""
     steps = [np.diff(d.wheels.t_ns) for d in drives if len(d.wheels) > 1]
@@ -1023,8 +1006,9 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                                                options.holdout_mode, options.holdout_block_s,
                                                options.holdout_key)
     tic = time.perf_counter()
-    train_seg = _segments(train, options.train_segments(), 'training')
-    eval_seg = _segments(evaluate, options.eval_segments(), 'evaluation')
+    train_seg = usable_segments(train, options.train_segments(), 'training', 6, 'a diagnosis')
+    eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation', 6,
+                               'a diagnosis')
     given_state = ModelState((), given, {})
     convention_s = _stamp_convention(train, options)
     predictor = SegmentPredictor(train, train_seg, options.max_dt_s)
@@ -1032,8 +1016,8 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
     trimmed = 0
     if options.trim:
         # Outlier segments (e.g. ground-truth glitches, C15) are dropped once, as calibrate does.
-        kept = _trim_mask(predictor.errors(refit.bind(base_model_name, geometry)),
-                          FitOptions(sigma_diag=tuple(options.sigma_diag)))
+        kept = trim_mask(predictor.errors(refit.bind(base_model_name, geometry)),
+                         options.whitening)
         trimmed = int((~kept).sum())
         if trimmed:
             train_seg = train_seg.subset(kept)

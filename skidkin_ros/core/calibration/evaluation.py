@@ -7,6 +7,10 @@ On evaluation segments of horizon h_e (cut on the ground truth, the same for eve
 
 Segments shorter than ``min_path_m`` (spins in place) are left out of these per-metre figures:
 dividing by a near-zero path would dominate every statistic.
+
+:func:`relative_errors` is the one place the two figures are computed: for the calibrated models,
+the diagnosis's before/after table, the studies, and any odometry output against ground truth
+(:func:`relative_pose_errors`, e.g. what the node published in ``skidkin demo``).
 """
 
 from __future__ import annotations
@@ -25,13 +29,26 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.errors import DataError
 
 __all__ = [
+    'relative_errors',
     'ErrorStats',
     'ModelEvaluation',
     'evaluate_model',
     'evaluate_models',
-    'relative_errors',
     'relative_pose_errors',
 ]
+
+
+def relative_errors(errors: np.ndarray, path_m: np.ndarray,
+                    min_path_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Return eps_t (m/m) and eps_theta (deg/m) of the segments at least min_path_m long.
+
+    ``errors``: (N, 3) end-pose errors in each segment's start frame (m, m, rad, yaw wrapped);
+    ``path_m``: (N,) ground-truth path lengths. The one place these figures are computed.
+    """
+    scored = path_m >= min_path_m
+    path = path_m[scored]
+    return (np.hypot(errors[scored, 0], errors[scored, 1]) / path,
+            np.degrees(np.abs(errors[scored, 2])) / path)
 
 
 @dataclass(frozen=True)
@@ -76,9 +93,7 @@ def evaluate_model(name: str, values: Mapping[str, float], geometry: Geometry,
     k = model.vector(dict(values), geometry)
     errors = segment_errors(model, k, geometry, segments)
     scored = segments.path_m >= min_path_m
-    path = segments.path_m[scored]
-    eps_t = np.hypot(errors[scored, 0], errors[scored, 1]) / path
-    eps_theta = np.degrees(np.abs(errors[scored, 2])) / path
+    eps_t, eps_theta = relative_errors(errors, segments.path_m, min_path_m)
     return ModelEvaluation(name, errors, scored, eps_t, eps_theta, ErrorStats.of(eps_t),
                            ErrorStats.of(eps_theta))
 
@@ -131,15 +146,5 @@ def relative_pose_errors(t_ns: np.ndarray, estimate: np.ndarray, truth: PoseTrac
                           start[:, 1] + st * local[:, 0] + ct * local[:, 1],
                           start[:, 2] + local[:, 2]], axis=-1)
     errors = segment_frame_error(start, true[b_idx], predicted)
-    length = path[b_idx] - path[a_idx]
-    return (np.hypot(errors[:, 0], errors[:, 1]) / length,
-            np.degrees(np.abs(errors[:, 2])) / length)
-
-
-def relative_errors(errors: np.ndarray, path_m: np.ndarray,
-                    min_path_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
-    """Return eps_t (m/m) and eps_theta (deg/m) of the segments at least min_path_m long."""
-    scored = path_m >= min_path_m
-    path = path_m[scored]
-    return (np.hypot(errors[scored, 0], errors[scored, 1]) / path,
-            np.degrees(np.abs(errors[scored, 2])) / path)
+    # Every window is at least horizon_m > 0 long: none is left out.
+    return relative_errors(errors, path[b_idx] - path[a_idx], min_path_m=0.0)

@@ -7,14 +7,15 @@ lateral, heading; heading wrapped), so a non-isotropic Sigma means something; wi
 identity Sigma this equals the paper's world-frame loss. Sigma brings metres and radians to one
 unitless scale.
 
-The optimizer is scipy's bounded ``least_squares`` (trust-region reflective) on the whitened
-residuals W e_i (W^T W = Sigma^-1), bounds from each ParamSpec, optional robust loss
-(``soft_l1``, ``huber``, ``cauchy``... with ``f_scale`` in whitened units). All segments are rolled
-out at once (one vectorized call of the shared integrator per cost evaluation).
+The optimizer is the one engine of :mod:`skidkin_ros.core.calibration.engine` (scipy's bounded
+``least_squares`` on the whitened residuals W e_i, W^T W = Sigma^-1, bounds from each ParamSpec)
+with an optional robust loss (``soft_l1``, ``huber``, ``cauchy``... with ``f_scale`` in whitened
+units). All segments are rolled out at once (one vectorized call of the shared integrator per cost
+evaluation).
 
 Outlier trimming (C15): after a first fit, segments whose whitened squared distance exceeds
-``trim_chi2`` times a robust scale (median of the distances / median of chi2 with 3 dof) are
-dropped (at most ``trim_max_fraction`` of them, the worst first) and the model is refitted once.
+``trim_chi2`` times a robust scale are dropped (at most ``trim_max_fraction`` of them, the worst
+first: :func:`skidkin_ros.core.calibration.engine.trim_mask`) and the model is refitted once.
 
 Several starts (C20: seeded, so the same input gives the same output) for models with at least
 ``multi_start_min_params`` parameters: the default start plus random starts drawn around it.
@@ -35,8 +36,11 @@ import time
 from typing import Sequence
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize
 
+from skidkin_ros.core.calibration.engine import (check_sigma_diag, ParameterLayout, solve,
+                                                 TRIM_CHI2, trim_mask, TRIM_MAX_FRACTION,
+                                                 TwistSource, whitening)
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.kinematics.models import get_model, KinematicModel, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
@@ -81,8 +85,8 @@ class FitOptions:
     loss: str = 'linear'
     f_scale: float = 1.0
     trim: bool = True
-    trim_chi2: float = float(stats.chi2.ppf(0.999, 3))
-    trim_max_fraction: float = 0.1
+    trim_chi2: float = TRIM_CHI2
+    trim_max_fraction: float = TRIM_MAX_FRACTION
     n_starts: int = 8
     multi_start_min_params: int = 3
     seed: int = 0
@@ -99,10 +103,7 @@ class FitOptions:
     def __post_init__(self) -> None:
         if self.loss not in ROBUST_LOSSES:
             raise ParameterError(f'loss must be one of {ROBUST_LOSSES}, got {self.loss!r}')
-        sigma = np.asarray(self.sigma_diag, dtype=float)
-        if sigma.shape != (3,) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
-            raise ParameterError('sigma_diag must be three finite variances > 0 for (x [m^2], '
-                                 f'y [m^2], yaw [rad^2]), got {self.sigma_diag!r}')
+        check_sigma_diag(self.sigma_diag)
         if not (self.f_scale > 0 and math.isfinite(self.f_scale)):
             raise ParameterError(f'f_scale must be > 0 (whitened units), got {self.f_scale!r}')
         if not 0.0 <= self.trim_max_fraction < 1.0:
@@ -113,7 +114,7 @@ class FitOptions:
 
     @property
     def whitening(self) -> np.ndarray:
-        return 1.0 / np.sqrt(np.asarray(self.sigma_diag, dtype=float))
+        return whitening(self.sigma_diag)
 
 
 @dataclass(frozen=True)
@@ -196,11 +197,6 @@ def measure_excitation(segments: SegmentSet, options: FitOptions) -> Excitation:
                       float(rotation.sum()), float(segments.path_m.sum()))
 
 
-def _bounds(model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
-    pairs = [spec.optimizer_bounds() for spec in model.params]
-    return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
-
-
 def _scales(model: KinematicModel, geometry: Geometry) -> np.ndarray:
     """Typical magnitude of each parameter (for start draws and relative uncertainty)."""
     unit_scale = {'m': geometry.track_width, 'm/rad': geometry.wheel_radius,
@@ -218,7 +214,7 @@ def _starts(model: KinematicModel, geometry: Geometry, options: FitOptions,
     starts = [x0]
     if len(model.params) < options.multi_start_min_params:
         return starts
-    lo, hi = _bounds(model)
+    lo, hi = ParameterLayout.of_model(model.name, geometry).bounds()
     scales = _scales(model, geometry)
     for _ in range(options.n_starts - 1):
         draw = x0 + rng.uniform(-0.5, 0.5, size=x0.size) * scales
@@ -229,17 +225,12 @@ def _starts(model: KinematicModel, geometry: Geometry, options: FitOptions,
 def _solve(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
            options: FitOptions, x0: np.ndarray,
            max_nfev: int | None = None) -> optimize.OptimizeResult:
-    lo, hi = _bounds(model)
-    weight = options.whitening
+    """Fit every parameter of the model from ``x0`` with the engine (plain rollout errors)."""
+    def errors(source: TwistSource) -> np.ndarray:
+        return segment_errors(model, source.k, geometry, segments)
 
-    def residuals(k: np.ndarray) -> np.ndarray:
-        err = segment_errors(model, k, geometry, segments) * weight
-        return np.nan_to_num(err, nan=1e6, posinf=1e6, neginf=-1e6).ravel()
-
-    return optimize.least_squares(residuals, x0, bounds=(lo, hi), loss=options.loss,
-                                  f_scale=options.f_scale, x_scale='jac',
-                                  max_nfev=(max_nfev or options.max_nfev) * (len(x0) + 1),
-                                  method='trf')
+    return solve(errors, ParameterLayout.of_model(model.name, geometry), options.whitening, x0,
+                 max_nfev or options.max_nfev, options.loss, options.f_scale)
 
 
 def _best_solution(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
@@ -266,21 +257,6 @@ def _best_solution(model: KinematicModel, geometry: Geometry, segments: SegmentS
     if cap is not None and screen is segments:
         best = _solve(model, geometry, segments, options, best.x)
     return best, len(starts), screen is segments
-
-
-def _trim_mask(errors: np.ndarray, options: FitOptions) -> np.ndarray:
-    """Return True for segments kept after trimming outliers (C15)."""
-    dist2 = ((errors * options.whitening) ** 2).sum(axis=1)
-    scale = np.median(dist2) / stats.chi2.median(3)
-    if not scale > 0:
-        return np.ones(dist2.shape, bool)
-    outlier = dist2 > options.trim_chi2 * scale
-    max_drop = int(math.floor(options.trim_max_fraction * dist2.size))
-    if outlier.sum() > max_drop:
-        worst = np.argsort(-dist2, kind='stable')[:max_drop]
-        outlier = np.zeros(dist2.shape, bool)
-        outlier[worst] = True
-    return ~outlier
 
 
 def _std_errors(sol: optimize.OptimizeResult, n_params: int) -> np.ndarray:
@@ -337,20 +313,22 @@ def fit_model(name: str, geometry: Geometry, segments: SegmentSet,
     used = segments
     kept = np.ones(len(segments), bool)
     if options.trim:
-        kept = _trim_mask(segment_errors(model, sol.x, geometry, segments), options)
+        kept = trim_mask(segment_errors(model, sol.x, geometry, segments), options.whitening,
+                         options.trim_chi2, options.trim_max_fraction)
         if not kept.all():
             used = segments.subset(kept)
             on_all = False
     if not on_all:
         sol = _solve(model, geometry, used, options, sol.x)
     trimmed = int((~kept).sum())
-    return _diagnose(model, geometry, used, options, sol, n_starts, trimmed, kept,
-                     time.perf_counter() - tic)
+    return _assess_fit(model, geometry, used, options, sol, n_starts, trimmed, kept,
+                       time.perf_counter() - tic)
 
 
-def _diagnose(model: KinematicModel, geometry: Geometry, used: SegmentSet,
-              options: FitOptions, sol: optimize.OptimizeResult, n_starts: int, trimmed: int,
-              kept: np.ndarray, seconds: float) -> FitResult:
+def _assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
+                options: FitOptions, sol: optimize.OptimizeResult, n_starts: int,
+                trimmed: int, kept: np.ndarray, seconds: float) -> FitResult:
+    """Turn a solution into a FitResult: standard errors, bounds, observability, convergence."""
     names = model.param_names
     se = _std_errors(sol, len(names))
     warnings = []

@@ -31,7 +31,7 @@ from skidkin_ros.core.calibration.fitting import fit_models, FitOptions, FitResu
 from skidkin_ros.core.calibration.holdout import resolve_holdout
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
-                                                   SegmentSet)
+                                                   SegmentSet, usable_segments)
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
@@ -131,17 +131,6 @@ def choose_best(fits: Mapping[str, FitResult],
     return best, scores
 
 
-def _segments(drives: Sequence[Drive], options: SegmentOptions, what: str) -> SegmentSet:
-    if not drives:
-        raise DataError(f'no {what} drive given')
-    segments = cut_segments(drives, options)
-    if len(segments) == 0:
-        raise DataError(f'no usable {what} segment out of {len(drives)} drive(s) '
-                        f'({segments.counts.as_dict()}); drive further than the horizon '
-                        f'{options.horizon_m:g} m with ground truth')
-    return segments
-
-
 def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry: Geometry,
               options: CalibrationOptions | None = None) -> CalibrationResult:
     """Run the whole calibration recipe (module docstring) and return its result."""
@@ -149,8 +138,10 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     train, evaluate, holdout = resolve_holdout(train, evaluate, options.holdout_every,
                                                options.holdout_mode, options.holdout_block_s,
                                                options.holdout_key)
-    train_seg = _segments(train, options.train_segments(), 'training')
-    eval_seg = _segments(evaluate, options.eval_segments(), 'evaluation')
+    train_seg = usable_segments(train, options.train_segments(), 'training',
+                                needed_by='a calibration')
+    eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation',
+                               needed_by='a calibration')
     models = tuple(dict.fromkeys(('ideal_dd',) + tuple(options.models)))
     fits = fit_models(geometry, train_seg, options.fit_options(), models)
     evaluation = evaluate_models({m: f.values for m, f in fits.items()}, geometry, eval_seg,

@@ -19,6 +19,9 @@ Dropped segments are counted: no motion (C13: path below ``min_motion_m`` and ro
 ground-truth pose, spanning a wheel-data gap longer than ``max_gap_s``, or starting before the
 first wheel sample.
 
+:func:`usable_segments` is how a fit asks for segments: it cuts them, or raises a DataError that
+names what is missing (no drive, or how many segments were dropped and why).
+
 Padded arrays: for each segment, the wheel speeds held over [t_a, t_b] (zero-order hold; the
 speed held at t_a is that of the last wheel sample <= t_a), the step durations between t_a, the
 wheel stamps strictly inside (t_a, t_b) and t_b, padded with dt = 0 to a common length.
@@ -36,7 +39,7 @@ from skidkin_ros.core.drive import Drive
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['SegmentOptions', 'HorizonOptions', 'SegmentCounts', 'SegmentSet', 'cut_segments',
-           'segment_frame_error']
+           'usable_segments', 'segment_frame_error']
 
 SHORT_DRIVE_MODES = ('whole', 'drop')
 
@@ -321,3 +324,22 @@ def cut_segments(drives: Sequence[Drive], options: SegmentOptions | None = None)
         omega_l=omega_l, omega_r=omega_r, dt_s=dt_s,
         path_m=np.array([row[8] for row in rows]),
         counts=counts_obj, drive_names=names)
+
+
+def usable_segments(drives: Sequence[Drive], options: SegmentOptions, what: str,
+                    minimum: int = 1, needed_by: str = 'a fit') -> SegmentSet:
+    """Cut the drives into segments, or raise a DataError naming what is missing.
+
+    ``what``: the drives' role ('training', 'evaluation'); ``minimum``: how many segments
+    ``needed_by`` (a calibration, a diagnosis) needs at least.
+    """
+    if not drives:
+        raise DataError(f'no {what} drive given')
+    segments = cut_segments(drives, options)
+    if len(segments) < minimum:
+        horizon = (f'{options.horizon_s:g} s' if options.horizon_s is not None
+                   else f'{options.horizon_m:g} m')
+        raise DataError(f'{len(segments)} usable {what} segment(s) out of {len(drives)} '
+                        f'drive(s) ({segments.counts.as_dict()}); {needed_by} needs at least '
+                        f'{minimum}: drive further than the horizon {horizon} with ground truth')
+    return segments
