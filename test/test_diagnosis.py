@@ -4,9 +4,14 @@ import math
 
 import numpy as np
 import pytest
-from skidkin_ros.core.calibration.diagnosis import (body_velocities, DiagnosisOptions, stlsq,
-                                                    truth_velocities)
+from skidkin_ros.core.calibration.diagnosis import (body_velocities, DiagnosisOptions,
+                                                    ModelState, stlsq, truth_velocities)
+from skidkin_ros.core.calibration.diagnosis.residuals import COMPONENTS, pose_samples
+from skidkin_ros.core.calibration.diagnosis.selection import Outcome, pick, RoundScore, sparsest
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
+from skidkin_ros.core.kinematics.extensions import EXTENSIONS, LIBRARY
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
 from skidkin_ros.errors import OutputError, ParameterError
 from skidkin_ros.report.diagnosis import write_diagnosis_report
@@ -59,25 +64,62 @@ def test_options_are_validated():
 
 
 def test_sparse_fallback_keeps_the_fewest_terms_that_are_as_good_as_the_best():
-    from skidkin_ros.core.calibration.diagnosis import _sparsest, ModelState
     rng = np.random.default_rng(0)
     base = rng.gamma(2.0, 1.0, 300)
 
     def outcome(terms, losses):
         state = ModelState(('sparse_correction',), {}, {}, tuple(f't{i}' for i in range(terms)))
-        return losses, state, 1.0
+        return Outcome(losses, state, 1.0)
 
     outcomes = {'sparse_correction@0.1': outcome(10, base),
                 'sparse_correction@0.2': outcome(6, base * rng.uniform(0.97, 1.03, 300)),
                 'sparse_correction@0.4': outcome(2, base * 1.3)}  # clearly worse
-    kept, note = _sparsest(outcomes)
-    losses, state, seconds = kept['sparse_correction']
-    assert len(state.sparse_terms) == 6 and seconds == 3.0
+    kept, note = sparsest(outcomes)
+    assert len(kept.state.sparse_terms) == 6 and kept.seconds == 3.0
     assert 'threshold 0.2 kept' in note and '0.1: 10' in note
     outcomes['sparse_correction@0.2'] = outcome(6, base * 1.2)  # now significantly worse too
-    assert len(_sparsest(outcomes)[0]['sparse_correction'][1].sparse_terms) == 10
+    assert len(sparsest(outcomes)[0].state.sparse_terms) == 10
     with pytest.raises(ParameterError, match='sparse_thresholds'):
         DiagnosisOptions(sparse_thresholds=())
+
+
+def _score(name, values, losses, gain):
+    state = ModelState((name,), {}, {name: values}, (), (name,))
+    return RoundScore(name, Outcome(losses, state, 0.0), gain, 1e-6, True)
+
+
+def test_a_round_keeps_the_simpler_of_two_explanations_it_cannot_tell_apart():
+    rng = np.random.default_rng(2)
+    losses = rng.gamma(2.0, 1.0, 200)
+    offset = _score('time_offset', {'offset_s': 0.04}, losses * 0.8, 0.20)
+    # a first-order lag no longer than a wheel sample is a delay: the time offset is kept
+    short_lag = _score('first_order_lag', {'tau_s': 0.04}, losses * 0.5, 0.50)
+    assert pick([offset, short_lag], period_s=0.05) == (offset, ['first_order_lag'])
+    long_lag = _score('first_order_lag', {'tau_s': 0.3}, losses * 0.5, 0.50)
+    assert pick([offset, long_lag], period_s=0.05) == (long_lag, [])
+    # two effects equally good on held-out data: the one with fewer parameters
+    slip = _score('ratio_yaw_slip', {'k': 0.3, 'ratio_peak': 0.5}, losses * 0.79, 0.21)
+    icr = _score('icr_offset', {'x_m': 0.1}, losses * rng.uniform(0.74, 0.84, 200), 0.20)
+    assert pick([slip, icr], period_s=0.05) == (icr, ['ratio_yaw_slip'])
+    assert pick([], period_s=0.05) == (None, [])
+
+
+def test_every_residual_plot_of_the_registry_has_its_signal_in_the_trace():
+    t_s = np.arange(0.0, 30.0, 0.05)
+    omega_l, omega_r = 4.0 + np.sin(t_s), 5.0 + np.cos(0.5 * t_s)
+    geometry = Geometry(0.1651, 0.555)
+    base = get_model('edd_symmetric').bind({}, geometry)
+    twist = base.twist(omega_l, omega_r)
+    yaw = np.concatenate([[0.0], np.cumsum(twist[:-1, 2] * 0.05)])
+    x = np.concatenate([[0.0], np.cumsum(np.cos(yaw[:-1]) * twist[:-1, 0] * 0.05)])
+    y = np.concatenate([[0.0], np.cumsum(np.sin(yaw[:-1]) * twist[:-1, 0] * 0.05)])
+    t_ns = (t_s * 1e9).astype(np.int64)
+    drive = Drive('d', WheelSamples(t_ns, omega_l, omega_r), PoseTrack(t_ns, x, y, yaw))
+    signals = pose_samples([drive], base, DiagnosisOptions()).signals
+    for ext in EXTENSIONS.values():
+        component, signal, _ = ext.residual_view
+        assert component in COMPONENTS and signal in signals, ext.name
+    assert all(term.signal in signals for term in LIBRARY)
 
 
 def test_found_effect_goes_into_a_parameters_file_and_a_report(tmp_path):

@@ -9,8 +9,8 @@ from skidkin_ros.core.calibration.predictor import SegmentPredictor
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.augmented import AugmentedModel, lag_factors
-from skidkin_ros.core.kinematics.extensions import (EXTENSION_NAMES, EXTENSIONS, get_extension,
-                                                    SPARSE_FEATURES)
+from skidkin_ros.core.kinematics.extensions import (EXTENSION_NAMES, EXTENSIONS, FitHints,
+                                                    get_extension, LIBRARY, SPARSE_FEATURES)
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig, parameter_schema, parse_extensions
@@ -41,6 +41,39 @@ def test_every_simulator_effect_has_an_extension_and_specs_are_complete():
         np.testing.assert_array_equal(
             ext.apply(k, twist, np.array([1.0, -2.0, 3.0]), np.array([2.0, -1.0, 1.5]),
                       np.zeros(3)), twist)
+
+
+def test_each_entry_says_how_to_start_scan_and_rank_it():
+    """One registry entry feeds the diagnosis: no extension is special-cased there."""
+    hints = FitHints(lag_s=0.12, convention_s=-0.025, period_s=0.05, duration_s=100.0)
+    for ext in EXTENSIONS.values():
+        start = ext.start_values(hints)
+        assert list(start) == list(ext.param_names), ext.name
+        assert all(spec.contains(start[spec.name]) for spec in ext.params), ext.name
+        assert set(ext.fitted) | set(ext.scan) <= set(ext.param_names)
+        assert ext.library or ext.fitted, ext.name
+        if ext.scan:
+            low, high = ext.scan_range(hints)
+            assert 0.0 <= low < high
+        if ext.short_alias is not None:
+            param, other = ext.short_alias
+            assert param in ext.fitted
+            assert get_extension(other).complexity() < ext.complexity()
+    assert get_extension('time_offset').start_values(hints) == {'offset_s': pytest.approx(0.095)}
+    assert get_extension('first_order_lag').start_values(hints) == {'tau_s': pytest.approx(0.12)}
+    assert get_extension('first_order_lag').start_values(FitHints(lag_s=9.0)) == {'tau_s': 1.5}
+    assert get_extension('terrain_regime').scan_range(hints) == (0.0, 100.0)
+    # fewer parameters first, then stateless before stateful; a library counts its terms
+    assert get_extension('icr_offset').complexity() == (1, 0)
+    assert get_extension('first_order_lag').complexity() == (1, 1)
+    assert get_extension('ratio_yaw_slip').complexity() == (2, 0)
+    assert get_extension('sparse_correction').complexity(('vx_v', 'wz_w')) == (2, 0)
+
+
+def test_library_terms_are_one_registry():
+    assert SPARSE_FEATURES == tuple((term.name, term.unit) for term in LIBRARY)
+    ext = get_extension('sparse_correction')
+    assert len(ext.params) == 3 * len(LIBRARY) and ext.library
 
 
 def test_scalar_forms_equal_the_array_forms_bit_for_bit():

@@ -139,3 +139,20 @@ def test_no_import_cycles():
         if module not in state:
             visit(module, [module])
     assert cycles == []
+
+
+# The stamp convention and the lag scan are time offsets by definition: they may name it.
+NAMED_ON_PURPOSE = {'recipe.py': {'time_offset'}, 'tracing.py': {'time_offset'}}
+
+
+def test_generic_diagnosis_code_names_no_extension():
+    """Adding an extension is a registry entry (core/kinematics/extensions.py), not an edit."""
+    from skidkin_ros.core.kinematics.extensions import EXTENSION_NAMES
+    offenders = []
+    for f in _files('core/calibration/diagnosis'):
+        allowed = NAMED_ON_PURPOSE.get(f.name, set())
+        for node in ast.walk(ast.parse(f.read_text())):
+            if (isinstance(node, ast.Constant) and node.value in EXTENSION_NAMES
+                    and node.value not in allowed):
+                offenders.append(f'{f.name}:{node.lineno} {node.value}')
+    assert offenders == []

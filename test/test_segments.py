@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from skidkin_ros.core.calibration.fitting import segment_errors
-from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions, usable_segments
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.errors import DataError
@@ -92,3 +92,14 @@ def test_no_truth_is_an_error():
     drive = _straight()
     with pytest.raises(DataError, match='ground truth'):
         cut_segments([Drive('x', drive.wheels, None)])
+
+
+def test_too_few_segments_say_how_many_who_needs_more_and_what_to_do():
+    drive = _straight(duration_s=5.0)  # 2.5 m: one segment of 2 m
+    with pytest.raises(DataError, match=r'^1 usable training segment\(s\) out of 1 drive\(s\) '
+                       r"\(\{'kept': 1.*a diagnosis needs at least 6: drive further than the "
+                       'horizon 2 m with ground truth'):
+        usable_segments([drive], SegmentOptions(horizon_m=2.0), 'training', 6, 'a diagnosis')
+    assert len(usable_segments([drive], SegmentOptions(horizon_m=2.0), 'training')) == 1
+    with pytest.raises(DataError, match='no evaluation drive given'):
+        usable_segments([], SegmentOptions(), 'evaluation')

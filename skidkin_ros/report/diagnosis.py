@@ -12,46 +12,30 @@ import numpy as np  # noqa: E402
 
 from skidkin_ros.atomic import atomic_write_text  # noqa: E402
 from skidkin_ros.core.calibration.diagnosis import COMPONENTS, DiagnosisResult  # noqa: E402
-from skidkin_ros.core.kinematics.extensions import (get_extension, SPARSE_FEATURES,  # noqa: E402
+from skidkin_ros.core.kinematics.extensions import (get_extension, LIBRARY,  # noqa: E402
                                                     sparse_features)
 from skidkin_ros.report.figures import save_figure  # noqa: E402
 from skidkin_ros.report.page import (figure_lines, prepare_report,  # noqa: E402
                                      provenance_lines)
 
-__all__ = ['EXPLAINING_SIGNAL', 'residual_figure', 'error_figure', 'render_diagnosis_page',
-           'write_diagnosis_report']
+__all__ = ['residual_figure', 'error_figure', 'render_diagnosis_page', 'write_diagnosis_report']
 
-# Extension -> (residual component, signal, fold by the direction of that component).
-EXPLAINING_SIGNAL: dict[str, tuple[str, str, bool]] = {
-    'time_offset': ('v_x', 'd_wheel_sum', False),
-    'first_order_lag': ('v_x', 'd_wheel_sum', False),
-    'speed_slip': ('v_x', 'v_abs_v', False),
-    'direction_asymmetry': ('v_x', 'body_speed', False),
-    'lateral_skid': ('v_y', 'v_omega', False),
-    'icr_offset': ('v_y', 'yaw_rate', False),
-    'ratio_yaw_slip': ('omega', 'wheel_ratio', True),
-    'terrain_regime': ('v_x', 'time_in_drive', True),
-    'sparse_correction': ('v_x', 'body_speed', False),
-}
 _SIGN_SOURCE = {'v_x': 'body_speed', 'omega': 'yaw_rate'}
-# Sparse library term -> the trace signal to plot it against.
-_FEATURE_SIGNAL = {'v': 'body_speed', 'w': 'yaw_rate', 'v_abs_v': 'v_abs_v',
-                   'w_abs_w': 'yaw_rate', 'v_w': 'v_omega', 'abs_v': 'body_speed',
-                   'abs_w': 'yaw_rate'}
 _OUTPUT_COMPONENT = {'vx': 'v_x', 'vy': 'v_y', 'wz': 'omega'}
 
 
-def _main_sparse_term(result: DiagnosisResult) -> tuple[str, str]:
-    """Return (component, signal) of the sparse term that moves the twist the most."""
+def _main_library_term(result: DiagnosisResult, name: str) -> tuple[str, str]:
+    """Return (component, signal) of the library term that moves the twist the most."""
     signals = result.trace.signals
     twist = np.stack([signals['body_speed'], np.zeros_like(signals['body_speed']),
                       signals['yaw_rate']], axis=-1)
-    spread = dict(zip((f for f, _ in SPARSE_FEATURES), sparse_features(twist).std(axis=0)))
-    values = result.final.ext_values.get('sparse_correction', {})
+    spread = dict(zip((term.name for term in LIBRARY), sparse_features(twist).std(axis=0)))
+    signal_of = {term.name: term.signal for term in LIBRARY}
+    values = result.final.ext_values.get(name, {})
     best = max(result.final.sparse_terms,
                key=lambda term: abs(values.get(term, 0.0)) * spread[term.split('_', 1)[1]])
     output, feature = best.split('_', 1)
-    return _OUTPUT_COMPONENT[output], _FEATURE_SIGNAL[feature]
+    return _OUTPUT_COMPONENT[output], signal_of[feature]
 
 
 def _binned(x: np.ndarray, y: np.ndarray, bins: int = 20) -> tuple[np.ndarray, np.ndarray]:
@@ -74,9 +58,10 @@ def _explained(result: DiagnosisResult) -> list[tuple[str, str, str, bool]]:
     """Return (title, component, signal, fold) for each found extension (or the top signal)."""
     items = []
     for name in result.extensions:
-        component, signal, fold = EXPLAINING_SIGNAL.get(name, ('v_x', 'body_speed', False))
-        if name == 'sparse_correction' and result.final.sparse_terms:
-            component, signal = _main_sparse_term(result)
+        ext = get_extension(name)
+        component, signal, fold = ext.residual_view
+        if ext.library and result.final.sparse_terms:
+            component, signal = _main_library_term(result, name)
         items.append((name, component, signal, fold))
     if not items:
         top = result.trace.top(1)
@@ -160,11 +145,8 @@ def render_diagnosis_page(result: DiagnosisResult, images: dict[str, str]) -> st
         lines.append('- ' + line.strip())
     for name in found:
         ext = get_extension(name)
-        values = result.final.ext_values[name]
-        shown = (result.final.sparse_terms if name == 'sparse_correction'
-                 else ext.fitted + ext.scan)
-        lines.append(f'- `{name}` ({ext.title}; {ext.formula}): '
-                     + ', '.join(f'{p} = {_num(values[p])}' for p in shown))
+        lines.append(f'- `{name}` ({ext.title}; {ext.formula}): ' + ', '.join(
+            f'{p} = {_num(v)}' for p, v in result.final.shown_values(name).items()))
     lines += ['', '## Held-out errors, before and after', '',
               '| model | eps_t median | q25 | q75 | p90 | eps_theta median (deg/m) | q25 | q75 '
               '| p90 |', '|' + '---|' * 9]

@@ -14,6 +14,15 @@ description), a formula, the signal that reveals it in the residuals, and acts a
 
 Every extension with default parameters leaves the base model unchanged (the neutral value),
 so an augmented model with defaults predicts exactly what its base model predicts.
+
+One registry entry per extension feeds everything, as a ParamSpec does for a parameter: the
+integrator (stage, formula), the parameters file (specs), and the diagnosis, which reads from
+the entry how to fit it (which parameters, their start values from what the trace measured
+(:class:`FitHints`), which are searched on a grid and over what range), how simple it is (the
+simpler of two equally good explanations is kept), which simpler extension it cannot be told
+from at short time scales, and which residual plot shows it. Adding an extension is adding an
+entry to ``_ALL`` (and its formula), not editing the diagnosis. The sparse fallback's library of
+twist terms is a registry too (``LIBRARY``): a new term is one :class:`LibraryTerm`.
 """
 
 from __future__ import annotations
@@ -27,10 +36,14 @@ from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 from skidkin_ros.errors import ParameterError
 
 __all__ = [
+    'FitHints',
     'Extension',
     'EXTENSIONS',
     'EXTENSION_NAMES',
+    'LibraryTerm',
+    'LIBRARY',
     'SPARSE_FEATURES',
+    'SPARSE_OUTPUTS',
     'get_extension',
     'ordered',
     'ratio_bump',
@@ -42,12 +55,33 @@ MAX_SPEED_SLIP = 0.8
 
 
 @dataclass(frozen=True)
+class FitHints:
+    """What the data say before an extension is fitted: for its start values and scan range.
+
+    ``lag_s``: the wheel -> ground-truth lag the trace found beyond the stamp convention (s);
+    ``convention_s``: the stamp convention's time offset (s, -dt/2 or 0); ``period_s``: the
+    median wheel sample period (s); ``duration_s``: the longest training drive (s).
+    """
+
+    lag_s: float = 0.0
+    convention_s: float = 0.0
+    period_s: float = 0.0
+    duration_s: float = 0.0
+
+
+@dataclass(frozen=True)
 class Extension:
-    """One named extension: specs, stage, formula and the signal that reveals it.
+    """One named extension: specs, stage, formula, and how a diagnosis fits and reports it.
 
     ``fitted`` names the parameters a diagnosis fits (the others keep their value, e.g. a blend
-    width); ``scan`` names parameters first searched on a grid (step-like effects), and
-    ``refine`` says whether they are then refined by least squares.
+    width); ``start`` gives start values better than the neutral defaults from the
+    :class:`FitHints`. ``scan`` names parameters first searched on a grid over
+    ``scan_range(hints)`` (step-like effects), and ``refine`` says whether they are then refined
+    by least squares. ``library``: the parameters are coefficients of library terms, the terms
+    chosen by sparse regression (only those are fitted). ``short_alias`` = (parameter, other
+    extension): with that parameter no longer than one wheel sample period this extension cannot
+    be told from the other one, which the selection keeps. ``residual_view`` = (residual
+    component, trace signal, fold by the component's direction): the plot that shows the effect.
     """
 
     name: str
@@ -59,6 +93,11 @@ class Extension:
     fitted: tuple[str, ...]
     scan: tuple[str, ...] = ()
     refine: bool = True
+    start: Callable[[FitHints], dict[str, float]] | None = None
+    scan_range: Callable[[FitHints], tuple[float, float]] | None = None
+    library: bool = False
+    short_alias: tuple[str, str] | None = None
+    residual_view: tuple[str, str, bool] = ('v_x', 'body_speed', False)
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -66,6 +105,21 @@ class Extension:
 
     def defaults(self) -> dict[str, float]:
         return {spec.name: spec.default_for(None) for spec in self.params}
+
+    def start_values(self, hints: FitHints) -> dict[str, float]:
+        """Return every parameter's start value: the defaults, then ``start(hints)``."""
+        values = self.defaults()
+        if self.start is not None:
+            values.update(self.start(hints))
+        return values
+
+    def complexity(self, terms: Sequence[str] = ()) -> tuple[int, int]:
+        """Return (parameters it fits, 1 if it carries state): the simpler sorts first.
+
+        ``terms``: the library terms chosen (a library extension counts those).
+        """
+        count = len(terms) if self.library else len(self.fitted) + len(self.scan)
+        return count, int(self.stage == 'dynamics')
 
     def vector(self, values: Mapping[str, float], prefix: str = '') -> np.ndarray:
         """Return the parameter vector in spec order; missing values take their defaults."""
@@ -195,29 +249,48 @@ def _scalar_terrain_regime(k, vx, vy, w, omega_l, omega_r, t_s):
 
 
 # The sparse fallback: a library of candidate terms of the base twist (v = v_x, w = omega).
-SPARSE_FEATURES: tuple[tuple[str, str], ...] = (
-    ('v', 'm/s'), ('w', 'rad/s'), ('v_abs_v', 'm^2/s^2'), ('w_abs_w', 'rad^2/s^2'),
-    ('v_w', 'm rad/s^2'), ('abs_v', 'm/s'), ('abs_w', 'rad/s'),
+@dataclass(frozen=True)
+class LibraryTerm:
+    """One term of the sparse library: a function of the base twist's v_x and omega.
+
+    ``signal``: the diagnosis trace signal a residual is plotted against for this term.
+    """
+
+    name: str
+    unit: str
+    of: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    signal: str
+
+
+LIBRARY: tuple[LibraryTerm, ...] = (
+    LibraryTerm('v', 'm/s', lambda v, w: v, 'body_speed'),
+    LibraryTerm('w', 'rad/s', lambda v, w: w, 'yaw_rate'),
+    LibraryTerm('v_abs_v', 'm^2/s^2', lambda v, w: v * np.abs(v), 'v_abs_v'),
+    LibraryTerm('w_abs_w', 'rad^2/s^2', lambda v, w: w * np.abs(w), 'yaw_rate'),
+    LibraryTerm('v_w', 'm rad/s^2', lambda v, w: v * w, 'v_omega'),
+    LibraryTerm('abs_v', 'm/s', lambda v, w: np.abs(v), 'body_speed'),
+    LibraryTerm('abs_w', 'rad/s', lambda v, w: np.abs(w), 'yaw_rate'),
 )
-_SPARSE_OUTPUTS: tuple[tuple[str, str], ...] = (('vx', 'm/s'), ('vy', 'm/s'), ('wz', 'rad/s'))
+SPARSE_FEATURES: tuple[tuple[str, str], ...] = tuple((term.name, term.unit) for term in LIBRARY)
+SPARSE_OUTPUTS: tuple[tuple[str, str], ...] = (('vx', 'm/s'), ('vy', 'm/s'), ('wz', 'rad/s'))
 
 
 def sparse_features(twist: np.ndarray) -> np.ndarray:
-    """Return the library terms (..., F) of the base twist, in SPARSE_FEATURES order."""
+    """Return the library terms (..., F) of the base twist, in LIBRARY order."""
     v = np.asarray(twist)[..., 0]
     w = np.asarray(twist)[..., 2]
-    return np.stack([v, w, v * np.abs(v), w * np.abs(w), v * w, np.abs(v), np.abs(w)], axis=-1)
+    return np.stack([term.of(v, w) for term in LIBRARY], axis=-1)
 
 
 def _sparse_correction(k, twist, omega_l, omega_r, t_s):
     features = sparse_features(twist)
-    coef = np.asarray(k, dtype=float).reshape(len(_SPARSE_OUTPUTS), len(SPARSE_FEATURES))
+    coef = np.asarray(k, dtype=float).reshape(len(SPARSE_OUTPUTS), len(SPARSE_FEATURES))
     return np.asarray(twist, dtype=float) + features @ coef.T
 
 
 def _sparse_specs() -> tuple[ParamSpec, ...]:
     specs = []
-    for out_name, out_unit in _SPARSE_OUTPUTS:
+    for out_name, out_unit in SPARSE_OUTPUTS:
         for feat_name, feat_unit in SPARSE_FEATURES:
             specs.append(_spec(f'{out_name}_{feat_name}', f'({out_unit})/({feat_unit})', 0.0,
                                -10.0, 10.0, f'{out_name} correction per {feat_name}'))
@@ -243,43 +316,59 @@ _SCALAR_FUNCTIONS = {
     'terrain_regime': _scalar_terrain_regime,
 }
 
+
+def _start_offset(hints: FitHints) -> dict[str, float]:
+    # The whole lag the trace found (the stamp convention included), inside the bounds.
+    return {'offset_s': float(np.clip(hints.lag_s + hints.convention_s, -0.45, 0.45))}
+
+
+def _start_lag(hints: FitHints) -> dict[str, float]:
+    # A delay and a first-order lag shift a drive alike: the lag found is a fair time constant.
+    return {'tau_s': float(np.clip(abs(hints.lag_s), 0.03, 1.5))}
+
+
+def _over_the_drive(hints: FitHints) -> tuple[float, float]:
+    return 0.0, hints.duration_s
+
+
 _ALL: tuple[Extension, ...] = (
     Extension(
         'time_offset', 'Time offset between wheel stamps and motion', 'timing',
         'pose(t + offset) = integral of the wheel-driven twist up to t', 'lag (cross-correlation)',
         (_spec('offset_s', 's', 0.0, -0.5, 0.5,
                'the true motion lags the wheel stamps by this (published stamps shift by it)'),),
-        ('offset_s',)),
+        ('offset_s',), start=_start_offset, residual_view=('v_x', 'd_wheel_sum', False)),
     Extension(
         'first_order_lag', 'First-order response of the body', 'dynamics',
         'tau d(twist)/dt = twist_model - twist (exact for inputs held between samples)',
         'wheel acceleration',
         (_spec('tau_s', 's', 0.0, 0.0, 2.0, 'time constant of the body twist response'),),
-        ('tau_s',)),
+        ('tau_s',), start=_start_lag, short_alias=('tau_s', 'time_offset'),
+        residual_view=('v_x', 'd_wheel_sum', False)),
     Extension(
         'speed_slip', 'Longitudinal slip growing with speed', 'twist',
         'v_x *= 1 - min(k |v_x|, 0.8)', 'v_x |v_x|',
         (_spec('k', 's/m', 0.0, 0.0, 2.0, 'slip fraction per m/s of forward speed'),),
-        ('k',)),
+        ('k',), residual_view=('v_x', 'v_abs_v', False)),
     Extension(
         'direction_asymmetry', 'More slip when reversing', 'twist',
         'v_x *= 1 - k clip(-v_x / blend, 0, 1)', 'direction of travel',
         (_spec('k', '-', 0.0, -0.9, 0.9, 'extra fraction of v_x lost when driving backward'),
          ParamSpec('blend_m_s', 'm/s', 0.05, 0.0, 1.0,
                    'speed over which forward blends into backward', lower_open=True)),
-        ('k',)),
+        ('k',), residual_view=('v_x', 'body_speed', False)),
     Extension(
         'lateral_skid', 'Lateral skid in turns (centrifugal)', 'twist',
         'v_y += k v_x omega', 'v_x omega',
         (_spec('k', 's', 0.0, -1.0, 1.0, 'lateral speed per unit of v_x omega'),),
-        ('k',)),
+        ('k',), residual_view=('v_y', 'v_omega', False)),
     Extension(
         'icr_offset', 'Rotation centre offset along the body', 'twist',
         'v_y += x omega', 'yaw rate',
         (_spec('x_m', 'm', 0.0, -2.0, 2.0,
                'the tracked point lies x ahead of the rotation centre (an ICR behind base_link, '
                'or a ground-truth frame mounted ahead of it)'),),
-        ('x_m',)),
+        ('x_m',), residual_view=('v_y', 'yaw_rate', False)),
     Extension(
         'ratio_yaw_slip', 'Yaw slip at a wheel-speed ratio', 'twist',
         'omega *= 1 - k exp(-((ratio - peak) / width)^2), ratio = slow/fast side (same sign)',
@@ -289,18 +378,20 @@ _ALL: tuple[Extension, ...] = (
                    'speed ratio (slow / fast side) where the loss peaks'),
          ParamSpec('ratio_width', '-', 0.15, 0.0, 1.0, 'width of the loss around the peak',
                    lower_open=True)),
-        ('k', 'ratio_peak')),
+        ('k', 'ratio_peak'), residual_view=('omega', 'wheel_ratio', True)),
     Extension(
         'terrain_regime', 'Terrain regime switching in time', 'twist',
         '(v_x, omega) *= 1 - k once the time since the drive start >= switch_s',
         'time in drive',
         (_spec('k', '-', 0.0, -0.9, 0.9, 'fraction of v_x and omega lost in the regime'),
          _spec('switch_s', 's', 0.0, 0.0, 1e6, 'time since the drive start when it begins')),
-        ('k',), scan=('switch_s',), refine=False),
+        ('k',), scan=('switch_s',), refine=False, scan_range=_over_the_drive,
+        residual_view=('v_x', 'time_in_drive', True)),
     Extension(
         'sparse_correction', 'Sparse regression on a library of twist terms', 'twist',
         'twist += C @ [v, w, v|v|, w|w|, v w, |v|, |w|] (terms chosen by STLSQ)',
-        'selected library terms', _sparse_specs(), ()),
+        'selected library terms', _sparse_specs(), (), library=True,
+        residual_view=('v_x', 'body_speed', False)),
 )
 
 EXTENSIONS: dict[str, Extension] = {ext.name: ext for ext in _ALL}

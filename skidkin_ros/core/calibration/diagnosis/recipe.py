@@ -1,0 +1,145 @@
+"""The diagnosis recipe: refit, trace, select, and measure before and after.
+
+:func:`diagnose` runs the steps of :mod:`skidkin_ros.core.calibration.diagnosis` in order; each
+step's module says how and why. The stamp convention is decided here: with the integrator's
+zero-order hold, a wheel speed held from its stamp describes the middle of the interval it is
+held over, so effect-free data gains from a -dt/2 time offset. That offset is part of the
+baseline (its own row in the table), never a found effect.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from skidkin_ros import __version__
+from skidkin_ros.core.calibration.diagnosis.candidates import CandidateFitter
+from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
+from skidkin_ros.core.calibration.diagnosis.residuals import pose_residuals, pose_samples
+from skidkin_ros.core.calibration.diagnosis.results import DiagnosisResult, ModelStep
+from skidkin_ros.core.calibration.diagnosis.selection import Progress, select
+from skidkin_ros.core.calibration.diagnosis.state import fit_state, ModelState
+from skidkin_ros.core.calibration.diagnosis.tracing import correlations, lag_scan, Trace
+from skidkin_ros.core.calibration.engine import trim_mask
+from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_errors
+from skidkin_ros.core.calibration.holdout import resolve_holdout
+from skidkin_ros.core.calibration.predictor import SegmentPredictor
+from skidkin_ros.core.calibration.segments import usable_segments
+from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.kinematics.extensions import FitHints
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+
+__all__ = ['diagnose', 'wheel_period_s']
+
+# A diagnosis needs at least this many training and evaluation segments.
+MIN_SEGMENTS = 6
+
+
+def wheel_period_s(drives: Sequence[Drive]) -> float:
+    """Return the median wheel sample period (s) of the drives, 0 without samples."""
+    steps = [np.diff(d.wheels.t_ns) for d in drives if len(d.wheels) > 1]
+    steps = np.concatenate(steps) if steps else np.zeros(0)
+    steps = steps[steps > 0]
+    return float(np.median(steps)) * 1e-9 if steps.size else 0.0
+
+
+def _stamp_convention(drives: Sequence[Drive], options: DiagnosisOptions) -> float:
+    """Return -dt/2 (s) for options.stamp_convention 'mid' (median wheel period), else 0."""
+    if options.stamp_convention != 'mid':
+        return 0.0
+    return -0.5 * wheel_period_s(drives)
+
+
+def _evaluate(predictor: SegmentPredictor, label: str, state: ModelState, base_name: str,
+              geometry: Geometry, options: DiagnosisOptions) -> ModelStep:
+    errors = predictor.errors(state.bind(base_name, geometry))
+    eps_t, eps_th = relative_errors(errors, predictor.segments.path_m, options.min_eval_path_m)
+    return ModelStep(label, state, eps_t, eps_th, ErrorStats.of(eps_t), ErrorStats.of(eps_th))
+
+
+def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry: Geometry,
+             base_values_by_model: Mapping[str, Mapping[str, float]], base_model_name: str,
+             options: DiagnosisOptions | None = None, jobs: int = 1,
+             progress: Progress | None = None) -> DiagnosisResult:
+    """Run the diagnosis recipe of the package docstring and return its result.
+
+    ``jobs``: how many processes fit the candidates (the result does not depend on it);
+    ``progress(round, done, total)`` is called as each fit of a selection round finishes.
+    """
+    options = options or DiagnosisOptions()
+    model = get_model(base_model_name)
+    given = dict(base_values_by_model.get(base_model_name, {}))
+    model.vector(given, geometry)
+    train, evaluate, holdout = resolve_holdout(train, evaluate, options.holdout_every,
+                                               options.holdout_mode, options.holdout_block_s,
+                                               options.holdout_key)
+    tic = time.perf_counter()
+    train_seg = usable_segments(train, options.train_segments(), 'training', MIN_SEGMENTS,
+                                'a diagnosis')
+    eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation', MIN_SEGMENTS,
+                               'a diagnosis')
+    given_state = ModelState((), given, {})
+    convention_s = _stamp_convention(train, options)
+    predictor = SegmentPredictor(train, train_seg, options.max_dt_s)
+    refit, _ = fit_state(predictor, base_model_name, geometry, given_state, options)
+    trimmed = 0
+    if options.trim:
+        # Outlier segments (e.g. ground-truth glitches, C15) are dropped once, as calibrate does.
+        kept = trim_mask(predictor.errors(refit.bind(base_model_name, geometry)),
+                         options.whitening)
+        trimmed = int((~kept).sum())
+        if trimmed:
+            train_seg = train_seg.subset(kept)
+            predictor = SegmentPredictor(train, train_seg, options.max_dt_s)
+            refit, _ = fit_state(predictor, base_model_name, geometry, refit, options)
+    null = refit
+    if convention_s != 0.0:
+        null = ModelState(('time_offset',), dict(refit.base_values),
+                          {'time_offset': {'offset_s': convention_s}})
+        null, _ = fit_state(predictor, base_model_name, geometry, null, options)
+    base_bound = refit.bind(base_model_name, geometry)
+    samples = pose_samples(train, base_bound, options)
+    residual, valid = pose_residuals(train, samples, null.bind(base_model_name, geometry),
+                                     options)
+    lag_s, curve = lag_scan(train, samples, refit, base_model_name, geometry, options)
+    lag_s -= convention_s
+    trace = Trace(residual, samples.signals, correlations(residual, valid, samples.signals),
+                  lag_s, curve, predictor.errors(null.bind(base_model_name, geometry)))
+    durations = [d.duration_s() for d in train]
+    hints = FitHints(lag_s, convention_s, wheel_period_s(train),
+                     max(durations) if durations else 0.0)
+    fitter = CandidateFitter(train, train_seg, base_model_name, geometry, options, samples, hints)
+    final, scores, accepted = select(fitter, null, jobs, progress)
+    eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s)
+    steps = [_evaluate(eval_predictor, f'{base_model_name} (given)', given_state,
+                       base_model_name, geometry, options),
+             _evaluate(eval_predictor, f'{base_model_name} (refitted)', refit, base_model_name,
+                       geometry, options)]
+    if convention_s != 0.0:
+        steps.append(_evaluate(eval_predictor, f'+ stamp convention {convention_s * 1e3:+.0f} ms',
+                               null, base_model_name, geometry, options))
+    for state in accepted:
+        label = '+ ' + ' + '.join(state.found)
+        steps.append(_evaluate(eval_predictor, label, state, base_model_name, geometry,
+                               options))
+    after, after_valid = pose_residuals(train, samples, final.bind(base_model_name, geometry),
+                                        options)
+    warnings = []
+    if accepted and steps[-1].stats_t.median > steps[1].stats_t.median * 1.05:
+        warnings.append('the augmented model is worse than the refitted base model on the '
+                        'evaluation drives (median eps_t); the effect may not transfer')
+    provenance = {
+        'tool': f'skidkin_ros {__version__}', 'base_model': base_model_name,
+        'extensions': list(final.found), 'model_extensions': list(final.extensions),
+        'stamp_convention_s': convention_s, 'train_drives': len(train),
+        'evaluate_drives': len(evaluate), 'train_segments': len(train_seg),
+        'train_segments_trimmed': trimmed,
+        'evaluate_segments': len(eval_seg), 'holdout': holdout,
+        'seconds': round(time.perf_counter() - tic, 2), 'options': options.as_dict(),
+    }
+    return DiagnosisResult(base_model_name, geometry, options, trace, tuple(scores),
+                           tuple(steps), final, after, valid, after_valid, holdout,
+                           tuple(warnings), provenance)

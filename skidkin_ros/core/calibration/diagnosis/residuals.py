@@ -1,0 +1,198 @@
+"""Per-pose body-velocity residuals: ground truth minus model, and the signals they are traced on.
+
+1. **Fresh poses only.** Sample-and-held ground-truth poses (ICP at 10 Hz held onto 20 Hz rows)
+   are dropped (:func:`skidkin_ros.core.drive.fresh_pose_mask`): a held pose is not a measurement.
+2. **Differentiate.** At each fresh pose a local quadratic is fitted to x, y and yaw over the
+   poses within +-``smoothing_s`` and differentiated there; the world velocity is rotated into
+   the body frame with the fitted heading (:func:`body_velocities`). Noisy 10 Hz ICP poses give
+   usable velocities this way, where finite differences would not.
+3. **Model alike.** The model runs over the whole drive through the shared integrator, its
+   poses are read at the same stamps (shifted by a time offset) and go through the same
+   differentiator, so both sides are smoothed alike and the residual is the model's error, not
+   the smoother's.
+4. **Signals.** At each pose: the held wheel speeds, their sum, difference, ratio and time
+   derivatives, the base model's body speed and yaw rate, curvature, v omega, direction, time in
+   the drive, position and the IMU yaw rate: what :mod:`.tracing` correlates with the residuals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
+from skidkin_ros.core.drive import Drive, fresh_pose_mask, WheelSamples
+from skidkin_ros.core.kinematics.models import BoundModel
+from skidkin_ros.core.odometry.integrator import rollout_stream
+from skidkin_ros.errors import DataError
+
+__all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'truth_velocities', 'pose_samples',
+           'pose_residuals']
+
+COMPONENTS = ('v_x', 'v_y', 'omega')
+
+
+def body_velocities(t_ns: np.ndarray, poses: np.ndarray, half_window_s: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Differentiate poses (N, 3) by local quadratic fits; return body twists (N, 3) and valid.
+
+    Each pose's window holds the poses within +-half_window_s; at least 4 are needed (and one on
+    each side) for a valid estimate. World velocities are rotated into the body frame with the
+    fitted heading.
+    """
+    t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9 if len(t_ns) else np.zeros(0)
+    n = t_s.size
+    out = np.zeros((n, 3))
+    valid = np.zeros(n, dtype=bool)
+    if n < 4:
+        return out, valid
+    lo = np.searchsorted(t_s, t_s - half_window_s, side='left')
+    hi = np.searchsorted(t_s, t_s + half_window_s, side='right')
+    width = int((hi - lo).max())
+    offsets = np.arange(width)
+    index = lo[:, None] + offsets[None, :]
+    inside = index < hi[:, None]
+    index = np.minimum(index, n - 1)
+    tau = np.where(inside, t_s[index] - t_s[:, None], 0.0)
+    weight = inside.astype(float)
+    basis = np.stack([np.ones_like(tau), tau, tau * tau], axis=-1) * weight[..., None]
+    normal = np.einsum('nwi,nwj->nij', basis, basis)
+    left = (tau < 0) & inside
+    right = (tau > 0) & inside
+    valid = (inside.sum(axis=1) >= 4) & left.any(axis=1) & right.any(axis=1)
+    normal[~valid] = np.eye(3)
+    values = poses[index]  # (n, w, 3)
+    rhs = np.einsum('nwi,nwc->nic', basis, values)
+    coef = np.linalg.solve(normal, rhs)  # (n, 3 basis, 3 coords)
+    vx_w, vy_w, omega = coef[:, 1, 0], coef[:, 1, 1], coef[:, 1, 2]
+    yaw = coef[:, 0, 2]
+    cos_y, sin_y = np.cos(yaw), np.sin(yaw)
+    out[:, 0] = cos_y * vx_w + sin_y * vy_w
+    out[:, 1] = -sin_y * vx_w + cos_y * vy_w
+    out[:, 2] = omega
+    return out, valid
+
+
+def truth_velocities(drive: Drive, half_window_s: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (fresh ground-truth stamps, body twists (N, 3), valid) of one drive."""
+    truth = drive.truth
+    fresh = fresh_pose_mask(truth.x, truth.y, truth.yaw) & truth.valid
+    t_ns = truth.t_ns[fresh]
+    twist, valid = body_velocities(t_ns, truth.poses[fresh], half_window_s)
+    return t_ns, twist, valid
+
+
+def _model_velocities(source: Any, drive: Drive, t_ns: np.ndarray,
+                      half_window_s: float, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Model body twists at the stamps, through the same differentiator as the ground truth."""
+    wheels = drive.wheels
+    poses = rollout_stream(source, wheels.t_ns, wheels.omega_l, wheels.omega_r,
+                           max_dt_s=max_dt_s)
+    shift = int(getattr(source, 'output_offset_ns', 0))
+    at = np.asarray(t_ns, dtype=np.int64) - shift
+    ref = wheels.t_ns
+    model_poses = np.stack([np.interp(at, ref, poses[:, i]) for i in range(3)], axis=-1)
+    return body_velocities(t_ns, model_poses, half_window_s)
+
+
+@dataclass(frozen=True)
+class PoseSamples:
+    """Fresh ground-truth poses of all drives, with their velocities and signals.
+
+    ``drive``: index of each pose's drive; ``truth``: ground-truth body twists (N, 3);
+    ``signals``: {name: (N,)}; ``base_twist``: the base model's twist of the held wheel speeds.
+    """
+
+    drive: np.ndarray
+    t_ns: np.ndarray
+    truth: np.ndarray
+    valid: np.ndarray
+    signals: dict[str, np.ndarray]
+    base_twist: np.ndarray
+
+
+def _held(wheels: WheelSamples, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    index = np.clip(np.searchsorted(wheels.t_ns, t_ns, side='right') - 1, 0, len(wheels) - 1)
+    return wheels.omega_l[index], wheels.omega_r[index]
+
+
+def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel
+             ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Return the signals at the stamps (step 4 of the module docstring) and the base twist."""
+    wheels = drive.wheels
+    wl, wr = _held(wheels, t_ns)
+    t_w = wheels.t_s
+    dwl = np.interp(t_ns, wheels.t_ns, np.gradient(wheels.omega_l, t_w)
+                    if len(wheels) > 2 else np.zeros(len(wheels)))
+    dwr = np.interp(t_ns, wheels.t_ns, np.gradient(wheels.omega_r, t_w)
+                    if len(wheels) > 2 else np.zeros(len(wheels)))
+    model_twist = base.twist(wl, wr)
+    v, w = model_twist[:, 0], model_twist[:, 2]
+    big = np.maximum(np.abs(wl), np.abs(wr))
+    small = np.minimum(np.abs(wl), np.abs(wr))
+    ratio = np.where((wl * wr > 0) & (big > 0), small / np.where(big > 0, big, 1), -1.0)
+    poses = drive.truth.interpolate(t_ns)
+    named = {
+        'omega_l': wl, 'omega_r': wr, 'wheel_sum': wl + wr, 'wheel_diff': wr - wl,
+        'wheel_ratio': ratio, 'd_omega_l': dwl, 'd_omega_r': dwr,
+        'd_wheel_sum': dwl + dwr, 'd_wheel_diff': dwr - dwl,
+        'body_speed': v, 'yaw_rate': w,
+        'curvature': np.clip(w / np.where(np.abs(v) > 0.05, v, np.nan), -20, 20),
+        'v_omega': v * w, 'v_abs_v': v * np.abs(v), 'direction': np.sign(v),
+        'time_in_drive': (t_ns - wheels.t_ns[0]) * 1e-9,
+        'x': poses[:, 0], 'y': poses[:, 1],
+    }
+    imu = drive.imu
+    if imu is not None and len(imu.t_ns) > 1:
+        named['imu_yaw_rate'] = np.interp(t_ns, imu.t_ns, imu.yaw_rate)
+    return named, model_twist
+
+
+def pose_samples(drives: Sequence[Drive], base: BoundModel,
+                 options: DiagnosisOptions) -> PoseSamples:
+    """Collect the fresh poses of every drive with ground truth, their twists and signals.
+
+    A signal missing from one drive (the IMU) is left out for all. Raises DataError when no
+    drive has at least 4 ground-truth poses.
+    """
+    parts = {key: [] for key in ('drive', 't', 'truth', 'valid', 'base')}
+    signals: dict[str, list[np.ndarray]] = {}
+    for index, drive in enumerate(drives):
+        if drive.truth is None or len(drive.truth) < 4 or len(drive.wheels) < 2:
+            continue
+        t_ns, twist, valid = truth_velocities(drive, options.smoothing_s)
+        named, model_twist = _signals(drive, t_ns, base)
+        for key, value in named.items():
+            signals.setdefault(key, []).append(np.asarray(value, dtype=float))
+        parts['drive'].append(np.full(t_ns.size, index))
+        parts['t'].append(t_ns)
+        parts['truth'].append(twist)
+        parts['valid'].append(valid)
+        parts['base'].append(model_twist)
+    if not parts['t']:
+        raise DataError('no drive has at least 4 ground-truth poses: nothing to diagnose')
+    count = sum(p.size for p in parts['t'])
+    merged = {}
+    for key, values in signals.items():
+        merged[key] = np.concatenate(values) if sum(v.size for v in values) == count else None
+    merged = {k: v for k, v in merged.items() if v is not None}
+    return PoseSamples(np.concatenate(parts['drive']), np.concatenate(parts['t']),
+                       np.concatenate(parts['truth']), np.concatenate(parts['valid']),
+                       merged, np.concatenate(parts['base']))
+
+
+def pose_residuals(drives: Sequence[Drive], samples: PoseSamples, source: Any,
+                   options: DiagnosisOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Return (residual (N, 3) = truth - model body twist, valid (N,)) at the fresh poses."""
+    residual = np.zeros(samples.truth.shape)
+    valid = samples.valid.copy()
+    for index in np.unique(samples.drive):
+        rows = samples.drive == index
+        model, ok = _model_velocities(source, drives[index], samples.t_ns[rows],
+                                      options.smoothing_s, options.max_dt_s)
+        residual[rows] = samples.truth[rows] - model
+        valid[rows] &= ok
+    return residual, valid

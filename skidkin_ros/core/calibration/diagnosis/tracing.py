@@ -1,0 +1,90 @@
+"""Trace the residuals: what they correlate with, and how far the motion lags the wheels.
+
+1. **Correlations.** Pearson r of each residual component (v_x, v_y, omega) with every signal of
+   :func:`~skidkin_ros.core.calibration.diagnosis.residuals.pose_samples` over the valid poses
+   (NaN where fewer than 10 values or a constant): the report's leads.
+2. **Lag scan.** The refitted base model runs with a time offset from -``lag_range_s`` to
+   +``lag_range_s`` (10 ms steps); at each offset, the mean squared velocity residual (yaw rate
+   scaled by b/2 to metres per second). The best offset is the wheel-to-ground-truth lag: it is
+   reported and starts the timing extensions' fits
+   (:class:`skidkin_ros.core.kinematics.extensions.FitHints`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
+from skidkin_ros.core.calibration.diagnosis.residuals import (COMPONENTS, pose_residuals,
+                                                              PoseSamples)
+from skidkin_ros.core.calibration.diagnosis.state import ModelState
+from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.kinematics.augmented import AugmentedModel
+from skidkin_ros.core.kinematics.models import BoundModel
+from skidkin_ros.core.kinematics.specs import Geometry
+
+__all__ = ['Trace', 'correlations', 'lag_scan']
+
+LAG_STEP_S = 0.01
+
+
+@dataclass(frozen=True)
+class Trace:
+    """Per-pose residuals of the model before diagnosis and the signals they are tested on.
+
+    residual: (N, 3) ground truth - model body twist (v_x m/s, v_y m/s, omega rad/s);
+    signals: {name: (N,)}; correlation: {(component, signal): Pearson r}; lag_s: the offset that
+    best aligns the model's velocities with the ground truth's (positive: motion lags wheels).
+    """
+
+    residual: np.ndarray
+    signals: dict[str, np.ndarray]
+    correlation: dict[tuple[str, str], float]
+    lag_s: float
+    lag_curve: tuple[np.ndarray, np.ndarray]
+    segment_errors: np.ndarray
+
+    def top(self, count: int = 8) -> list[tuple[str, str, float]]:
+        """Return the strongest (component, signal, r) correlations, strongest first."""
+        items = sorted(((c, s, r) for (c, s), r in self.correlation.items()
+                        if math.isfinite(r)), key=lambda item: -abs(item[2]))
+        return items[:count]
+
+
+def correlations(residual: np.ndarray, valid: np.ndarray,
+                 signals: Mapping[str, np.ndarray]) -> dict[tuple[str, str], float]:
+    """Return {(component, signal): Pearson r} over the valid, finite poses (step 1)."""
+    out = {}
+    for c, component in enumerate(COMPONENTS):
+        target = residual[valid, c]
+        for name, signal in signals.items():
+            values = signal[valid]
+            ok = np.isfinite(values) & np.isfinite(target)
+            if ok.sum() < 10 or np.std(values[ok]) == 0 or np.std(target[ok]) == 0:
+                out[(component, name)] = math.nan
+                continue
+            out[(component, name)] = float(np.corrcoef(values[ok], target[ok])[0, 1])
+    return out
+
+
+def lag_scan(drives: Sequence[Drive], samples: PoseSamples, state: ModelState,
+             base_name: str, geometry: Geometry, options: DiagnosisOptions
+             ) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
+    """Refit the velocity residual over offsets; return the best offset and the curve (step 2)."""
+    step = LAG_STEP_S
+    lags = np.arange(-options.lag_range_s, options.lag_range_s + step / 2, step)
+    base = state.bind(base_name, geometry)
+    base = base if isinstance(base, BoundModel) else base.base
+    cost = np.zeros(lags.size)
+    scale = np.array([1.0, 1.0, geometry.track_width / 2])
+    for i, lag in enumerate(lags):
+        source = AugmentedModel(base_name, ['time_offset']).bind(
+            base, {'time_offset': {'offset_s': float(lag)}})
+        residual, valid = pose_residuals(drives, samples, source, options)
+        cost[i] = float(np.mean(((residual[valid] * scale) ** 2).sum(axis=1)))
+    best = int(np.argmin(cost))
+    return float(lags[best]), (lags, cost)
