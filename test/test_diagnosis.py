@@ -16,7 +16,7 @@ from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, w
 from skidkin_ros.errors import OutputError, ParameterError
 from skidkin_ros.report.diagnosis import write_diagnosis_report
 from skidkin_ros.sim.effects import EFFECT_NAMES, make_effect
-from skidkin_ros.studies.effects import drawn_effect, run_case as study_case
+from skidkin_ros.studies.effects import drawn_effect, run_case as study_case, run_study
 
 
 def run_case(effect, duration_s=120.0, options=None):
@@ -153,7 +153,9 @@ def test_found_effect_goes_into_a_parameters_file_and_a_report(tmp_path):
 # ------------------------------------------------------------------------------------ heavy
 @pytest.mark.heavy
 def test_effect_free_data_gets_no_extension(tmp_path):
-    result, _, _ = run_case(None)
+    (case,) = run_study([None])  # the first row of `skidkin effects`
+    assert case.row().startswith('| none | nothing | ')
+    result = case.result
     assert result.extensions == ()
     assert all(not c.accepted for c in result.candidates)
     flat = result.to_parameters({'model': 'edd_symmetric', 'models.edd_symmetric.alpha': 0.9})

@@ -7,13 +7,14 @@ grid), calibrate ``edd_symmetric``, run :func:`skidkin_ros.core.calibration.diag
 without telling it the effect, and score on the evaluation drives: the base model, the augmented
 one, and the simulator's true model driven by the same noisy wheel speeds.
 
-Run ``python -m skidkin_ros.studies.effects`` (about 2 minutes) for the table in the README.
+``skidkin effects`` prints the table in the README (:func:`run_study` yields the rows one case at
+a time; each :class:`EffectCase` gives its table row).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -28,8 +29,8 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.sim.effects import Effect, EFFECT_NAMES, EFFECTS, make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
 
-__all__ = ['GEOMETRY', 'TRUE_PARAMS', 'STRENGTH_SEED', 'icp_like', 'sim_drives', 'true_state',
-           'drawn_effect', 'EffectCase', 'run_case', 'main']
+__all__ = ['GEOMETRY', 'TRUE_PARAMS', 'STRENGTH_SEED', 'TABLE_HEADER', 'icp_like', 'sim_drives',
+           'true_state', 'drawn_effect', 'EffectCase', 'run_case', 'run_study']
 
 GEOMETRY = Geometry(0.1651, 0.555)
 TRUE_PARAMS = {'alpha': 0.9, 'b_hat': 0.85}
@@ -78,6 +79,10 @@ def drawn_effect(name: str) -> Effect:
     return make_effect(name, float(rng.uniform(spec.low, spec.high)))
 
 
+TABLE_HEADER = ('| injected | found | eps_t m/m: base -> augmented (true model) | '
+                'eps_theta deg/m: base -> augmented (true model) |', '|---|---|---|---|')
+
+
 @dataclass(frozen=True)
 class EffectCase:
     """One row of the study: the diagnosis and the true model's errors on the same segments."""
@@ -86,6 +91,17 @@ class EffectCase:
     result: DiagnosisResult
     truth_t: ErrorStats
     truth_theta: ErrorStats
+
+    def row(self) -> str:
+        """Return the case's row of the README table (held-out medians, base -> augmented)."""
+        first, last = self.result.steps[0], self.result.steps[-1]
+        found = ', '.join(self.result.extensions) or 'nothing'
+        effect = self.effect
+        label = f'{effect.name} {effect.strength:.3g}' if effect else 'none'
+        return (f'| {label} | {found} | {first.stats_t.median:.4f} -> '
+                f'{last.stats_t.median:.4f} ({self.truth_t.median:.4f}) | '
+                f'{first.stats_theta.median:.3f} -> {last.stats_theta.median:.3f} '
+                f'({self.truth_theta.median:.3f}) |')
 
 
 def run_case(effect: Effect | None, duration_s: float = 120.0,
@@ -103,25 +119,8 @@ def run_case(effect: Effect | None, duration_s: float = 120.0,
     return EffectCase(effect, result, ErrorStats.of(eps_t), ErrorStats.of(eps_theta))
 
 
-def main() -> None:
-    """Print the study table (the README's simulated before/after table)."""
-    import sys
-    out = sys.stdout
-    out.write('| injected | found | eps_t m/m: base -> augmented (true model) | '
-              'eps_theta deg/m: base -> augmented (true model) |\n|---|---|---|---|\n')
-    for name in (None,) + tuple(EFFECT_NAMES):
-        effect = drawn_effect(name) if name else None
-        case = run_case(effect)
-        steps = case.result.steps
-        first, last = steps[0], steps[-1]
-        found = ', '.join(case.result.extensions) or 'nothing'
-        label = f'{effect.name} {effect.strength:.3g}' if effect else 'none'
-        out.write(f'| {label} | {found} | {first.stats_t.median:.4f} -> '
-                  f'{last.stats_t.median:.4f} ({case.truth_t.median:.4f}) | '
-                  f'{first.stats_theta.median:.3f} -> {last.stats_theta.median:.3f} '
-                  f'({case.truth_theta.median:.3f}) |\n')
-        out.flush()
-
-
-if __name__ == '__main__':
-    main()
+def run_study(names: Sequence[str | None] = (None,) + tuple(EFFECT_NAMES)
+              ) -> Iterator[EffectCase]:
+    """Run the cases in order (None: effect-free data), each effect at its drawn strength."""
+    for name in names:
+        yield run_case(drawn_effect(name) if name else None)

@@ -1,1 +1,1 @@
-"""Calibration: segments, fitting, evaluation, hold-out, noise fitting and the diagnosis."""
+"""Calibration: segments, one least-squares engine, fitting, evaluation, noise, the diagnosis."""
