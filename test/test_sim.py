@@ -17,7 +17,8 @@ from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim import (EFFECT_NAMES, EFFECTS, LidarConfig, make_effect, random_effect,
                              SimConfig, simulate)
 from skidkin_ros.sim.robot import COMMAND_KINDS
-from skidkin_ros.sim.scene import Box, Cylinder, default_scene, Room, Scene
+from skidkin_ros.sim.scene import (Box, Cylinder, default_scene, Field, outdoor_scene, Room,
+                                  Scene)
 
 # A scripted drive through the interesting parts of the input space (rad/s): forward, backward,
 # an arc where one side turns twice the other, a spin.
@@ -229,6 +230,28 @@ def test_default_scene_has_structure_at_several_heights_outside_the_arena():
     assert len(heights) >= 20 and min(heights) < 1.0 < max(heights)
     assert any(box.lo[2] > 0.0 for box in scene.boxes)
     assert scene.inside(0.0, 0.0, margin_m=7.0 - 0.1)
+
+
+def test_outdoor_scene_is_a_field_of_trees_around_a_clearing_seen_like_a_vlp16():
+    scene = outdoor_scene(clearing_radius_m=8.8)
+    assert isinstance(scene.room, Field) and not scene.boxes
+    assert len(scene.cylinders) == 800  # 400 trees: a trunk and a crown each
+    assert scene.inside(0.0, 0.0, margin_m=8.0) and not scene.inside(200.0, 0.0)
+    # the vectorized cylinder pass hits what each cylinder alone hits
+    origin = np.array([[0.0, 0.0, 0.7]] * 720)
+    azimuth = np.radians(np.arange(720) * 0.5)
+    direction = np.stack([np.cos(azimuth), np.sin(azimuth), np.zeros(720)], axis=-1)
+    expected = np.full(720, np.inf)
+    for cylinder in scene.cylinders:
+        expected = np.minimum(expected, cylinder.intersect(origin, direction))
+    assert np.array_equal(scene.cast(origin, direction), expected)
+    assert np.isfinite(expected).mean() > 0.3  # a horizontal ray finds a trunk often enough
+    config = SimConfig(duration_s=2.0, seed=1, scene='forest', scene_half_size_m=16.0,
+                       arena_radius_m=8.0,
+                       lidar=LidarConfig(azimuth_resolution_deg=1.0, max_range_m=100.0))
+    scans = list(simulate(config).scans())
+    points = np.mean([len(scan) for scan in scans])
+    assert 4500 < points <= 16 * 360  # VLP-16-like: the sky returns nothing
 
 
 def test_lidar_points_lie_on_the_scene_seen_from_the_pose_at_their_time():

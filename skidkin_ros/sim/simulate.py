@@ -23,7 +23,7 @@ from skidkin_ros.sim.effects import Effect
 from skidkin_ros.sim.lidar import cast_sweep, LidarConfig, LidarScan
 from skidkin_ros.sim.robot import (CommandSchedule, plan_commands, scripted_commands, true_motion,
                                    TruthTrace)
-from skidkin_ros.sim.scene import default_scene, Scene
+from skidkin_ros.sim.scene import make_scene, Scene, SCENE_NAMES
 
 __all__ = ['DEFAULT_TRUE_PARAMS', 'JOINT_NAMES', 'SimConfig', 'Simulation', 'simulate']
 
@@ -43,7 +43,10 @@ class SimConfig:
     the true kinematics (applied to the actual wheel speeds); ``effects`` add departures from
     it. The robot plans its commands to stay within ``arena_radius_m`` of the start, unless
     ``script`` gives the commands: (hold_s, omega_l, omega_r) triples after the initial rest,
-    the last one held to the end (the caller keeps such a drive inside the scene).
+    the last one held to the end (the caller keeps such a drive inside the scene). ``scene``:
+    'courtyard' (walls, boxes, pillars) or 'forest' (an open field with 400 trees, see
+    :func:`skidkin_ros.sim.scene.outdoor_scene`); the robot drives in the obstacle-free disc of
+    radius 0.55 ``scene_half_size_m`` of either.
     """
 
     duration_s: float = 60.0
@@ -69,6 +72,7 @@ class SimConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
     scene_half_size_m: float = 14.0
     script: tuple[tuple[float, float, float], ...] = ()
+    scene: str = 'courtyard'
 
     def __post_init__(self) -> None:
         checks = (
@@ -83,6 +87,9 @@ class SimConfig:
             if not (isinstance(value, (int, float)) and low <= value <= high):
                 raise ParameterError(f'SimConfig.{name} must be in [{low:g}, {high:g}], got '
                                      f'{value!r}')
+        if self.scene not in SCENE_NAMES:
+            raise ParameterError(f'SimConfig.scene must be one of {SCENE_NAMES}, got '
+                                 f'{self.scene!r}')
         low, high = self.hold_range_s
         if not 0.1 <= low <= high:
             raise ParameterError('SimConfig.hold_range_s must be (low, high) s with '
@@ -212,7 +219,7 @@ def simulate(config: SimConfig | None = None) -> Simulation:
     pos_r = np.interp(wheel_t, fine_t, np.concatenate([[0.0], np.cumsum(trace.omega_r)[:-1]]))
     truth_poses = np.stack([np.interp(wheel_t, fine_t, trace.poses[:, i]) for i in range(3)],
                            axis=-1)
-    scene = default_scene(config.scene_half_size_m)
+    scene = make_scene(config.scene, config.scene_half_size_m)
     sim = Simulation(
         config=config, schedule=schedule, trace=trace,
         wheels=WheelSamples(wheel_t, true_l + noise[0], true_r + noise[1]),
