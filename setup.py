@@ -16,7 +16,10 @@ ROS_WHEELS = [
     'ros-jazzy-rmw-fastrtps-cpp',
 ]
 
-DEV = [
+# Running the lidar ground truth's chunks on a Dask cluster (skidkin ... --cluster ADDRESS).
+CLUSTER = ['distributed>=2024.1']
+
+DEV = CLUSTER + [
     'pytest',
     'colcon-core',
     'colcon-ros',
@@ -57,7 +60,7 @@ setup(
         'kiss-icp>=1.2,<2',
         'tqdm>=4.60',
     ],
-    extras_require={'ros': ROS_WHEELS, 'dev': DEV},
+    extras_require={'ros': ROS_WHEELS, 'dev': DEV, 'cluster': CLUSTER},
     zip_safe=True,
     maintainer='skidkin_ros maintainers',
     maintainer_email='skidkin@example.com',

@@ -1,16 +1,35 @@
-"""Lidar ground truth: kiss-icp odometry of base_link, planar, with guards and a cache.
+"""Lidar ground truth: kiss-icp odometry of base_link, planar, with the quality of every frame.
 
-Recipe (:func:`lidar_ground_truth`): for each lidar frame, check the cloud (C10: empty or tiny
-clouds are skipped) and its per-point times (C9), register it with kiss-icp, convert the lidar
-pose to base_link with the extrinsic, reduce it to (x, y, yaw), then flag implausible increments
-(C12: speed, yaw rate, tilt, dropped frames; C11: disagreement with wheel odometry when given).
+Recipe (:func:`lidar_ground_truth`): register the lidar frames with kiss-icp
+(:func:`register_frames`), measure each registration's own quality, convert the lidar poses to
+base_link with the extrinsic, reduce them to (x, y, yaw), then let
+:mod:`skidkin_ros.adapters.lidar_guard` flag what cannot be trusted. Long recordings are cut
+into chunks registered independently (:mod:`skidkin_ros.adapters.lidar_chunks`); what the
+registration of one chunk returns (:class:`Registration`) is what the cache stores, so the flags
+are recomputed on every run from the current wheels, IMU and limits.
+
+The registration loop is kiss-icp's ``KissICP.register_frame`` with two changes, both about
+time: the motion model is a constant velocity *in time* (kiss-icp assumes one frame interval
+per registered frame), so registering every k-th scan (``IcpConfig.stride``) or a frame after a
+dropped one gets the right initial guess and deskews with the motion of one sweep, not of the
+whole interval; and the points that go into the map are kept to measure the next frame.
+
+ICP quality, measured per frame against the previous registered frame (a k-d tree of its
+map-resolution points in the world frame; up to ``quality_points`` source points sampled):
+
+* ``inlier_fraction``: share of the sampled points with a neighbour within one voxel;
+* ``residual_m``: median distance of those points to their neighbour (kiss-icp's own
+  point-to-point error);
+* ``degeneracy``: how well the scan's structure above the ground surrounds the sensor (see
+  :func:`registration_quality`): 0 when the planar position is unobservable (an open field, a
+  straight corridor).
 
 What kiss-icp 1.3 expects of the per-point times (read in its C++ ``Preprocessor`` and checked by
 experiment, see test/test_lidar_gt.py): it normalises them itself, (t - min) / (max - min), and
-moves every point to the sensor pose at the LATEST point with the constant-velocity motion of the
-previous frame interval; any unit and any origin work. An EMPTY times array disables deskewing
-for that call. Constant or NaN times make the normalisation 0/0 and Sophus aborts the whole
-process (exit 134), so such clouds are validated here first and registered without deskew.
+moves every point to the sensor pose at the LATEST point with the motion it is given; any unit
+and any origin work. An EMPTY times array disables deskewing for that call. Constant or NaN
+times make the normalisation 0/0 and Sophus aborts the whole process (exit 134), so such clouds
+are validated here first and registered without deskew.
 
 Pose stamps: a deskewed pose refers to the latest point of its sweep (``end_ns``). A pose
 registered without deskew refers to the middle of the sweep when the point times are known
@@ -22,45 +41,35 @@ E = T_base_lidar, the base pose in the frame of the first base pose is T_b = E T
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
-import hashlib
-import io
-import json
+from dataclasses import asdict, dataclass, field, replace
 import logging
 import math
-import os
-from pathlib import Path
-from typing import Any, Callable, Iterable, Protocol, Union
+from typing import Any, Callable, Iterable, Protocol
 
 import numpy as np
 
-from skidkin_ros.atomic import atomic_write_bytes
-from skidkin_ros.core.drive import PoseTrack
-from skidkin_ros.errors import DataError, ParameterError
+from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.errors import ParameterError
 
-__all__ = ['FrameLike', 'GroundTruth', 'IcpConfig', 'STATUS_CODES', 'bag_identity',
-           'check_point_times', 'lidar_ground_truth', 'lidar_to_base', 'planar_pose']
+__all__ = ['auto_voxel_size', 'BaseTrack', 'FrameGrid', 'FrameLike', 'GroundTruth',
+           'guarded_truth', 'IcpConfig', 'Registration', 'REGISTRATION_CODES',
+           'check_point_times', 'lidar_ground_truth', 'lidar_to_base', 'planar_pose',
+           'register_frames', 'registration_quality', 'se3_power', 'track_from_registration']
 
 _LOG = logging.getLogger(__name__)
-CACHE_VERSION = 1
 
-# Frame status codes: ok (valid pose), no_deskew (valid pose, registered without deskew), and
-# the reasons a frame gave no pose or an untrusted one.
-STATUS_CODES: dict[str, str] = {
+# What the registration did with each frame; the guard adds its own codes (lidar_guard).
+REGISTRATION_CODES: dict[str, str] = {
     'ok': 'registered with deskew (or deskew off by config)',
     'no_deskew': 'per-point times unusable (C9): registered without deskew',
+    'stride': 'not registered: only every IcpConfig.stride-th scan is',
     'empty': 'no finite point in range: skipped (C10)',
     'tiny': 'fewer points than min_points: skipped (C10)',
-    'after_skip': 'first pose after a skipped frame: invalid (C10)',
-    'before_skip': 'last pose before a skipped frame: invalid (C10)',
-    'gap': 'frame interval above max_gap_factor x the median: a frame was dropped (C12)',
-    'speed': 'ICP increment faster than max_speed_m_s (C12)',
-    'yaw_rate': 'ICP increment turns faster than max_yaw_rate_rad_s (C12)',
-    'tilt': 'roll or pitch beyond max_tilt_rad: ICP left the plane (C11)',
-    'wheel_disagreement': 'ICP increment disagrees with wheel odometry beyond tolerance (C11)',
     'non_finite': 'kiss-icp returned a non-finite pose',
 }
-_VALID_STATUS = ('ok', 'no_deskew')
+REGISTERED = ('ok', 'no_deskew')
+# Points this far above the lowest tenth of a scan count as structure (not ground).
+_GROUND_CLEARANCE_M = 0.3
 
 
 class FrameLike(Protocol):
@@ -74,32 +83,31 @@ class FrameLike(Protocol):
 
 @dataclass(frozen=True)
 class IcpConfig:
-    """kiss-icp settings and the plausibility limits of the ground truth.
+    """kiss-icp settings and the checks of its input: everything a registration depends on.
 
-    Ranges and voxel size in m (voxel_size_m None: max_range_m / 100, kiss-icp's rule); limits
-    per frame increment. Wheel disagreement: the ICP and wheel increments over the last
-    ``wheel_window_s`` before each pose are compared; flagged when |d_icp - d_wheel| > abs +
-    rel |d_wheel| (translation, m) or the same for yaw (rad). Loose on purpose: uncalibrated wheel
-    odometry of a skid-steer robot can be far off in yaw (Husky: ~1.9x).
+    Ranges and voxel size in m (voxel_size_m None: from the data, :func:`auto_voxel_size`;
+    kiss-icp's own rule, max_range / 100, ties it to the sensor instead of the scene);
+    ``max_points_per_voxel``, ``max_iterations`` and ``convergence`` are kiss-icp's mapping and
+    registration settings; ``stride``: register one scan in ``stride`` (the others get status
+    'stride'); ``max_threads``: kiss-icp's threads per registration (1: the result does not
+    depend on the machine or on how many run at once; 0: every core). ``quality_points``:
+    source points sampled per frame to measure the registration's quality.
+    The defaults come from the speed/accuracy table of bench/icp_settings.py (README).
     """
 
-    max_range_m: float = 60.0
+    max_range_m: float = 100.0
     min_range_m: float = 0.5
     voxel_size_m: float | None = None
+    max_points_per_voxel: int = 20
+    max_iterations: int = 500
+    convergence: float = 1e-3
+    stride: int = 1
     deskew: bool = True
-    max_threads: int = 0
+    max_threads: int = 1
     min_points: int = 200
     min_time_spread_s: float = 1e-4
     max_time_spread_s: float = 1.0
-    max_speed_m_s: float = 3.0
-    max_yaw_rate_rad_s: float = 3.0
-    max_tilt_rad: float = 0.2
-    max_gap_factor: float = 1.5
-    wheel_window_s: float = 1.0
-    wheel_abs_m: float = 0.1
-    wheel_rel: float = 0.5
-    wheel_abs_rad: float = 0.1
-    wheel_rel_yaw: float = 0.7
+    quality_points: int = 400
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_range_m < self.max_range_m:
@@ -108,31 +116,149 @@ class IcpConfig:
         if self.voxel_size_m is not None and not self.voxel_size_m > 0.0:
             raise ParameterError(f'IcpConfig.voxel_size_m must be > 0 m, got '
                                  f'{self.voxel_size_m}')
-        for name in ('max_speed_m_s', 'max_yaw_rate_rad_s', 'max_tilt_rad', 'min_time_spread_s',
-                     'max_time_spread_s'):
+        for name in ('min_time_spread_s', 'max_time_spread_s', 'convergence'):
             if not getattr(self, name) > 0.0:
-                raise ParameterError(f'IcpConfig.{name} must be > 0')
-        if self.max_gap_factor <= 1.0:
-            raise ParameterError('IcpConfig.max_gap_factor must be > 1 (a multiple of the '
-                                 'median frame interval)')
-        if self.min_points < 1:
-            raise ParameterError('IcpConfig.min_points must be >= 1')
+                raise ParameterError(f'IcpConfig.{name} must be > 0, got {getattr(self, name)}')
+        for name, low in (('min_points', 1), ('max_points_per_voxel', 1),
+                          ('max_iterations', 1), ('stride', 1), ('max_threads', 0),
+                          ('quality_points', 0)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < low:
+                raise ParameterError(f'IcpConfig.{name} must be a whole number >= {low}, got '
+                                     f'{value!r}')
 
     @property
     def voxel_size(self) -> float:
-        return self.voxel_size_m if self.voxel_size_m is not None else self.max_range_m / 100.0
+        if self.voxel_size_m is None:
+            raise ParameterError('IcpConfig.voxel_size_m is not resolved yet: use '
+                                 'with_voxel_for(first cloud) first')
+        return self.voxel_size_m
 
-    def kiss_config(self, deskew: bool | None = None) -> Any:
+    def with_voxel_for(self, xyz: np.ndarray) -> 'IcpConfig':
+        """Return this config with its voxel size set from a cloud when it is automatic."""
+        if self.voxel_size_m is not None:
+            return self
+        return replace(self, voxel_size_m=auto_voxel_size(xyz, self))
+
+    def kiss_config(self) -> Any:
         """Return kiss-icp's KISSConfig built from ``load_config(None)`` with our settings."""
         from kiss_icp.config import load_config
 
         config = load_config(None)
         config.data.max_range = float(self.max_range_m)
         config.data.min_range = float(self.min_range_m)
-        config.data.deskew = self.deskew if deskew is None else deskew
+        config.data.deskew = self.deskew
         config.mapping.voxel_size = float(self.voxel_size)
+        config.mapping.max_points_per_voxel = int(self.max_points_per_voxel)
+        config.registration.max_num_iterations = int(self.max_iterations)
+        config.registration.convergence_criterion = float(self.convergence)
         config.registration.max_num_threads = int(self.max_threads)
         return config
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+# The automatic voxel: this many times the median spacing of neighbouring points of a scan.
+VOXEL_PER_SPACING = 6.0
+_VOXEL_RANGE_M = (0.2, 3.0)
+
+
+def auto_voxel_size(xyz: np.ndarray, config: IcpConfig) -> float:
+    """Return a voxel size (m) for kiss-icp from one cloud: 6 x its median point spacing.
+
+    kiss-icp ties the voxel to the sensor's range (max_range / 100); what registers well is a
+    voxel that holds a few points of the scan at hand, so it grows with how sparse the scan is:
+    0.55 m for a 16-ring lidar at 0.5 deg in a courtyard (median spacing 9 cm), 1.4 m for the
+    same lidar at 1 deg among trees (23 cm). The factor comes from the speed/accuracy table of
+    bench/icp_settings.py. Rounded to 5 cm, within 0.2-3 m.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    ranges = np.linalg.norm(points, axis=1)
+    points = points[(ranges > config.min_range_m) & (ranges < config.max_range_m)]
+    if points.shape[0] < 10:
+        return 1.0
+    spacing, _ = cKDTree(points).query(points, k=2)
+    voxel = VOXEL_PER_SPACING * float(np.median(spacing[:, 1]))
+    return float(np.clip(round(voxel / 0.05) * 0.05, *_VOXEL_RANGE_M))
+
+
+@dataclass(frozen=True)
+class FrameGrid:
+    """Which scans to register when ``stride`` > 1: the first one in each cell of a time grid.
+
+    Cells of ``cell_ns`` (stride x the nominal frame period) start at ``origin_ns``. The grid
+    is fixed in absolute time, so chunks of one recording register the same scans.
+    """
+
+    origin_ns: int
+    cell_ns: int
+
+    @classmethod
+    def for_frames(cls, first_end_ns: int, period_ns: int, stride: int) -> 'FrameGrid':
+        """Return the grid whose cells are centred on the frames (half a period of jitter ok)."""
+        return cls(int(first_end_ns) - int(period_ns) // 2, int(period_ns) * int(stride))
+
+    def cell(self, end_ns: int) -> int:
+        return (int(end_ns) - self.origin_ns) // self.cell_ns
+
+
+@dataclass
+class Registration:
+    """What registering a sequence of frames gave, one entry per input frame.
+
+    ``status`` (REGISTRATION_CODES); ``pose_t_ns`` the pose stamp (-1 without a pose);
+    ``lidar_pose`` (F, 4, 4) in the lidar frame of the first registered cloud (NaN without a
+    pose); the quality of each registration (NaN where not measured: no pose, or the first
+    frame of the sequence); ``notes`` about the input (times unusable, ...).
+    """
+
+    end_ns: np.ndarray
+    status: tuple[str, ...]
+    pose_t_ns: np.ndarray
+    lidar_pose: np.ndarray
+    inlier_fraction: np.ndarray
+    residual_m: np.ndarray
+    degeneracy: np.ndarray
+    receive_ns: np.ndarray | None = None
+    voxel_size_m: float | None = None
+
+    ARRAYS = ('end_ns', 'pose_t_ns', 'lidar_pose', 'inlier_fraction', 'residual_m',
+              'degeneracy')
+
+    def __len__(self) -> int:
+        return int(self.end_ns.size)
+
+    @property
+    def registered(self) -> np.ndarray:
+        return np.array([code in REGISTERED for code in self.status], dtype=bool)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Return plain arrays (for np.savez and for sending between processes)."""
+        out = {name: getattr(self, name) for name in self.ARRAYS}
+        out['status'] = np.array(self.status, dtype=str)
+        if self.receive_ns is not None:
+            out['receive_ns'] = self.receive_ns
+        if self.voxel_size_m is not None:
+            out['voxel_size_m'] = np.array(self.voxel_size_m)
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: Any) -> 'Registration':
+        """Rebuild from :meth:`to_arrays` output (or an open npz)."""
+        receive = arrays['receive_ns'] if 'receive_ns' in arrays else None
+        voxel = float(arrays['voxel_size_m']) if 'voxel_size_m' in arrays else None
+        return cls(np.asarray(arrays['end_ns'], dtype=np.int64),
+                   tuple(str(s) for s in arrays['status']),
+                   np.asarray(arrays['pose_t_ns'], dtype=np.int64),
+                   np.asarray(arrays['lidar_pose'], dtype=float).reshape(-1, 4, 4),
+                   *(np.asarray(arrays[name], dtype=float)
+                     for name in ('inlier_fraction', 'residual_m', 'degeneracy')),
+                   receive_ns=None if receive is None else np.asarray(receive, dtype=np.int64),
+                   voxel_size_m=voxel)
 
 
 @dataclass(frozen=True)
@@ -140,8 +266,9 @@ class GroundTruth:
     """The lidar ground truth of base_link and what happened to every input frame.
 
     track: planar poses (valid flags set); frame_stamp_ns / frame_status: one entry per input
-    frame (status codes in STATUS_CODES); counts: frames per status; from_cache: True when the
-    track was read from the cache and no ICP ran.
+    frame (REGISTRATION_CODES and the guard's codes); counts: frames per status; from_cache:
+    True when every chunk's registration was read from the cache (no ICP ran); excluded: the
+    guard's account of what it excluded and why (see lidar_guard).
     """
 
     track: PoseTrack
@@ -151,6 +278,7 @@ class GroundTruth:
     from_cache: bool = False
     notes: tuple[str, ...] = ()
     config: IcpConfig = field(default_factory=IcpConfig)
+    excluded: dict[str, Any] = field(default_factory=dict)
 
 
 def check_point_times(t_rel_s: np.ndarray | None, n_points: int,
@@ -185,245 +313,302 @@ def planar_pose(transform: np.ndarray) -> tuple[float, float, float, float]:
     return float(transform[0, 3]), float(transform[1, 3]), yaw, tilt
 
 
-def bag_identity(path: Union[str, os.PathLike]) -> dict[str, Any]:
-    """Return what identifies a recording for the cache: resolved path, sizes, mtimes, metadata.
+def _skew(w: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
-    A bag folder contributes the hash of its metadata.yaml and the size and mtime of each storage
-    file; a single file its size and mtime.
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    theta = float(np.linalg.norm(w))
+    k = _skew(w)
+    if theta < 1e-9:
+        return np.eye(3) + k
+    return (np.eye(3) + math.sin(theta) / theta * k
+            + (1.0 - math.cos(theta)) / theta ** 2 * k @ k)
+
+
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    theta = float(np.linalg.norm(w))
+    k = _skew(w)
+    if theta < 1e-6:
+        return np.eye(3) + 0.5 * k + k @ k / 6.0
+    return (np.eye(3) + (1.0 - math.cos(theta)) / theta ** 2 * k
+            + (theta - math.sin(theta)) / theta ** 3 * k @ k)
+
+
+def se3_power(transform: np.ndarray, fraction: float) -> np.ndarray:
+    """Return exp(fraction log(T)) of a rigid 4x4 transform: the same motion, scaled in time."""
+    from scipy.spatial.transform import Rotation
+
+    rotvec = Rotation.from_matrix(transform[:3, :3]).as_rotvec()
+    rho = np.linalg.solve(_left_jacobian(rotvec), transform[:3, 3])
+    scaled = fraction * rotvec
+    out = np.eye(4)
+    out[:3, :3] = _so3_exp(scaled)
+    out[:3, 3] = _left_jacobian(scaled) @ (fraction * rho)
+    return out
+
+
+class _Odometry:
+    """kiss-icp's KissICP with a constant-velocity model in time and the map points kept."""
+
+    def __init__(self, config: IcpConfig) -> None:
+        from kiss_icp.kiss_icp import KissICP
+
+        self._kiss = KissICP(config.kiss_config())
+        self._last_dt_ns = 0
+
+    @property
+    def last_pose(self) -> np.ndarray:
+        return self._kiss.last_pose
+
+    def register(self, points: np.ndarray, times: np.ndarray, dt_ns: int,
+                 spread_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """Register one cloud ``dt_ns`` after the previous one; return (source, map points)."""
+        kiss = self._kiss
+        delta = kiss.last_delta
+        if self._last_dt_ns > 0 and dt_ns > 0:
+            guess_delta = se3_power(delta, dt_ns / self._last_dt_ns)
+            sweep_delta = se3_power(delta, min(spread_ns, dt_ns) / self._last_dt_ns)
+        else:
+            guess_delta = sweep_delta = delta
+        frame = kiss.preprocessor.preprocess(points, times, sweep_delta)
+        source, frame_downsample = kiss.voxelize(frame)
+        sigma = kiss.adaptive_threshold.get_threshold()
+        initial_guess = kiss.last_pose @ guess_delta
+        new_pose = kiss.registration.align_points_to_map(
+            points=source, voxel_map=kiss.local_map, initial_guess=initial_guess,
+            max_correspondance_distance=3 * sigma, kernel=sigma)
+        kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
+        kiss.local_map.update(frame_downsample, new_pose)
+        kiss.last_delta = np.linalg.inv(kiss.last_pose) @ new_pose
+        kiss.last_pose = new_pose
+        self._last_dt_ns = dt_ns if dt_ns > 0 else self._last_dt_ns
+        return source, frame_downsample
+
+
+def _world(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def registration_quality(source: np.ndarray, pose: np.ndarray, reference: Any,
+                         voxel_m: float, n_sample: int) -> tuple[float, float, float]:
+    """Return (inlier fraction, median residual m, degeneracy) of one registered frame.
+
+    ``source``: the points kiss-icp registered (deskewed, sensor frame); ``reference``: a
+    cKDTree of the previous frame's map points in the world frame. A sampled point is an inlier
+    when the reference has a point within one voxel; the residual is the median distance of the
+    inliers (what kiss-icp's point-to-point ICP minimises). Degeneracy: the smallest eigenvalue
+    of the mean of u u^T over the sampled points, u the horizontal unit direction of a point
+    standing above the ground (0.3 m over the lowest tenth of the points) and 0 for a ground
+    point: 0 when nothing constrains the planar position (an open field, only the ground) or
+    when all structure lies along one line (a corridor), up to 0.5 for structure all around.
     """
-    target = Path(path).resolve()
-    if not target.exists():
-        raise DataError(f'cannot identify recording {target}: it does not exist')
-    files = sorted(p for p in target.iterdir() if p.is_file()) if target.is_dir() else [target]
-    entries = []
-    for item in files:
-        stat = item.stat()
-        entry = {'name': item.name, 'size': stat.st_size, 'mtime_ns': stat.st_mtime_ns}
-        if item.name == 'metadata.yaml':
-            entry['sha256'] = hashlib.sha256(item.read_bytes()).hexdigest()
-        entries.append(entry)
-    return {'path': str(target), 'files': entries}
+    if n_sample <= 0 or source.shape[0] == 0:
+        return math.nan, math.nan, math.nan
+    step = max(1, source.shape[0] // n_sample)
+    local = source[::step][:n_sample]
+    dist, _ = reference.query(_world(local, pose), k=1, distance_upper_bound=voxel_m)
+    near = np.isfinite(dist)
+    inlier_fraction = float(np.count_nonzero(near)) / local.shape[0]
+    residual = float(np.median(dist[near])) if np.any(near) else math.nan
+    structure = local[local[:, 2] > np.percentile(local[:, 2], 10) + _GROUND_CLEARANCE_M]
+    horizontal = np.hypot(structure[:, 0], structure[:, 1])
+    structure = structure[horizontal > 1e-6]
+    if structure.shape[0] == 0:
+        return inlier_fraction, residual, 0.0
+    u = structure[:, :2] / np.hypot(structure[:, 0], structure[:, 1])[:, None]
+    degeneracy = float(np.linalg.eigvalsh(u.T @ u / local.shape[0])[0])
+    return inlier_fraction, residual, degeneracy
 
 
-def _cache_key(source: Any, extrinsic: np.ndarray, config: IcpConfig) -> str:
-    payload = {'version': CACHE_VERSION, 'source': source,
-               'extrinsic': np.round(np.asarray(extrinsic, dtype=float), 9).tolist(),
-               'config': asdict(config)}
-    text = json.dumps(payload, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode('utf-8')).hexdigest()
+def _prepare(frame: FrameLike, index: int, config: IcpConfig
+             ) -> tuple[str, np.ndarray | None, np.ndarray, int, int]:
+    """Check one cloud; return (code, points, times for kiss-icp, pose stamp, sweep ns)."""
+    xyz = np.asarray(frame.xyz, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(xyz), axis=1)
+    ranges = np.linalg.norm(xyz, axis=1)
+    usable = finite & (ranges > config.min_range_m) & (ranges < config.max_range_m)
+    n_usable = int(np.count_nonzero(usable))
+    end = int(frame.end_ns)
+    if n_usable == 0 or n_usable < config.min_points:
+        return ('empty' if n_usable == 0 else 'tiny'), None, np.zeros(0), end, 0
+    times = frame.t_rel_s
+    times_ok, why = check_point_times(times, xyz.shape[0], config)
+    if times_ok and not np.all(finite):
+        times = np.asarray(times, dtype=float)[finite]
+    points = np.ascontiguousarray(xyz[finite])
+    if not times_ok:
+        if config.deskew:
+            _LOG.debug('frame %d at %d ns: %s; registered without deskew', index, end, why)
+        return ('no_deskew' if config.deskew else 'ok'), points, np.zeros(0), end, 0
+    spread_ns = int(round(float(np.ptp(times)) * 1e9))
+    if not config.deskew:
+        return 'ok', points, np.zeros(0), end - spread_ns // 2, spread_ns
+    return 'ok', points, np.ascontiguousarray(times, dtype=np.float64), end, spread_ns
 
 
-def _read_cache(path: Path, key: str, config: IcpConfig) -> GroundTruth | None:
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            if str(data['key']) != key:
-                return None
-            track = PoseTrack(data['t_ns'], data['x'], data['y'], data['yaw'], data['valid'])
-            status = tuple(str(s) for s in data['frame_status'])
-            frame_stamp = np.asarray(data['frame_stamp_ns'], dtype=np.int64)
-    except Exception as err:  # noqa: B902 - any unreadable cache is recomputed, never fatal
-        _LOG.warning('ignoring unreadable ground-truth cache %s (%s); recomputing', path, err)
-        return None
-    counts = {code: status.count(code) for code in STATUS_CODES if code in status}
-    return GroundTruth(track, frame_stamp, status, counts, True,
-                       (f'ground truth read from cache {path}',), config)
+def register_frames(frames: Iterable[FrameLike], config: IcpConfig, *,
+                    grid: FrameGrid | None = None,
+                    on_frame: Callable[[int], None] | None = None) -> Registration:
+    """Register lidar frames with kiss-icp; return one entry per frame (see Registration).
+
+    ``grid``: which scans to register when ``config.stride`` > 1 (default: cells on the
+    interval of the first two frames); ``on_frame(n)`` is called after each frame with the
+    number of frames read so far.
+    """
+    from scipy.spatial import cKDTree
+
+    odometry: _Odometry | None = None
+    end_ns: list[int] = []
+    receive_ns: list[int] = []
+    status: list[str] = []
+    pose_t: list[int] = []
+    poses: list[np.ndarray] = []
+    quality: list[tuple[float, float, float]] = []
+    nan_pose = np.full((4, 4), np.nan)
+    nan_quality = (math.nan, math.nan, math.nan)
+    reference: Any = None
+    last_end: int | None = None
+    last_cell: int | None = None
+    for index, frame in enumerate(frames):
+        end = int(frame.end_ns)
+        end_ns.append(end)
+        receive_ns.append(int(getattr(frame, 'receive_ns', end)))
+        code, pose, stamp, measured = 'stride', nan_pose, -1, nan_quality
+        if config.stride > 1 and grid is None and index == 1:
+            grid = FrameGrid.for_frames(end_ns[0], end - end_ns[0], config.stride)
+            last_cell = grid.cell(last_end) if last_end is not None else None
+        cell = grid.cell(end) if (config.stride > 1 and grid is not None) else None
+        if cell is None or cell != last_cell:
+            code, points, times, stamp, spread_ns = _prepare(frame, index, config)
+            if points is not None:
+                if odometry is None:
+                    config = config.with_voxel_for(points)
+                    odometry = _Odometry(config)
+                dt_ns = end - last_end if last_end is not None else 0
+                source, map_points = odometry.register(points, times, dt_ns, spread_ns)
+                pose = odometry.last_pose.copy()
+                if not np.all(np.isfinite(pose)):
+                    code, pose, stamp = 'non_finite', nan_pose, -1
+                else:
+                    if reference is not None:
+                        measured = registration_quality(source, pose, reference,
+                                                        config.voxel_size, config.quality_points)
+                    reference = cKDTree(_world(map_points, pose))
+                    last_end, last_cell = end, cell
+            else:
+                pose, stamp = nan_pose, -1
+        status.append(code)
+        pose_t.append(stamp)
+        poses.append(pose)
+        quality.append(measured)
+        if on_frame is not None:
+            on_frame(index + 1)
+    return Registration(np.array(end_ns, dtype=np.int64), tuple(status),
+                        np.array(pose_t, dtype=np.int64),
+                        np.array(poses, dtype=float).reshape(-1, 4, 4),
+                        *(np.array([q[i] for q in quality], dtype=float) for i in range(3)),
+                        receive_ns=np.array(receive_ns, dtype=np.int64),
+                        voxel_size_m=config.voxel_size_m)
 
 
-def _write_cache(path: Path, key: str, result: GroundTruth) -> None:
-    buffer = io.BytesIO()
-    track = result.track
-    np.savez(buffer, key=np.array(key), t_ns=track.t_ns, x=track.x, y=track.y, yaw=track.yaw,
-             valid=track.valid, frame_status=np.array(result.frame_status, dtype=str),
-             frame_stamp_ns=result.frame_stamp_ns)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(path, buffer.getvalue(), force=True)
-    except OSError as err:
-        _LOG.warning('could not write the ground-truth cache %s: %s', path, err)
+@dataclass(frozen=True)
+class BaseTrack:
+    """Planar base_link poses from a registration, before the guard: one row per pose."""
+
+    t_ns: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    tilt: np.ndarray
+    quality: np.ndarray
+    pose_frame: np.ndarray
 
 
-def lidar_ground_truth(frames: Union[Iterable[FrameLike], Callable[[], Iterable[FrameLike]]],
+def track_from_registration(registration: Registration, extrinsic: np.ndarray) -> BaseTrack:
+    """Return the registered poses as planar base_link poses, sorted by time, yaw unwrapped."""
+    rows = np.flatnonzero(registration.registered)
+    data = np.array([planar_pose(lidar_to_base(registration.lidar_pose[i], extrinsic))
+                     for i in rows], dtype=float).reshape(-1, 4)
+    t_ns = registration.pose_t_ns[rows]
+    order = np.argsort(t_ns, kind='stable')
+    if np.any(order != np.arange(order.size)):
+        _LOG.warning('lidar frames out of time order: sorted %d poses', order.size)
+    rows, data, t_ns = rows[order], data[order], t_ns[order]
+    quality = np.stack([registration.inlier_fraction[rows], registration.residual_m[rows],
+                        registration.degeneracy[rows]], axis=-1).reshape(-1, 3)
+    return BaseTrack(t_ns, data[:, 0], data[:, 1], np.unwrap(data[:, 2]), data[:, 3], quality,
+                     rows)
+
+
+def guarded_truth(registration: Registration, extrinsic: np.ndarray, config: IcpConfig,
+                  limits: Any = None, *, wheels: WheelSamples | None = None,
+                  imu: ImuSamples | None = None, seams: Iterable[int] = (),
+                  from_cache: bool = False, notes: Iterable[str] = ()) -> GroundTruth:
+    """Return the ground truth of a registration: base_link track, guard flags, notes.
+
+    ``seams``: input-frame indices whose pose starts a chunk after a seam that failed its test.
+    """
+    from skidkin_ros.adapters.lidar_guard import flag_poses, GuardLimits
+
+    limits = limits or GuardLimits()
+    extrinsic = np.asarray(extrinsic, dtype=float)
+    if extrinsic.shape != (4, 4) or not np.all(np.isfinite(extrinsic)):
+        raise ParameterError('extrinsic must be a finite 4x4 T_base_lidar (m, rotation matrix)')
+    base = track_from_registration(registration, extrinsic)
+    seam_frames = {int(i) for i in seams}
+    seam_poses = [j for j, frame in enumerate(base.pose_frame) if int(frame) in seam_frames]
+    reasons, exclusions = flag_poses(base.t_ns, base.x, base.y, base.yaw, base.tilt,
+                                     base.quality, base.pose_frame, registration.status,
+                                     limits, wheels=wheels, imu=imu, seams=seam_poses)
+    status = list(registration.status)
+    for frame, reason in zip(base.pose_frame, reasons):
+        if reason:
+            status[int(frame)] = reason
+    valid = np.array([not reason for reason in reasons], dtype=bool)
+    track = PoseTrack(base.t_ns, base.x, base.y, base.yaw, valid)
+    counts: dict[str, int] = {}
+    for code in status:
+        counts[code] = counts.get(code, 0) + 1
+    all_notes = list(notes)
+    if registration.voxel_size_m is not None:
+        config = replace(config, voxel_size_m=registration.voxel_size_m)
+        all_notes.append(f'kiss-icp voxel size {registration.voxel_size_m:g} m')
+    skipped = counts.get('empty', 0) + counts.get('tiny', 0)
+    if skipped:
+        all_notes.append(f'{skipped} lidar frame(s) skipped: empty or fewer than '
+                         f'{config.min_points} points (C10)')
+    if counts.get('no_deskew'):
+        all_notes.append(f'{counts["no_deskew"]} frame(s) registered without deskew: per-point '
+                         'times missing, constant or NaN (C9)')
+    if config.stride > 1:
+        all_notes.append(f'registered one scan in {config.stride} ({counts.get("stride", 0)} '
+                         'scans not registered)')
+    all_notes.append(exclusions.summary())
+    for check, state in exclusions.checks.items():
+        all_notes.append(f'ground-truth check {check}: {state}')
+    for note in all_notes:
+        _LOG.debug(note)
+    return GroundTruth(track, registration.end_ns.copy(), tuple(status), counts, from_cache,
+                       tuple(all_notes), config, exclusions.as_dict())
+
+
+def lidar_ground_truth(frames: Iterable[FrameLike] | Callable[[], Iterable[FrameLike]],
                        extrinsic: np.ndarray, config: IcpConfig | None = None, *,
-                       wheel_odometry: PoseTrack | None = None, progress: bool = False,
-                       total: int | None = None, cache_dir: Union[str, os.PathLike, None] = None,
-                       source_id: Any = None) -> GroundTruth:
-    """Run kiss-icp over lidar frames and return the planar ground truth of base_link.
+                       limits: Any = None, wheels: WheelSamples | None = None,
+                       imu: ImuSamples | None = None,
+                       on_frame: Callable[[int], None] | None = None) -> GroundTruth:
+    """Run kiss-icp over lidar frames held or streamed here; return the planar ground truth.
 
-    frames: an iterable of frames (or a callable returning one, only called on a cache miss);
-    extrinsic: T_base_lidar (4x4); wheel_odometry: optional wheel-odometry track of base_link
-    to flag ICP increments that disagree with it (C11); cache_dir + source_id (e.g.
-    ``{'bag': bag_identity(path), 'topic': topic}``): cache the result keyed by the source,
-    the extrinsic and the config; a corrupt or stale cache is recomputed.
+    frames: an iterable of frames (or a callable returning one); extrinsic: T_base_lidar
+    (4x4); wheels / imu: the recording's wheel speeds and IMU for the guard (lidar_guard);
+    limits: a lidar_guard.GuardLimits. For a recording on disk, prefer
+    :func:`skidkin_ros.adapters.lidar_chunks.bag_ground_truth` (chunks, processes, cache).
     """
     config = config or IcpConfig()
     extrinsic = np.asarray(extrinsic, dtype=float)
     if extrinsic.shape != (4, 4) or not np.all(np.isfinite(extrinsic)):
         raise ParameterError('extrinsic must be a finite 4x4 T_base_lidar (m, rotation matrix)')
-    cache_path = None
-    if cache_dir is not None and source_id is not None:
-        key = _cache_key(source_id, extrinsic, config)
-        cache_path = Path(cache_dir) / f'lidar_gt_{key[:24]}.npz'
-        cached = _read_cache(cache_path, key, config)
-        if cached is not None:
-            _LOG.info('lidar ground truth read from cache %s', cache_path)
-            return cached
     source = frames() if callable(frames) else frames
-    result = _register_all(source, extrinsic, config, wheel_odometry, progress, total)
-    if cache_path is not None:
-        _write_cache(cache_path, key, result)
-    return result
-
-
-def _register_all(frames: Iterable[FrameLike], extrinsic: np.ndarray, config: IcpConfig,
-                  wheel_odometry: PoseTrack | None, progress: bool,
-                  total: int | None) -> GroundTruth:
-    from kiss_icp.kiss_icp import KissICP
-
-    odometry = KissICP(config.kiss_config())
-    iterator: Iterable[FrameLike] = frames
-    if progress:
-        from tqdm import tqdm
-        iterator = tqdm(frames, total=total, unit='scan', desc='kiss-icp')
-    no_times = np.zeros(0)
-    status: list[str] = []
-    frame_stamps: list[int] = []
-    pose_rows: list[tuple[int, float, float, float, float]] = []
-    pose_frame: list[int] = []
-    notes: list[str] = []
-    for index, frame in enumerate(iterator):
-        frame_stamps.append(int(frame.end_ns))
-        xyz = np.asarray(frame.xyz, dtype=np.float64).reshape(-1, 3)
-        finite = np.all(np.isfinite(xyz), axis=1)
-        ranges = np.linalg.norm(xyz, axis=1)
-        usable = finite & (ranges > config.min_range_m) & (ranges < config.max_range_m)
-        n_usable = int(np.count_nonzero(usable))
-        if n_usable == 0 or n_usable < config.min_points:
-            status.append('empty' if n_usable == 0 else 'tiny')
-            continue
-        times = frame.t_rel_s
-        times_ok, why = check_point_times(times, xyz.shape[0], config)
-        if times_ok and not np.all(finite):
-            times = np.asarray(times, dtype=float)[finite]
-        points = np.ascontiguousarray(xyz[finite])
-        code = 'ok'
-        t_pose = int(frame.end_ns)
-        if not times_ok:
-            if config.deskew:
-                _LOG.debug('frame %d at %d ns: %s; registered without deskew', index,
-                           frame.end_ns, why)
-            code = 'no_deskew' if config.deskew else 'ok'
-            stamps = no_times
-        else:
-            spread_ns = int(round(float(np.ptp(times)) * 1e9))
-            if config.deskew:
-                stamps = np.ascontiguousarray(times, dtype=np.float64)
-            else:
-                stamps = no_times
-                t_pose = int(frame.end_ns) - spread_ns // 2
-        odometry.register_frame(points, stamps)
-        t_base = lidar_to_base(odometry.last_pose, extrinsic)
-        x, y, yaw, tilt = planar_pose(t_base)
-        if not all(math.isfinite(v) for v in (x, y, yaw)):
-            status.append('non_finite')
-            continue
-        status.append(code)
-        pose_rows.append((t_pose, x, y, yaw, tilt))
-        pose_frame.append(index)
-    frame_stamp_ns = np.array(frame_stamps, dtype=np.int64)
-    track = _flag_track(pose_rows, pose_frame, status, frame_stamp_ns, config, wheel_odometry)
-    counts = {code: status.count(code) for code in STATUS_CODES if code in status}
-    skipped = counts.get('empty', 0) + counts.get('tiny', 0)
-    if skipped:
-        notes.append(f'{skipped} lidar frame(s) skipped: empty or fewer than '
-                     f'{config.min_points} points (C10)')
-    if counts.get('no_deskew'):
-        notes.append(f'{counts["no_deskew"]} frame(s) registered without deskew: per-point '
-                     'times missing, constant or NaN (C9)')
-    flagged = sum(counts.get(c, 0) for c in ('gap', 'speed', 'yaw_rate', 'tilt',
-                                             'wheel_disagreement', 'after_skip', 'before_skip'))
-    if flagged:
-        notes.append(f'{flagged} ground-truth pose(s) flagged invalid (C11/C12)')
-    for note in notes:
-        _LOG.info(note)
-    return GroundTruth(track, frame_stamp_ns, tuple(status), counts, False, tuple(notes),
-                       config)
-
-
-def _flag_track(rows: list, pose_frame: list[int], status: list[str],
-                frame_stamp_ns: np.ndarray, config: IcpConfig,
-                wheel_odometry: PoseTrack | None) -> PoseTrack:
-    """Build the track and flag implausible poses, writing the reason into ``status``."""
-    if not rows:
-        empty = np.zeros(0)
-        return PoseTrack(np.zeros(0, dtype=np.int64), empty, empty, empty, np.zeros(0, bool))
-    data = np.array([row[1:] for row in rows], dtype=float)
-    t_ns = np.array([row[0] for row in rows], dtype=np.int64)
-    order = np.argsort(t_ns, kind='stable')
-    if np.any(order != np.arange(order.size)):
-        _LOG.warning('lidar frames out of time order: sorted %d poses', order.size)
-        data, t_ns = data[order], t_ns[order]
-        pose_frame = [pose_frame[i] for i in order]
-    x, y, tilt = data[:, 0], data[:, 1], data[:, 3]
-    yaw = np.unwrap(data[:, 2])
-    reasons = [''] * len(rows)
-
-    def flag(i: int, code: str) -> None:
-        if not reasons[i]:
-            reasons[i] = code
-
-    for i in np.flatnonzero(tilt > config.max_tilt_rad):
-        flag(int(i), 'tilt')
-    frame_dt = np.diff(frame_stamp_ns)
-    nominal_ns = float(np.median(frame_dt)) if frame_dt.size else 0.0
-    skipped = {i for i, code in enumerate(status) if code in ('empty', 'tiny')}
-    for j in range(1, len(rows)):
-        dt_s = (t_ns[j] - t_ns[j - 1]) * 1e-9
-        frames_between = set(range(pose_frame[j - 1] + 1, pose_frame[j]))
-        if frames_between & skipped:
-            flag(j, 'after_skip')
-            flag(j - 1, 'before_skip')
-            continue
-        if dt_s <= 0.0:
-            flag(j, 'gap')
-            continue
-        if nominal_ns > 0 and (t_ns[j] - t_ns[j - 1]) > config.max_gap_factor * nominal_ns:
-            flag(j, 'gap')
-        step = math.hypot(x[j] - x[j - 1], y[j] - y[j - 1])
-        turn = abs(yaw[j] - yaw[j - 1])
-        if step / dt_s > config.max_speed_m_s:
-            flag(j, 'speed')
-        if turn / dt_s > config.max_yaw_rate_rad_s:
-            flag(j, 'yaw_rate')
-        if wheel_odometry is not None:
-            k = int(np.searchsorted(t_ns, t_ns[j] - int(config.wheel_window_s * 1e9)))
-            k = min(k, j - 1)
-            if _disagrees(wheel_odometry, t_ns[k], t_ns[j], (x[k], y[k], yaw[k]),
-                          (x[j], y[j], yaw[j]), config):
-                flag(j, 'wheel_disagreement')
-    for i, reason in enumerate(reasons):
-        if reason:
-            status[pose_frame[i]] = reason
-    valid = np.array([not reason for reason in reasons])
-    return PoseTrack(t_ns, x, y, yaw, valid)
-
-
-def _body_increment(a: tuple, b: tuple) -> tuple[float, float, float]:
-    """Return the increment from pose a to pose b in a's frame: (dx, dy, dyaw)."""
-    cos_a, sin_a = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return cos_a * dx + sin_a * dy, -sin_a * dx + cos_a * dy, b[2] - a[2]
-
-
-def _disagrees(wheel: PoseTrack, t0_ns: int, t1_ns: int, icp0: tuple, icp1: tuple,
-               config: IcpConfig) -> bool:
-    if len(wheel) < 2 or t0_ns < wheel.t_ns[0] or t1_ns > wheel.t_ns[-1]:
-        return False
-    w0, w1 = wheel.interpolate([t0_ns, t1_ns])
-    wdx, wdy, wdyaw = _body_increment(tuple(w0), tuple(w1))
-    idx, idy, idyaw = _body_increment(icp0, icp1)
-    wheel_step = math.hypot(wdx, wdy)
-    if math.hypot(idx - wdx, idy - wdy) > config.wheel_abs_m + config.wheel_rel * wheel_step:
-        return True
-    return abs(idyaw - wdyaw) > config.wheel_abs_rad + config.wheel_rel_yaw * abs(wdyaw)
+    registration = register_frames(source, config, on_frame=on_frame)
+    return guarded_truth(registration, extrinsic, config, limits, wheels=wheels, imu=imu)

@@ -12,20 +12,17 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import logging
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from skidkin_ros.adapters.bag_reader import check_overlap, open_recording
-from skidkin_ros.adapters.lidar_gt import bag_identity, IcpConfig, lidar_ground_truth
+from skidkin_ros.adapters.lidar_chunks import bag_ground_truth, ChunkOptions
+from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.table import read_table
 from skidkin_ros.core.drive import Drive, PoseTrack
-from skidkin_ros.core.kinematics.models import get_model
-from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import node_default
-from skidkin_ros.core.odometry.integrator import IntegratorLimits
-from skidkin_ros.core.odometry.odometer import predict_wheels
 from skidkin_ros.errors import DataError, RecordingError
 
 __all__ = ['SourceOptions', 'LoadedSource', 'load_source', 'load_sources', 'is_table',
@@ -56,7 +53,11 @@ def extrinsic_from_xyz_rpy(values: Sequence[float]) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SourceOptions:
-    """How to read a source: topics, joints, ground truth, extrinsic and the ICP settings."""
+    """How to read a source: topics, joints, ground truth, extrinsic and the ICP settings.
+
+    ``chunks``: how the lidar ground truth is cut and run (processes, a Dask cluster);
+    ``on_progress(frames done, frames total)`` follows its registration.
+    """
 
     wheel_topic: str | None = None
     left_topic: str | None = None
@@ -69,14 +70,14 @@ class SourceOptions:
     base_frame: str = 'base_link'
     extrinsic: np.ndarray | None = None
     cache_dir: Path | None = None
-    progress: bool = False
+    on_progress: Callable[[int, int], None] | None = None
     icp: IcpConfig = field(default_factory=IcpConfig)
+    chunks: ChunkOptions = field(default_factory=ChunkOptions)
     max_wheel_speed_rad_s: float = node_default('max_wheel_speed')
     pair_tolerance_s: float = node_default('pair_tolerance')
     max_wheel_acceleration: float = node_default('max_wheel_acceleration')
     max_dt_s: float = node_default('max_dt')
     min_overlap_s: float = 10.0
-    geometry: Geometry | None = None
 
 
 @dataclass
@@ -125,7 +126,7 @@ def _load_bag(path: Path, options: SourceOptions, need_truth: bool) -> LoadedSou
         truth = None
         truth_info: dict[str, Any] = {'ground_truth': 'none'}
         if need_truth and options.ground_truth == 'icp':
-            truth, truth_info = _icp_truth(rec, path, wheels, options)
+            truth, truth_info = _icp_truth(rec, path, wheels, imu, options)
         elif need_truth and options.ground_truth != 'none':
             truth = rec.read_pose_track(options.ground_truth)
             truth_info = {'ground_truth': f'pose topic {options.ground_truth}'}
@@ -139,7 +140,7 @@ def _load_bag(path: Path, options: SourceOptions, need_truth: bool) -> LoadedSou
                             truth_info)
 
 
-def _icp_truth(rec, path: Path, wheels, options: SourceOptions) -> tuple[PoseTrack, dict]:
+def _icp_truth(rec, path: Path, wheels, imu, options: SourceOptions) -> tuple[PoseTrack, dict]:
     lidar_topic = rec.select(['sensor_msgs/msg/PointCloud2'], options.lidar_topic, 'lidar')
     first = next(iter(rec.iter_lidar(lidar_topic)), None)
     if first is None:
@@ -152,24 +153,11 @@ def _icp_truth(rec, path: Path, wheels, options: SourceOptions) -> tuple[PoseTra
                 f'{path}: no /tf_static transform from {options.base_frame} to the lidar frame '
                 f'{first.frame_id!r}; give it with --extrinsic X Y Z ROLL PITCH YAW (m, rad). '
                 'Without it the lidar offset would be confounded with the model (x_v).')
-    counts = {s.topic: s.count for s in rec.summary(time_ranges=False)}
-    wheel_track = None
-    if options.geometry is not None:
-        ideal = get_model('ideal_dd').bind({}, options.geometry)
-        pred = predict_wheels(wheels, ideal, IntegratorLimits(
-            max_dt_s=1.0, max_wheel_speed_rad_s=options.max_wheel_speed_rad_s))
-        wheel_track = PoseTrack(pred.t_ns, pred.poses[:, 0], pred.poses[:, 1], pred.poses[:, 2])
-    result = lidar_ground_truth(
-        lambda: rec.iter_lidar(lidar_topic), extrinsic, options.icp,
-        wheel_odometry=wheel_track, progress=options.progress,
-        total=counts.get(lidar_topic), cache_dir=options.cache_dir,
-        source_id={'bag': bag_identity(path), 'topic': lidar_topic})
+    result = bag_ground_truth(rec, path, lidar_topic, extrinsic, options.icp, options.chunks,
+                              wheels=wheels, imu=imu, cache_dir=options.cache_dir,
+                              on_progress=options.on_progress)
     rec.notes.extend(result.notes)
-    flagged = {k: v for k, v in result.counts.items() if k not in ('ok',) and v}
-    if flagged:
-        rec.notes.append('lidar frames: ' + ', '.join(f'{v} {k}' for k, v in
-                                                      sorted(flagged.items())))
     info = {'ground_truth': f'kiss-icp on {lidar_topic}', 'frames': dict(result.counts),
-            'from_cache': bool(result.from_cache)}
+            'from_cache': bool(result.from_cache), 'excluded': result.excluded}
     _LOG.debug('ICP frame counts: %s', result.counts)
     return result.track, info

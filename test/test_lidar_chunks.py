@@ -1,0 +1,154 @@
+"""The ground truth of a bag in chunks, joined and cached, locally and on a Dask cluster.
+
+Identical for any number of processes, cached per chunk (an interrupted run resumes), failures
+named, and the same tasks on a Dask local cluster.
+
+Real kiss-icp on real bags written by rosbags; recordings are short and chunks of 5 s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+
+from skidkin_ros.adapters.bag_reader import open_recording
+from skidkin_ros.adapters.lidar_chunks import (bag_ground_truth, bag_identity, ChunkOptions,
+                                               join_chunks, plan_chunks, run_chunks)
+from skidkin_ros.adapters.lidar_gt import IcpConfig, lidar_ground_truth
+from skidkin_ros.adapters.sim_writer import write_bag
+from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.sim import LidarConfig, SimConfig, simulate
+from skidkin_ros.sim.accuracy import increment_errors
+
+LIDAR = LidarConfig(azimuth_resolution_deg=1.0, mount_xyz_m=(0.3, 0.1, 0.5), mount_yaw_rad=0.4)
+ICP = IcpConfig(voxel_size_m=0.5, max_range_m=50.0)
+CHUNKS = ChunkOptions(chunk_s=5.0, overlap_s=2.0)
+
+
+@pytest.fixture(scope='module')
+def drive(tmp_path_factory):
+    sim = simulate(SimConfig(duration_s=16.0, seed=8, lidar=LIDAR, internal_rate_hz=200.0))
+    bag, _ = write_bag(sim, tmp_path_factory.mktemp('chunks') / 'drive')
+    return sim, bag
+
+
+def ground_truth(bag, options=CHUNKS, cache_dir=None, **kwargs):
+    with open_recording(bag) as rec:
+        return bag_ground_truth(rec, bag, '/points', LIDAR.extrinsic(), ICP, options,
+                                cache_dir=cache_dir, **kwargs)
+
+
+def test_chunks_are_planned_with_a_warm_up_and_an_open_end(drive):
+    _, bag = drive
+    tasks = plan_chunks(str(bag), '/points', 10**9, 10**8, 159, 10**9, ICP, CHUNKS)
+    assert [t.seam_ns for t in tasks] == [None, 6 * 10**9, 11 * 10**9]
+    assert [t.start_ns for t in tasks] == [None, 4 * 10**9, 9 * 10**9]
+    assert [t.stop_ns for t in tasks] == [6 * 10**9, 11 * 10**9, None]
+
+
+def test_joined_chunks_equal_for_one_and_two_processes_and_as_accurate_as_one_run(drive):
+    sim, bag = drive
+    one = ground_truth(bag, dataclasses.replace(CHUNKS, jobs=1))
+    two = ground_truth(bag, dataclasses.replace(CHUNKS, jobs=2))
+    assert np.array_equal(one.track.t_ns, two.track.t_ns)
+    assert np.array_equal(one.track.poses, two.track.poses)  # bit for bit
+    assert np.array_equal(one.track.valid, two.track.valid)
+    assert any('3 chunks' in note for note in one.notes)
+    # every frame has one pose: the warm-up frames are not doubled
+    with open_recording(bag) as rec:
+        whole = lidar_ground_truth(rec.iter_lidar('/points'), LIDAR.extrinsic(), ICP)
+    assert np.array_equal(one.track.t_ns, whole.track.t_ns)
+    # the seams were tested and passed: increments across them are as good as in one run
+    assert one.track.valid.all()
+    chunked = increment_errors(one.track, sim.pose_at, horizon_m=2.0)
+    single = increment_errors(whole.track, sim.pose_at, horizon_m=2.0)
+    assert len(chunked) == len(single)
+    assert chunked.median_position_m < 1.5 * single.median_position_m + 0.01
+    p90 = np.percentile(chunked.position_m, 90), np.percentile(single.position_m, 90)
+    assert p90[0] < 1.5 * p90[1] + 0.02
+
+
+def test_the_cache_keeps_each_chunk_so_a_run_resumes_and_flags_are_recomputed(drive, tmp_path):
+    _, bag = drive
+    cache = tmp_path / 'cache'
+    first = ground_truth(bag, cache_dir=cache)
+    assert not first.from_cache
+    files = sorted(cache.glob('lidar_chunk_*.npz'))
+    assert len(files) == 3
+    files[1].unlink()  # as if the run had been interrupted before chunk 1 finished
+    resumed = ground_truth(bag, cache_dir=cache)
+    assert not resumed.from_cache
+    assert any('2 of 3 chunk(s) read from the cache' in note for note in resumed.notes)
+    assert np.array_equal(resumed.track.poses, first.track.poses)
+    # only ICP is cached: new wheels give new flags from the same cached registration
+    sim, _ = drive
+    wheels = sim.wheels
+    frozen = WheelSamples(wheels.t_ns, np.where((wheels.t_ns - wheels.t_ns[0]) > 8e9, 0.0,
+                                                wheels.omega_l),
+                          np.where((wheels.t_ns - wheels.t_ns[0]) > 8e9, 0.0, wheels.omega_r))
+    cached = ground_truth(bag, cache_dir=cache, wheels=frozen)
+    assert cached.from_cache
+    assert cached.counts.get('wheel_gross', 0) > 0
+    clean = ground_truth(bag, cache_dir=cache, wheels=wheels)
+    assert clean.from_cache and clean.track.valid.all()
+    # another ICP setting is another key; a corrupt file is recomputed, never fatal
+    assert len(list(cache.glob('*.npz'))) == 3
+    for path in cache.glob('*.npz'):
+        path.write_bytes(b'not a cache')
+    again = ground_truth(bag, cache_dir=cache)
+    assert not again.from_cache
+    assert np.array_equal(again.track.poses, first.track.poses)
+
+
+def test_a_failed_chunk_is_named_and_the_others_are_kept(drive, caplog):
+    _, bag = drive
+    with open_recording(bag) as rec:
+        first = next(iter(rec.iter_lidar('/points')))
+    tasks = plan_chunks(str(bag), '/points', first.receive_ns, 10**8, 159, first.end_ns, ICP,
+                        CHUNKS)
+    broken = dataclasses.replace(tasks[1], bag=str(bag) + '_missing')
+    with caplog.at_level(logging.WARNING):
+        outcomes = run_chunks([tasks[0], broken, tasks[2]], CHUNKS)
+    assert [o.error is None for o in outcomes] == [True, False, True]
+    joined = join_chunks(outcomes, CHUNKS)
+    assert any('chunk 1' in note and 'failed' in note and 'RecordingError' in note
+               for note in joined.notes)
+    assert len(joined.cut_frames) == 1  # chunk 2 starts behind a cut seam
+    assert joined.registration.end_ns.size == len(outcomes[0].registration) + sum(
+        np.count_nonzero(o.registration.receive_ns >= o.task.seam_ns) for o in outcomes[2:])
+    truth = ground_truth(bag)  # the full run, for comparison of the kept chunks
+    kept = np.isin(truth.track.t_ns, joined.registration.pose_t_ns)
+    assert kept.sum() >= len(truth.track) - 60
+
+
+def test_bag_identity_changes_with_the_bag(tmp_path):
+    sim = simulate(SimConfig(duration_s=2.0, seed=6, lidar=LidarConfig(azimuth_resolution_deg=8)))
+    bag, _ = write_bag(sim, tmp_path / 'a')
+    first = bag_identity(bag)
+    assert bag_identity(bag) == first
+    storage = next(p for p in bag.iterdir() if p.suffix == '.db3')
+    with open(storage, 'ab') as handle:
+        handle.write(b'\0')
+    assert bag_identity(bag) != first
+
+
+def test_the_same_chunks_run_on_a_dask_local_cluster(drive):
+    distributed = pytest.importorskip('distributed')
+    _, bag = drive
+    local = ground_truth(bag)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        remote = ground_truth(bag, dataclasses.replace(CHUNKS, cluster=cluster.scheduler_address))
+    assert np.array_equal(remote.track.poses, local.track.poses)
+    assert np.array_equal(remote.track.valid, local.track.valid)
+
+
+def test_an_unreachable_cluster_is_a_clear_error(drive):
+    pytest.importorskip('distributed')
+    from skidkin_ros.errors import DataError
+    _, bag = drive
+    with pytest.raises(DataError, match='Dask scheduler'):
+        ground_truth(bag, dataclasses.replace(CHUNKS, cluster='tcp://127.0.0.1:9'))
