@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     if args.wheel_radius is None or args.track_width is None:
         say(f'note: using wheel_radius {geometry.wheel_radius:g} m and track_width '
             f'{geometry.track_width:g} m (pass --wheel-radius/--track-width for your robot)')
-    src_opts = source_options(args, geometry)
+    src_opts = source_options(args)
     train = load_sources(args.train, src_opts)
     evaluate = load_sources(args.eval, src_opts) if args.eval else []
     print_notes(train + evaluate)

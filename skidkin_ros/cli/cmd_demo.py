@@ -23,6 +23,7 @@ from skidkin_ros.adapters.sources import load_source, SourceOptions
 from skidkin_ros.atomic import check_writable_dir
 from skidkin_ros.cli.common import (calibration_provenance, default_cache_dir,
                                     input_parameters, print_calibration, say)
+from skidkin_ros.cli.progress import Progress
 from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_pose_errors
 from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
                                                    result_to_parameters)
@@ -91,7 +92,8 @@ def pipeline(args: argparse.Namespace) -> dict:
 
     say('[2/4] calibrating with kiss-icp ground truth (skidkin calibrate)')
     cache = None if args.no_cache else default_cache_dir()
-    opts = SourceOptions(geometry=geometry, cache_dir=cache, progress=args.progress)
+    opts = SourceOptions(cache_dir=cache,
+                         on_progress=Progress('kiss-icp', 'frames') if args.progress else None)
     train_src = load_source(train_bag, opts)
     eval_src = load_source(eval_bag, opts)
     for src in (train_src, eval_src):

@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     base = config.augmented_base if config.model == 'augmented' else config.model
     if args.base:
         base = args.base
-    src_opts = source_options(args, config.geometry)
+    src_opts = source_options(args)
     train = load_sources(args.train, src_opts)
     evaluate = load_sources(args.eval, src_opts) if args.eval else []
     print_notes(train + evaluate)
@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
         candidates=tuple(args.candidates) if args.candidates else DiagnosisOptions().candidates,
         holdout_every=2 if args.split_by else 3, holdout_key=args.split_by, trim=args.trim,
         h_t=args.h_t, h_e=args.h_e)
-    bars = RoundBars() if src_opts.progress else None
+    bars = None if args.no_progress else RoundBars()
     try:
         result = diagnose([d for s in train for d in s.drives],
                           [d for s in evaluate for d in s.drives] or None, config.geometry,

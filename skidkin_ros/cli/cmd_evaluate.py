@@ -23,7 +23,7 @@ __all__ = ['add_parser']
 def run(args: argparse.Namespace) -> int:
     check_report_dir(args.report, args.force)
     config = OdometryConfig.from_file(args.params)
-    sources = load_sources(args.sources, source_options(args, config.geometry))
+    sources = load_sources(args.sources, source_options(args))
     print_notes(sources)
     drives = [d for s in sources for d in s.drives]
     segments = cut_segments(drives, SegmentOptions(horizon_m=args.h_e))

@@ -10,8 +10,8 @@ import numpy as np
 
 from skidkin_ros.adapters.sources import load_source
 from skidkin_ros.atomic import atomic_write_text, check_writable
-from skidkin_ros.cli.common import (add_geometry_args, add_source_args, geometry_from_args,
-                                    print_notes, say, source_options)
+from skidkin_ros.cli.common import (add_geometry_args, add_source_args, print_notes, say,
+                                    source_options)
 from skidkin_ros.core.drive import PoseTrack
 
 __all__ = ['add_parser', 'track_csv', 'track_tum']
@@ -39,8 +39,10 @@ def run(args: argparse.Namespace) -> int:
     check_writable(args.out, args.force)
     if args.tum:
         check_writable(args.tum, args.force)
-    geometry = geometry_from_args(args)
-    loaded = load_source(args.bag, source_options(args, geometry), need_truth=True)
+    if args.wheel_radius is not None or args.track_width is not None:
+        say("note: --wheel-radius/--track-width are not used: the ground truth's wheel check "
+            'scales the wheels against ICP itself and needs no geometry')
+    loaded = load_source(args.bag, source_options(args), need_truth=True)
     print_notes([loaded])
     track = loaded.drives[0].truth
     atomic_write_text(args.out, track_csv(track), force=args.force)
@@ -56,9 +58,17 @@ def run(args: argparse.Namespace) -> int:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         'groundtruth', help='lidar ground truth of a bag with kiss-icp (CSV, TUM for evo)',
-        description='Run kiss-icp over the lidar of a rosbag2 (deskewed with the per-point '
-        'times), convert the poses to base_link with the extrinsic, and write the planar '
-        'trajectory. The result is cached: a later calibrate of the same bag skips ICP.')
+        description='Run kiss-icp over the lidar of a rosbag2 (deskewed with the per-point\n'
+        'times), convert the poses to base_link with the extrinsic, and write the planar\n'
+        'trajectory. The recording is registered in independent chunks on --jobs processes\n'
+        '(or on a Dask cluster with --cluster), each chunk cached as it finishes: a later\n'
+        'calibrate of the same bag, or an interrupted run, skips what is done. Poses are\n'
+        "judged by the registration's own quality, the IMU's yaw rate and, for gross\n"
+        'errors only, the wheels; no robot geometry is needed.',
+        epilog='examples:\n  skidkin groundtruth drive_bag --out traj.csv --tum traj_tum.txt\n'
+        '  skidkin groundtruth drive_bag --out traj.csv --jobs 4 --chunk-s 60\n'
+        '  skidkin groundtruth drive_bag --out traj.csv --cluster tcp://10.0.0.5:8786',
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('bag', type=Path, help='rosbag2 folder or .db3/.mcap file')
     parser.add_argument('--out', type=Path, required=True, help='trajectory CSV to write')
     parser.add_argument('--tum', type=Path, help='also write the TUM format (for evo)')

@@ -12,12 +12,15 @@ from pathlib import Path
 import sys
 from typing import Any, Iterable, Sequence
 
+from skidkin_ros.adapters.lidar_chunks import ChunkOptions
 from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, LoadedSource, SourceOptions
 from skidkin_ros.atomic import check_writable_dir
+from skidkin_ros.cli.progress import Progress
 from skidkin_ros.cli.tables import error_table, parameter_lines
 from skidkin_ros.core.calibration.pipeline import CalibrationResult
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.parallel import usable_cpus
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
            'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'RoundBars',
@@ -49,23 +52,25 @@ def jobs_arg(text: str) -> int:
 
 
 class RoundBars:
-    """Progress bars (tqdm, on stderr) for a diagnosis: one per batch of fits of a round.
+    """Progress of a diagnosis (cli.progress.Progress): one per batch of fits of a round.
 
-    Called as ``bars(round, done, total)``; a new bar starts when the round changes or the count
-    starts over (the sparse fallback's fits, after the named extensions').
+    Called as ``bars(round, done, total)``; a new one starts when the round changes or the count
+    starts over (the sparse fallback's fits, after the named extensions'). A bar on a terminal,
+    otherwise a line per 10 % of the batch.
     """
 
     def __init__(self) -> None:
-        self._bar = None
+        self._bar: Progress | None = None
         self._key: tuple[int, int] | None = None
+        self._done = 0
 
     def __call__(self, round_no: int, done: int, total: int) -> None:
-        if self._bar is None or self._key != (round_no, total) or done < self._bar.n:
-            from tqdm import tqdm
+        if self._bar is None or self._key != (round_no, total) or done < self._done:
             self.close()
-            self._bar = tqdm(total=total, desc=f'diagnose, round {round_no}', unit='fit')
+            self._bar = Progress(f'diagnose, round {round_no}', 'fits')
             self._key = (round_no, total)
-        self._bar.update(done - self._bar.n)
+        self._done = done
+        self._bar(done, total)
 
     def close(self) -> None:
         """Close the bar in use, if any."""
@@ -108,14 +113,32 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
     group.add_argument('--extrinsic', nargs=6, type=float,
                        metavar=('X', 'Y', 'Z', 'ROLL', 'PITCH', 'YAW'),
                        help='lidar pose in the base frame (m, rad) when /tf_static lacks it')
-    group.add_argument('--max-range', type=float, default=60.0, metavar='M',
-                       help='kiss-icp maximum range (m)')
+    icp, chunks = IcpConfig(), ChunkOptions()
+    group.add_argument('--max-range', type=float, default=icp.max_range_m, metavar='M',
+                       help=f'kiss-icp maximum range (m, default {icp.max_range_m:g})')
     group.add_argument('--voxel-size', type=float, metavar='M',
                        help='kiss-icp voxel size (m, default max-range/100)')
+    group.add_argument('--stride', type=jobs_arg, default=icp.stride, metavar='K',
+                       help=f'register one lidar scan in K (default {icp.stride})')
+    group.add_argument('--chunk-s', type=float, default=chunks.chunk_s, metavar='S',
+                       help='register the lidar in independent chunks of S seconds (default '
+                       f'{chunks.chunk_s:g})')
+    group.add_argument('--chunk-overlap', type=float, default=chunks.overlap_s, metavar='S',
+                       help='seconds each chunk starts before its seam, to warm up and test '
+                       f'the seam (default {chunks.overlap_s:g})')
+    try:
+        group.add_argument('--jobs', type=jobs_arg, default=usable_cpus(), metavar='N',
+                           help='processes for the lidar chunks (default: every usable CPU)')
+    except argparse.ArgumentError:
+        pass  # the command has its own --jobs (diagnose): the same number serves both
+    group.add_argument('--cluster', metavar='ADDRESS',
+                       help='run the lidar chunks on this Dask scheduler (tcp://host:8786) '
+                       'instead of local processes')
     group.add_argument('--cache-dir', type=Path, default=None,
                        help=f'ICP trajectory cache (default {default_cache_dir()})')
     group.add_argument('--no-cache', action='store_true', help='always run ICP')
-    group.add_argument('--no-progress', action='store_true', help='no progress bar')
+    group.add_argument('--no-progress', action='store_true',
+                       help='no progress (bar on a terminal, else a line per 10 %%)')
 
 
 def geometry_from_args(args: argparse.Namespace, fallback: Geometry | None = None) -> Geometry:
@@ -125,9 +148,14 @@ def geometry_from_args(args: argparse.Namespace, fallback: Geometry | None = Non
                     args.track_width if args.track_width is not None else fallback.track_width)
 
 
-def source_options(args: argparse.Namespace, geometry: Geometry | None = None) -> SourceOptions:
+def source_options(args: argparse.Namespace) -> SourceOptions:
     get = vars(args).get
-    icp = IcpConfig(max_range_m=get('max_range') or 60.0, voxel_size_m=get('voxel_size'))
+    defaults, chunk_defaults = IcpConfig(), ChunkOptions()
+    icp = IcpConfig(max_range_m=get('max_range') or defaults.max_range_m,
+                    voxel_size_m=get('voxel_size'), stride=get('stride') or defaults.stride)
+    chunks = ChunkOptions(chunk_s=get('chunk_s') or chunk_defaults.chunk_s,
+                          overlap_s=get('chunk_overlap') or chunk_defaults.overlap_s,
+                          jobs=get('jobs') or 1, cluster=get('cluster'))
     cache = None if get('no_cache') else (get('cache_dir') or default_cache_dir())
     extrinsic = get('extrinsic')
     return SourceOptions(
@@ -138,8 +166,8 @@ def source_options(args: argparse.Namespace, geometry: Geometry | None = None) -
         lidar_topic=get('lidar_topic'), imu_topic=get('imu_topic'),
         ground_truth=get('ground_truth') or 'icp', base_frame=get('base_frame') or 'base_link',
         extrinsic=extrinsic_from_xyz_rpy(extrinsic) if extrinsic else None,
-        cache_dir=cache, progress=not get('no_progress') and sys.stderr.isatty(), icp=icp,
-        geometry=geometry)
+        cache_dir=cache, icp=icp, chunks=chunks,
+        on_progress=None if get('no_progress') else Progress('kiss-icp', 'frames'))
 
 
 def check_report_dir(path: Path | None, force: bool, what: str = '--report') -> None:
