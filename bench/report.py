@@ -11,6 +11,9 @@ from skidkin_ros.atomic import atomic_write_text
 LATENCY_GOAL = 1.2
 RATE_GOAL_HZ = 1000.0
 CALIB_2KM_GOAL_S = 5.0
+GT_RTF_GOAL = 4.0
+GT_SPEEDUP_GOAL = 2.0
+GT_DRIVE_GOAL_S = 180.0
 SMOKE_NOTE = 'smoke run: tiny sizes, numbers not meaningful'
 
 
@@ -124,24 +127,86 @@ def _calib_section(calib: Mapping[str, Any]) -> list[str]:
 
 
 def _lidar_section(lidar: Mapping[str, Any]) -> list[str]:
-    lines = ['## Lidar pipeline (simulated 16-ring lidar at 10 Hz, '
-             f'{lidar["azimuth_resolution_deg"]:g} deg azimuth)', '',
+    lines = ['## Lidar pipeline (simulated 16-ring lidar at 10 Hz)', '',
              'Read = wheels + extrinsic + all clouds from the bag; ICP = kiss-icp on frames '
              'already in memory; fit = five models on segments of the ICP truth. Real-time '
              'factor = recording duration / (read + ICP + fit). Peak memory: a fresh '
              'interpreter running the streaming pipeline of the CLI (load_source with ICP).', '',
-             '| frames | points/frame | bag MB | read ms/frame | ICP ms/frame | fit s | '
+             '| scene | frames | points/frame | bag MB | read ms/frame | ICP ms/frame | fit s | '
              'real-time factor | ICP-only RTF | peak MB | MB above imports |',
-             '|---|---|---|---|---|---|---|---|---|---|']
+             '|---|---|---|---|---|---|---|---|---|---|---|']
     for r in lidar['rows']:
         mem = r['memory']
         fit = _num(r['fit_s'], 2) + (' (too few segments)' if r['fit_error'] else '')
         lines.append(
-            f'| {r["frames"]} | {r["points_per_frame"]:.0f} | {r["bag_mb"]:.1f} | '
+            f'| {r.get("scene", "courtyard")} | {r["frames"]} | {r["points_per_frame"]:.0f} | '
+            f'{r["bag_mb"]:.1f} | '
             f'{r["read_ms_per_frame"]:.2f} | {r["icp_ms_per_frame"]:.1f} | {fit} | '
             f'{r["real_time_factor"]:.1f} | {r["icp_real_time_factor"]:.1f} | '
             f'{_num(mem.get("peak_mb"), 0)} | {_num(mem.get("pipeline_mb"), 0)} |')
     return lines + ['']
+
+
+def _cm(value: Any) -> str:
+    return _num(100.0 * value, 2) if isinstance(value, (int, float)) else 'n/a'
+
+
+def _mrad(value: Any) -> str:
+    return _num(1e3 * value, 2) if isinstance(value, (int, float)) else 'n/a'
+
+
+def _gt_section(gt: Mapping[str, Any]) -> list[str]:
+    import icp_settings
+
+    lines = ['## Ground truth on the outdoor scene (issue 16)', '']
+    if not gt.get('available'):
+        return lines + [f'ground truth: {gt.get("reason", "not run")}', '']
+    side = gt['side_by_side']
+    lines += [f'Simulated outdoor drive of {gt["outdoor_s"]:g} s: an open field with 400 trees, '
+              'a flat ground, a VLP-16-like lidar (16 rings, 360 columns, 10 Hz, '
+              f'{gt["points_per_frame"]:.0f} points per scan, per-point times, base -> lidar on '
+              "/tf_static). `kiss_icp_pipeline --topic /points BAG` (kiss-icp's own tool, its "
+              'defaults, every core) and `skidkin groundtruth BAG --no-cache --jobs '
+              f'{gt["jobs"]}` run as subprocesses in the order kiss, skidkin, skidkin, kiss. '
+              'Errors: median over every 1 s and every 2 m increment against the '
+              "simulator's truth.", '']
+    if side.get('error'):
+        lines += [f'side by side failed: {side["error"]}', '']
+    else:
+        lines += ['| tool | wall s (each run) | real-time factor | 1 s: cm | 1 s: mrad | '
+                  '2 m: cm | 2 m: mrad |', '|---|---|---|---|---|---|---|']
+        for who, label, rtf in (('kiss', 'kiss_icp_pipeline', side['kiss_rtf']),
+                                ('skidkin', 'skidkin groundtruth', side['skidkin_rtf'])):
+            err = side['errors'][who]
+            seconds = ', '.join(f'{v:.1f}' for v in side[f'{who}_s'])
+            lines.append(f'| {label} | {seconds} | {rtf:.1f} | {_cm(err["pos_1s_m"])} | '
+                         f'{_mrad(err["yaw_1s_rad"])} | {_cm(err["pos_2m_m"])} | '
+                         f'{_mrad(err["yaw_2m_rad"])} |')
+        lines += ['', f'skidkin groundtruth is **{side["speedup"]:.2f}x** faster than '
+                  f'kiss_icp_pipeline (goal >= {GT_SPEEDUP_GOAL:g}) at a real-time factor of '
+                  f'**{side["skidkin_rtf"]:.1f}** (goal >= {GT_RTF_GOAL:g}); '
+                  f'{100 * side["errors"]["skidkin"]["valid_share"]:.1f} % of its poses kept '
+                  'by the guard.', '']
+    why = gt['why']
+    lines += [f'Why it was slower: each difference alone, on the first {why["frames"]} scans '
+              'in memory, kiss-icp on one thread (CPU ms per scan):', '',
+              '| what | CPU ms/scan | 1 s: cm | 1 s: mrad | 2 m: cm | 2 m: mrad |',
+              '|---|---|---|---|---|---|']
+    for r in why['rows']:
+        lines.append(f'| {r["what"]} | {r["cpu_ms"]:.1f} | {_cm(r.get("pos_1s_m"))} | '
+                     f'{_mrad(r.get("yaw_1s_rad"))} | {_cm(r.get("pos_2m_m"))} | '
+                     f'{_mrad(r.get("yaw_2m_rad"))} |')
+    calib = gt['calibrate']
+    state = ('parameters written' if calib['written']
+             else f'no parameters file: {calib["error"] or "see the exit code"}')
+    lines += ['', f'A {calib["duration_s"]:g} s outdoor drive from bag to parameters file '
+              f'(`skidkin calibrate BAG --no-cache --accept-invalid --jobs {gt["jobs"]}`): '
+              f'**{calib["seconds"]:.0f} s** (goal < {GT_DRIVE_GOAL_S:g} s for 600 s), '
+              f'exit code {calib["exit_code"]}, {state}.', '',
+              '### kiss-icp settings: speed and accuracy', '',
+              'One setting changed at a time from the defaults; kiss-icp on one thread; '
+              '`python bench/icp_settings.py` runs this table alone.', '']
+    return lines + icp_settings.markdown(gt['settings'])
 
 
 def _diag_section(diag: Mapping[str, Any]) -> list[str]:
@@ -174,6 +239,7 @@ def write_markdown(results: Mapping[str, Any], path: Path) -> None:
     lines += _node_section(results['node'])
     lines += _calib_section(results['calibration'])
     lines += _lidar_section(results['lidar'])
+    lines += _gt_section(results.get('groundtruth', {'available': False}))
     lines += _diag_section(results['diagnosis'])
     atomic_write_text(path, '\n'.join(lines), force=True)
 

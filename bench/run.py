@@ -5,12 +5,14 @@ Examples::
     python bench/run.py --out bench/results            # full run (make bench), a few minutes
     python bench/run.py --smoke --out /tmp/bench       # tiny sizes, seconds (CI, make bench-smoke)
     python bench/run.py --out /tmp/bench --only node   # one part (node, calibration, lidar,
-                                                       # diagnosis); the others are left empty
+                                                       # groundtruth, diagnosis); the others are
+                                                       # left empty
 
 Parts: the odometry node against a bare relay (bench/node_bench.py), calibration time against
-distance (calib_bench.py), the lidar pipeline (lidar_bench.py) and the diagnosis
-(diag_bench.py). Absolute numbers depend on the machine and its load; ratios measured in the
-same run are what to compare.
+distance (calib_bench.py), the lidar pipeline (lidar_bench.py), the ground truth on the outdoor
+scene against kiss_icp_pipeline and the kiss-icp settings table (gt_bench.py, icp_settings.py),
+and the diagnosis (diag_bench.py). Absolute numbers depend on the machine and its load; ratios
+measured in the same run are what to compare.
 """
 
 from __future__ import annotations
@@ -31,13 +33,15 @@ from typing import Any, Mapping, Sequence
 
 import calib_bench
 import diag_bench
+import gt_bench
+import icp_settings
 import lidar_bench
 import node_bench
 import report
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.models import MODEL_NAMES
 
-PARTS = ('node', 'calibration', 'lidar', 'diagnosis')
+PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis')
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,10 @@ class Sizes:
     lidar_horizon_m: float
     diag_km: tuple[float, ...]
     diag_drive_s: float
+    gt_outdoor_s: float
+    gt_drive_s: float
+    gt_why_frames: int
+    icp_settings_s: float
 
 
 FULL = Sizes(
@@ -68,13 +76,15 @@ FULL = Sizes(
     calib_km=(0.5, 1.0, 2.0, 4.0), calib_drive_s=600.0, holdout_block_s=60.0,
     calib_n_starts=None,
     lidar_durations_s=(20.0, 40.0, 80.0), lidar_azimuth_deg=0.5, lidar_horizon_m=2.0,
-    diag_km=(0.05, 0.1, 0.2), diag_drive_s=60.0)
+    diag_km=(0.05, 0.1, 0.2), diag_drive_s=60.0,
+    gt_outdoor_s=300.0, gt_drive_s=600.0, gt_why_frames=300, icp_settings_s=60.0)
 SMOKE = Sizes(
     node_plan=((100.0, 0.5), (1000.0, 0.5)), node_ladder_hz=(), node_ladder_s=0.3, node_rounds=1,
     node_models=('full_linear',), node_augmented=False,
     calib_km=(0.02, 0.04), calib_drive_s=40.0, holdout_block_s=10.0, calib_n_starts=1,
     lidar_durations_s=(3.0, 5.0), lidar_azimuth_deg=4.0, lidar_horizon_m=0.5,
-    diag_km=(0.03,), diag_drive_s=40.0)
+    diag_km=(0.03,), diag_drive_s=40.0,
+    gt_outdoor_s=12.0, gt_drive_s=40.0, gt_why_frames=20, icp_settings_s=4.0)
 
 
 def machine_facts() -> dict[str, Any]:
@@ -186,6 +196,8 @@ def _empty(part: str) -> dict[str, Any]:
         return {'available': False, 'reason': 'not run (--only)', 'rows': []}
     if part == 'lidar':
         return {'rows': [], 'azimuth_resolution_deg': math.nan, 'horizon_m': math.nan}
+    if part == 'groundtruth':
+        return {'available': False, 'reason': 'not run (--only)'}
     return {'rows': [], 'per_km_ratio_largest_smallest': math.nan}
 
 
@@ -208,6 +220,15 @@ def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
         with tempfile.TemporaryDirectory(prefix='skidkin_bench_') as folder:
             results['lidar'] = lidar_bench.run(Path(folder), sizes.lidar_durations_s,
                                                sizes.lidar_azimuth_deg, sizes.lidar_horizon_m)
+    if 'groundtruth' in parts:
+        print('ground-truth benchmark (outdoor scene, kiss_icp_pipeline, settings)', flush=True)
+        with tempfile.TemporaryDirectory(prefix='skidkin_gt_') as folder:
+            gt = gt_bench.run(Path(folder), sizes.gt_outdoor_s, sizes.gt_drive_s,
+                              sizes.gt_why_frames, len(os.sched_getaffinity(0))
+                              if hasattr(os, 'sched_getaffinity') else os.cpu_count() or 1)
+        gt['settings'] = icp_settings.run(sizes.icp_settings_s)
+        gt['available'] = True
+        results['groundtruth'] = gt
     if 'diagnosis' in parts:
         print('diagnosis benchmark', flush=True)
         if sizes.diag_km:

@@ -61,12 +61,27 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
 
     # Lidar: every frame was read and registered, the memory probe reported a peak.
     lidar = results['lidar']['rows']
-    assert [row['frames'] for row in lidar] == [30, 50]
+    assert [row['frames'] for row in lidar] == [30, 50, 50]  # the last on the outdoor scene
+    assert lidar[-1]['scene'].startswith('outdoor')
     for row in lidar:
         assert row['icp_ok_frames'] >= 0.9 * row['frames']
         for key in ('read_ms_per_frame', 'icp_ms_per_frame', 'real_time_factor'):
             assert _finite(row[key]) and row[key] > 0, key
         assert _finite(row['memory'].get('peak_mb')), row['memory']
+    # Ground truth: kiss_icp_pipeline and skidkin groundtruth both ran on the outdoor bag and
+    # were timed and scored; the why table, the 40 s calibration and the settings table ran.
+    gt = results['groundtruth']
+    side = gt['side_by_side']
+    assert side.get('error') is None, side.get('error')
+    assert len(side['kiss_s']) == len(side['skidkin_s']) == 2
+    assert _finite(side['speedup']) and _finite(side['skidkin_rtf'])
+    for who in ('kiss', 'skidkin'):
+        assert _finite(side['errors'][who]['pos_1s_m']), who
+    assert {row['what'] for row in gt['why']['rows']} >= {
+        'guard (flags from ICP quality, IMU, wheels)', "bag reading, kiss-icp's rosbag loader"}
+    assert gt['calibrate']['written'], gt['calibrate']
+    assert len(gt['settings']['scenes']['forest']['rows']) >= 10
+
     # Diagnosis: timed on one process and on every CPU, with the same result both ways.
     diag = results['diagnosis']
     assert diag['available'] is True, diag.get('reason')
@@ -80,7 +95,8 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
     assert 'python bench/run.py --smoke' in text
     for needle in ('| bare rclpy relay |', '| odom_node full_linear |',
                    '| odom_node roc | not run in the smoke run', '## Calibration',
-                   '## Lidar pipeline', '| km | drives | 1 process s |'):
+                   '## Lidar pipeline', '| km | drives | 1 process s |',
+                   '## Ground truth on the outdoor scene', '### kiss-icp settings'):
         assert needle in text, needle
     assert (out / 'cost_vs_size.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
 
