@@ -18,6 +18,7 @@ measured in the same run are what to compare.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from dataclasses import dataclass
 import datetime
 import json
@@ -202,9 +203,9 @@ def _empty(part: str) -> dict[str, Any]:
 
 
 def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
-            command: str) -> dict[str, Any]:
+            command: str, overrides: Mapping[str, float] | None = None) -> dict[str, Any]:
     """Run the requested parts and write results.json, results.md and cost_vs_size.png."""
-    sizes = SMOKE if smoke else FULL
+    sizes = dataclasses.replace(SMOKE if smoke else FULL, **dict(overrides or {}))
     tic = time.perf_counter()
     results: dict[str, Any] = {'command': command, 'smoke': smoke, 'machine': machine_facts()}
     results.update({part: _empty(part) for part in PARTS})
@@ -261,11 +262,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--domain-id', type=int, default=None,
                         help='ROS domain of the node benchmark (default: from the process id, '
                         'away from domain 0)')
+    parser.add_argument('--outdoor-s', type=float, metavar='S',
+                        help='ground truth: seconds of the outdoor drive run side by side with '
+                        'kiss_icp_pipeline (full run: 300)')
+    parser.add_argument('--drive-s', type=float, metavar='S',
+                        help='ground truth: seconds of the drive calibrated from the bag (full '
+                        'run: 600)')
+    parser.add_argument('--settings-s', type=float, metavar='S',
+                        help='seconds per scene of the kiss-icp settings table (full run: 60)')
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     domain_id = args.domain_id if args.domain_id is not None else 40 + os.getpid() % 60
     command = 'python bench/run.py ' + ' '.join(sys.argv[1:] if argv is None else argv)
-    results = run_all(args.out, args.smoke, args.only, domain_id, command.strip())
+    overrides = {name: value for name, value in (('gt_outdoor_s', args.outdoor_s),
+                                                 ('gt_drive_s', args.drive_s),
+                                                 ('icp_settings_s', args.settings_s))
+                 if value is not None}
+    results = run_all(args.out, args.smoke, args.only, domain_id, command.strip(), overrides)
     print(f'wrote {args.out / "results.md"} in {results["elapsed_s"]:.0f} s')
     return 0
 
