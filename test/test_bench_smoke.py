@@ -22,7 +22,7 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
     out = tmp_path / 'results'
     proc = subprocess.run([sys.executable, str(ROOT / 'bench' / 'run.py'), '--smoke',
                            '--out', str(out)], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300)
+                          timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
     results = json.loads((out / 'results.json').read_text())
     assert results['smoke'] is True
