@@ -54,7 +54,7 @@ def write_outdoor(folder: Path, duration_s: float, seed: int) -> tuple[Path, Any
     from skidkin_ros.sim import simulate
 
     sim = simulate(outdoor_config(duration_s, seed))
-    bag, _ = write_bag(sim, folder / f'outdoor_{int(duration_s)}s')
+    bag, _ = write_bag(sim, folder / f'outdoor_{int(duration_s)}s_seed{seed}')
     return bag, sim
 
 
