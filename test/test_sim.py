@@ -17,8 +17,8 @@ from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim import (EFFECT_NAMES, EFFECTS, LidarConfig, make_effect, random_effect,
                              SimConfig, simulate)
 from skidkin_ros.sim.robot import COMMAND_KINDS
-from skidkin_ros.sim.scene import (Box, Cylinder, default_scene, Field, outdoor_scene, Room,
-                                  Scene)
+from skidkin_ros.sim.scene import (Box, Cylinder, default_scene, Field, outdoor_scene,
+                                   Room, Scene)
 
 # A scripted drive through the interesting parts of the input space (rad/s): forward, backward,
 # an arc where one side turns twice the other, a spin.
