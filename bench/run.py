@@ -85,7 +85,7 @@ SMOKE = Sizes(
     calib_km=(0.02, 0.04), calib_drive_s=40.0, holdout_block_s=10.0, calib_n_starts=1,
     lidar_durations_s=(3.0, 5.0), lidar_azimuth_deg=4.0, lidar_horizon_m=0.5,
     diag_km=(0.03,), diag_drive_s=40.0,
-    gt_outdoor_s=12.0, gt_drive_s=40.0, gt_why_frames=20, icp_settings_s=4.0)
+    gt_outdoor_s=12.0, gt_drive_s=80.0, gt_why_frames=20, icp_settings_s=4.0)
 
 
 def machine_facts() -> dict[str, Any]:
