@@ -153,6 +153,7 @@ def test_demo_pipeline_sized_down(tmp_path):
     for name in ('alpha_l', 'alpha_r', 'y_l', 'y_r'):
         assert icp[name] == pytest.approx(truth[name], abs=0.05), name
     assert summary['node_vs_predict'] < 1e-9
+    assert summary['node_vs_predict_covariance'] == 0.0  # one code path: bit for bit
     node_t, _ = summary['node_eps']
     ideal_t, _ = summary['ideal_eps']
     assert np.median(node_t) < 0.25 * np.median(ideal_t)

@@ -137,8 +137,9 @@ def pipeline(args: argparse.Namespace) -> dict:
     index = {int(t): i for i, t in enumerate(offline.t_ns)}
     rows = np.array([index[int(t)] for t in replay.t_ns])
     diff = np.abs(replay.poses - offline.poses[rows]).max()
+    cov_diff = np.abs(replay.pose_cov - offline.pose_covariances[rows]).max()
     say(f'      node published {len(replay)} odometry messages; max |node - skidkin predict| '
-        f'= {diff:.2e} (m, rad)')
+        f'= {diff:.2e} (m, rad), pose covariance {cov_diff:.2e}')
     truth = eval_sim.truth
     say(_stats_line(f'node ({config.model}) vs truth', *relative_pose_errors(
         replay.t_ns, replay.poses, truth)))
@@ -150,6 +151,7 @@ def pipeline(args: argparse.Namespace) -> dict:
             'fitted_icp': dict(result.fits[train_cfg.true_model].values),
             'fitted_exact': dict(exact.fits[train_cfg.true_model].values),
             'eval_icp': ev_icp, 'eval_exact': ev_exact, 'node_vs_predict': float(diff),
+            'node_vs_predict_covariance': float(cov_diff),
             'node_eps': relative_pose_errors(replay.t_ns, replay.poses, truth),
             'ideal_eps': relative_pose_errors(ideal.t_ns, ideal.poses, truth)}
 

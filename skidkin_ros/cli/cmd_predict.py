@@ -52,18 +52,24 @@ def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str,
     wheels = loaded.drives[0].wheels
     pred = Odometer.from_config(config).predict(wheels)
     out = io.StringIO()
-    out.write('t,t_ns,x,y,yaw,vx,vy,wz,status\n')
+    out.write('t,t_ns,x,y,yaw,vx,vy,wz,status,cov_xx,cov_xy,cov_xyaw,cov_yy,cov_yyaw,'
+              'cov_yawyaw\n')
     t0 = int(wheels.t_ns[0])
-    for t_ns, pose, twist, status in zip(pred.t_ns, pred.poses, pred.twists, pred.status):
+    for t_ns, pose, twist, status, cov in zip(pred.t_ns, pred.poses, pred.twists, pred.status,
+                                              pred.pose_covariances):
+        # the planar block of the published 6 x 6 (x, y, yaw), full precision (repr)
+        block = (cov[0, 0], cov[0, 1], cov[0, 5], cov[1, 1], cov[1, 5], cov[5, 5])
         out.write(f'{(int(t_ns) - t0) * 1e-9:.9f},{int(t_ns)},{pose[0]:.9f},{pose[1]:.9f},'
                   f'{pose[2]:.9f},{twist[0]:.9f},{twist[1]:.9f},{twist[2]:.9f},'
-                  f'{status.value}\n')
+                  f'{status.value},' + ','.join(repr(float(v)) for v in block) + '\n')
     return out.getvalue(), len(wheels)
 
 
 def run(args: argparse.Namespace) -> int:
     check_writable(args.out, args.force)
-    config = OdometryConfig.from_file(args.params, args.model)
+    config = OdometryConfig.from_file(args.params, args.model,
+                                      {'use_parameter_covariance': False}
+                                      if args.no_parameter_covariance else None)
     text, rows = (_predict_table if is_table(args.source) else _predict_bag)(args, config)
     atomic_write_text(args.out, text, force=args.force)
     say(f'{config.model}: predicted {rows} samples -> {args.out}')
@@ -76,11 +82,15 @@ def add_parser(subparsers) -> None:
         description='Integrate the wheel speeds of a recording with a calibrated model, exactly '
         'as odom_node does. For a trajectory table: the same rows plus pred_x, pred_y, pred_yaw, '
         'each segment started at its ground-truth start pose. For a bag: t, x, y, yaw (and the '
-        'twist) at every wheel sample, starting at the origin like the node.')
+        'twist and the published pose covariance) at every wheel sample, starting at the origin '
+        'like the node.')
     parser.add_argument('source', type=Path, help='bag or trajectory table')
     parser.add_argument('--params', type=Path, required=True, help='parameters file')
     parser.add_argument('--model', help="model to use (default: the file's model)")
     parser.add_argument('--out', type=Path, required=True, help='CSV to write')
     parser.add_argument('--force', action='store_true', help='overwrite an existing output')
+    parser.add_argument('--no-parameter-covariance', action='store_true',
+                        help="leave the calibration's own uncertainty out of the covariance "
+                        '(as the node with use_parameter_covariance: false)')
     add_source_args(parser, ground_truth=False)
     parser.set_defaults(run=run)

@@ -40,7 +40,7 @@ def parameter_descriptor(entry: SchemaEntry) -> ParameterDescriptor:
     """
     descriptor = ParameterDescriptor(name=entry.name, description=entry.description,
                                      read_only=entry.name in READ_ONLY)
-    if entry.kind in ('double', 'double_array'):
+    if entry.kind in ('double', 'double_array', 'matrix'):
         descriptor.dynamic_typing = True
         descriptor.additional_constraints = 'integers are accepted and converted to floats'
     spec = entry.spec
@@ -55,6 +55,9 @@ def parameter_descriptor(entry: SchemaEntry) -> ParameterDescriptor:
         descriptor.additional_constraints = 'one of: ' + ', '.join(entry.choices)
     if entry.kind == 'double_array':
         descriptor.additional_constraints += f'; exactly {entry.length} values > 0'
+    if entry.kind == 'matrix':
+        descriptor.additional_constraints += (f'; exactly {entry.length} values, a symmetric '
+                                              'positive semi-definite matrix')
     return descriptor
 
 

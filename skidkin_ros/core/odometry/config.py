@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 from typing import Any, Mapping
 
+import numpy as np
 from skidkin_ros import __version__
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
@@ -23,6 +24,8 @@ from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SP
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
+from skidkin_ros.core.odometry.uncertainty import (check_parameter_covariance,
+                                                   ParameterUncertainty)
 from skidkin_ros.errors import brief, ConfigError, ParameterError
 import yaml
 
@@ -121,6 +124,13 @@ def _model_entries(geometry: Geometry) -> list[SchemaEntry]:
             entries.append(SchemaEntry(
                 f'models.{model.name}.noise.{spec.name}', 'double', spec.default_for(geometry),
                 f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec))
+        size = len(model.params)
+        if size:
+            entries.append(SchemaEntry(
+                f'models.{model.name}.parameter_covariance', 'matrix', [0.0] * (size * size),
+                'covariance of the calibrated parameters (' + ', '.join(model.param_names)
+                + '), row-major; all zeros: not known. Propagated into the pose covariance '
+                'when use_parameter_covariance is true', length=size * size))
     return entries
 
 
@@ -185,6 +195,9 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
         SchemaEntry('twist_covariance_diagonal', 'double_array', list(FALLBACK_TWIST_DIAGONAL),
                     'fallback twist covariance when no calibration is loaded '
                     '(vx, vy, vz, wx, wy, wz)', length=6),
+        SchemaEntry('use_parameter_covariance', 'bool', True,
+                    "add the calibration's own uncertainty (models.<model>.parameter_covariance, "
+                    'when the file has it) to the published pose covariance'),
     ]
     entries += [SchemaEntry(spec.name, 'double', spec.default_for(geometry),
                             f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
@@ -229,6 +242,14 @@ def _check_entry(entry: SchemaEntry, value: Any) -> Any:
                 f'parameter {entry.name!r} must be a non-empty list of joint names, got '
                 f'{brief(value)}')
         return list(value)
+    if entry.kind == 'matrix':
+        size = math.isqrt(entry.length)
+        if (not isinstance(value, (list, tuple))
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                           for v in value)):
+            raise ParameterError(f'parameter {entry.name!r} must be a list of {entry.length} '
+                                 f'numbers, got {brief(value)}')
+        return check_parameter_covariance(entry.name, value, size).ravel().tolist()
     if entry.kind == 'double_array':
         if (not isinstance(value, (list, tuple)) or len(value) != entry.length
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
@@ -303,6 +324,30 @@ class OdometryConfig:
             max_wheel_acceleration_rad_s2=self.values['max_wheel_acceleration'])
 
     @property
+    def active_parameter_uncertainty(self) -> ParameterUncertainty | None:
+        """Return the parameter covariance to propagate (None: off, unknown or not possible).
+
+        Off when ``use_parameter_covariance`` is false, when the file holds none (all zeros, or
+        a file written before it existed), for a model not linear in the wheel speeds (roc) and
+        for an augmented model (its extensions change the twist's dependence on the base
+        parameters).
+        """
+        if self.model == AUGMENTED_NAME or not self.values.get('use_parameter_covariance', True):
+            return None
+        if self.noise.get(self.model) is None:
+            return None
+        model = get_model(self.model)
+        if not model.params:
+            return None
+        flat = self.values.get(f'models.{model.name}.parameter_covariance')
+        if flat is None:
+            return None
+        size = len(model.params)
+        return ParameterUncertainty.of_model(
+            model, model.vector(self.model_values[model.name], self.geometry), self.geometry,
+            np.asarray(flat, dtype=float).reshape(size, size))
+
+    @property
     def active_noise(self) -> NoiseModel | None:
         """Return the noise model in force (an augmented model uses its base model's)."""
         if self.model == AUGMENTED_NAME:
@@ -310,11 +355,16 @@ class OdometryConfig:
         return self.noise.get(self.model)
 
     @classmethod
-    def from_file(cls, path: str | Path, model: str | None = None) -> 'OdometryConfig':
-        """Read and validate a ROS 2 parameters file; ``model`` replaces the file's model."""
+    def from_file(cls, path: str | Path, model: str | None = None,
+                  overrides: Mapping[str, Any] | None = None) -> 'OdometryConfig':
+        """Read and validate a ROS 2 parameters file; ``model`` replaces the file's model.
+
+        ``overrides``: parameters set on top of the file's (as the node's command line does).
+        """
         flat = read_params_file(path)
         if model is not None:
             flat['model'] = model
+        flat.update(overrides or {})
         return cls.from_flat(flat)
 
     @classmethod
@@ -533,7 +583,7 @@ def params_document(config_values: Mapping[str, Any],
         entry = schema.get(name)
         if entry is not None and entry.kind == 'double':
             value = _yaml_float(value)
-        elif entry is not None and entry.kind == 'double_array':
+        elif entry is not None and entry.kind in ('double_array', 'matrix'):
             value = [float(v) for v in value]
         flat[name] = value
     prov = dict(provenance or {})

@@ -193,6 +193,7 @@ class Odometer:
         self.integrator.set_source(config.bound_model())
         self.integrator.limits = config.limits
         covariance = _propagator(config)
+        covariance.reset(float(self.pose[2]))
         covariance.cov = self.covariance.cov.copy()
         self.covariance = covariance
         self.set_rules(SampleRules.from_config(config))
@@ -209,7 +210,7 @@ class Odometer:
         pose = check_pose(pose)
         block = None if covariance is None else check_covariance(covariance)
         self.integrator.reset(pose)
-        self.covariance.reset()
+        self.covariance.reset(pose[2])
         if block is not None:
             self.covariance.cov = self.covariance.cov + block
         self.period_s = 0.0
@@ -359,25 +360,31 @@ class Odometer:
         self.reset(start)
         poses = np.empty((len(wheels), 3))
         twists = np.empty((len(wheels), 3))
+        pose_covs = np.empty((len(wheels), 36))
         status = []
         for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns, wheels.omega_l,
                                                          wheels.omega_r)):
             result = self.step(int(t_ns), omega_l, omega_r)
             poses[i] = result.pose
             twists[i] = result.twist
+            pose_covs[i] = self.covariance.pose_covariance_flat()
             status.append(result.status)
         offset_ns = self.output_offset_ns
-        return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns)
+        return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns,
+                          pose_covs.reshape(-1, 6, 6))
 
 
 def _propagator(config: OdometryConfig) -> PoseCovariancePropagator:
     return PoseCovariancePropagator(config.active_noise, config['pose_covariance_diagonal'],
-                                    config['twist_covariance_diagonal'])
+                                    config['twist_covariance_diagonal'],
+                                    config.active_parameter_uncertainty)
 
 
 @dataclass(frozen=True)
 class Prediction:
     """Pose after every wheel sample (x, y, yaw), the held twist, and what happened to it.
+
+    ``pose_covariances``: the pose covariance the node publishes after every sample (6 x 6).
 
     ``t_ns`` are the stamps the node publishes: the sample stamps plus ``offset_ns``, the time
     offset of an augmented model (0 for the five base models).
@@ -388,6 +395,7 @@ class Prediction:
     twists: np.ndarray
     status: tuple[SampleStatus, ...]
     offset_ns: int = 0
+    pose_covariances: np.ndarray | None = None  # (N, 6, 6): what the node publishes
 
     @property
     def accepted(self) -> np.ndarray:

@@ -11,6 +11,17 @@ with distance and rotation) and Q_input the wheel-speed measurement noise mapped
 model's Jacobian with respect to the inputs. Without a calibration the node publishes fixed
 diagonals instead (never zeros).
 
+What is published (the node, :func:`predict`, ``skidkin predict``: one code path,
+:class:`PoseCovariancePropagator`) adds two terms that are not a random walk:
+
+    P_published = P + S Sigma_k S^T + R(yaw) C R(yaw)^T
+
+S Sigma_k S^T is the calibration's own uncertainty (parameter covariance Sigma_k propagated
+through the integrator's Jacobian with respect to the parameters,
+:mod:`skidkin_ros.core.odometry.uncertainty`), C the noise model's length-independent part
+(:class:`~skidkin_ros.core.odometry.noise.NoiseModel`). Both are added when the covariance is
+read, never fed back into the next step.
+
 Example, for a filter author (one prediction over a batch of wheel samples)::
 
     from skidkin_ros.core.kinematics.models import get_model
@@ -32,7 +43,9 @@ import numpy as np
 
 from skidkin_ros.core.odometry.integrator import (body_increment, IntegratorLimits, SampleStatus,
                                                   step_scalar, StreamingIntegrator, TwistSource)
-from skidkin_ros.core.odometry.noise import NoiseModel
+from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
+                                             NoiseModel)
+from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 
 __all__ = [
     'INITIAL_VARIANCE',
@@ -44,6 +57,7 @@ __all__ = [
     'upper_to_3x3',
     'flat_6x6',
     'predict',
+    'predict_track',
     'PoseCovariancePropagator',
     'to_6x6',
 ]
@@ -156,7 +170,8 @@ def propagate_scalar(x: float, y: float, yaw: float, vx: float, vy: float, w: fl
 
 def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
             omega_l: Sequence[float], omega_r: Sequence[float], source: TwistSource,
-            noise: NoiseModel | None, input_variance: float = 0.0
+            noise: NoiseModel | None, input_variance: float = 0.0,
+            parameters: ParameterUncertainty | None = None
             ) -> tuple[np.ndarray, np.ndarray]:
     """Predict the pose and its covariance from t_ns[0] to t_ns[-1].
 
@@ -167,27 +182,56 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
     duplicate stamps update the held speeds, and samples with an older stamp or a non-finite
     speed are skipped, as in the node (there is no limit on the step length or the speed here).
     ``input_variance`` is the wheel-speed measurement variance (rad^2/s^2), propagated through
-    the model's Jacobian with respect to the inputs.
+    the model's Jacobian with respect to the inputs. The covariance is the node's
+    (:class:`PoseCovariancePropagator`): with ``parameters`` (the calibration's parameter
+    covariance) and a noise model with a length-independent part, both are included.
+    """
+    poses, covs = predict_track(pose, cov, t_ns, omega_l, omega_r, source, noise, input_variance,
+                                parameters)
+    if not len(poses):
+        return np.asarray(pose, dtype=float).copy(), upper_to_3x3(_upper_of(cov))
+    return poses[-1], covs[-1]
+
+
+def predict_track(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
+                  omega_l: Sequence[float], omega_r: Sequence[float], source: TwistSource,
+                  noise: NoiseModel | None, input_variance: float = 0.0,
+                  parameters: ParameterUncertainty | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`predict` with the pose and published covariance after every sample.
+
+    Returns (K, 3) poses and (K, 3, 3) covariances, K = len(t_ns); a sample that was not
+    integrated repeats the previous values (the first one holds ``pose``, ``cov`` plus the
+    length-independent part).
     """
     unlimited = IntegratorLimits(max_dt_s=math.inf, max_wheel_speed_rad_s=math.inf)
     integrator = StreamingIntegrator(source, unlimited)
     integrator.reset(pose)
     state = np.asarray(pose, dtype=float).copy()
-    covariance = np.asarray(cov, dtype=float).copy()
-    for t, left, right in zip(np.asarray(t_ns, dtype=np.int64).tolist(),
-                              np.asarray(omega_l, dtype=float).tolist(),
-                              np.asarray(omega_r, dtype=float).tolist()):
+    propagator = PoseCovariancePropagator(noise, FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
+                                          parameters, carry_uncalibrated=True)
+    propagator.reset(float(state[2]))
+    propagator.cov = np.asarray(cov, dtype=float)
+    count = len(t_ns)
+    poses = np.empty((count, 3))
+    covs = np.empty((count, 3, 3))
+    current = propagator.total_cov()
+    for i, (t, left, right) in enumerate(zip(np.asarray(t_ns, dtype=np.int64).tolist(),
+                                             np.asarray(omega_l, dtype=float).tolist(),
+                                             np.asarray(omega_r, dtype=float).tolist())):
         held = integrator.held_speeds
         result = integrator.step(t, left, right)
-        if result.status is not SampleStatus.INTEGRATED:
-            continue
-        jac_in = (increment_input_jacobian(source, *held, result.dt_s)
-                  if input_variance > 0.0 else None)
-        _, covariance = propagate_step(np.asarray(result.start_pose), covariance,
-                                       np.asarray(result.step_twist), result.dt_s, noise,
-                                       jac_in, input_variance)
-        state = np.asarray(result.pose)
-    return state, covariance
+        if result.status is SampleStatus.INTEGRATED:
+            extra = None
+            if input_variance > 0.0:
+                jac_in = increment_input_jacobian(source, *held, result.dt_s)
+                extra = _upper_of(input_variance * jac_in @ jac_in.T)
+            propagator.step(result.start_pose, result.step_twist, result.dt_s, extra)
+            state = np.asarray(result.pose)
+            current = propagator.total_cov()
+        poses[i] = state
+        covs[i] = current
+    return poses, covs
 
 
 def flat_6x6(upper: Sequence[float], unobserved: float = UNOBSERVED_VARIANCE) -> list[float]:
@@ -240,16 +284,27 @@ class PoseCovariancePropagator:
 
     With a calibrated ``noise`` the pose covariance grows with the motion as propagated and the
     twist covariance follows the rate model; without one, the fixed fallback diagonals are
-    published. The ``*_flat`` methods return row-major lists of 36 floats (what a message
-    carries); the ``*_6x6`` ones the same as arrays.
+    published. ``parameters`` (the calibration's parameter covariance, None: not used) adds
+    S Sigma_k S^T, and the noise model's length-independent part its R C R^T, to what is read
+    (module docstring). The ``*_flat`` methods return row-major lists of 36 floats (what a
+    message carries); the ``*_6x6`` ones the same as arrays. :attr:`cov` is the propagated
+    random-walk part P alone (what a reconfiguration carries over); :meth:`total_cov` is the
+    published 3 x 3.
     """
 
     def __init__(self, noise: NoiseModel | None, fallback_pose_diag: Sequence[float],
-                 fallback_twist_diag: Sequence[float]) -> None:
+                 fallback_twist_diag: Sequence[float],
+                 parameters: ParameterUncertainty | None = None, *,
+                 carry_uncalibrated: bool = False) -> None:
         self.noise = noise
+        self.carry_uncalibrated = carry_uncalibrated
+        self.parameters = parameters if noise is not None else None
         self._fallback_pose = _diagonal_flat(fallback_pose_diag)
         self._fallback_twist = _diagonal_flat(fallback_twist_diag)
         self._upper = _INITIAL_UPPER
+        self._yaw = 0.0
+        self._sens: list[tuple[float, float, float]] = []
+        self.reset()
 
     @property
     def calibrated(self) -> bool:
@@ -257,29 +312,60 @@ class PoseCovariancePropagator:
 
     @property
     def cov(self) -> np.ndarray:
-        """Return the planar (x, y, yaw) covariance, 3 x 3 (a new array)."""
+        """Return the propagated (x, y, yaw) covariance P, 3 x 3 (a new array)."""
         return upper_to_3x3(self._upper)
 
     @cov.setter
     def cov(self, value: np.ndarray) -> None:
         self._upper = _upper_of(value)
 
-    def reset(self) -> None:
-        self._upper = _INITIAL_UPPER
+    @property
+    def sensitivity(self) -> np.ndarray:
+        """Return S = d pose / d k, (3, p) (empty without parameter uncertainty)."""
+        return np.asarray(self._sens, dtype=float).reshape(-1, 3).T
 
-    def step(self, pose_before: Sequence[float], twist: Sequence[float], dt_s: float) -> None:
-        """Propagate over one held step from ``pose_before`` (x, y, yaw) with ``twist``."""
-        if self.noise is None:
-            return
-        x, y, yaw = pose_before
-        vx, vy, w = twist
-        *_, self._upper = propagate_scalar(float(x), float(y), float(yaw), float(vx),
-                                           float(vy), float(w), dt_s, self._upper, self.noise)
+    def reset(self, yaw_rad: float = 0.0) -> None:
+        """Restart from an exact pose with heading ``yaw_rad``."""
+        self._upper = _INITIAL_UPPER
+        self._yaw = float(yaw_rad)
+        size = 0 if self.parameters is None else self.parameters.size
+        self._sens = [(0.0, 0.0, 0.0)] * size
+
+    def step(self, pose_before: Sequence[float], twist: Sequence[float], dt_s: float,
+             extra: Sequence[float] | None = None) -> None:
+        """Propagate over one held step from ``pose_before`` (x, y, yaw) with ``twist``.
+
+        ``extra``: an additional body-frame step noise, upper triangle (the input noise).
+        """
+        if self.noise is None and extra is None and not self.carry_uncalibrated:
+            return  # the fallback diagonals are published: nothing to propagate
+        x, y, yaw = (float(v) for v in pose_before)
+        vx, vy, w = (float(v) for v in twist)
+        *_, new_yaw, self._upper = propagate_scalar(x, y, yaw, vx, vy, w, dt_s, self._upper,
+                                                    self.noise, extra)
+        if self._sens:
+            self._sens = _propagate_sensitivity(self._sens, self.parameters, yaw, vx, vy, w,
+                                                dt_s)
+        self._yaw = new_yaw
+
+    def total_upper(self) -> tuple[float, ...]:
+        """Return the upper triangle of the published 3 x 3: P + S Sigma_k S^T + R C R^T."""
+        upper = self._upper
+        if self._sens:
+            upper = tuple(a + b for a, b in zip(upper, self.parameters.pose_covariance(
+                self._sens)))
+        if self.noise is not None and self.noise.has_constant:
+            upper = tuple(a + b for a, b in zip(upper, self.noise.constant_upper(self._yaw)))
+        return upper
+
+    def total_cov(self) -> np.ndarray:
+        """Return the published planar (x, y, yaw) covariance, 3 x 3."""
+        return upper_to_3x3(self.total_upper())
 
     def pose_covariance_flat(self) -> list[float]:
         if self.noise is None:
             return list(self._fallback_pose)
-        return flat_6x6(self._upper)
+        return flat_6x6(self.total_upper())
 
     def twist_covariance_flat(self, twist: Sequence[float], period_s: float) -> list[float]:
         if self.noise is None or period_s <= 0.0:
@@ -297,3 +383,28 @@ class PoseCovariancePropagator:
 
     def twist_covariance_6x6(self, twist: Sequence[float], period_s: float) -> np.ndarray:
         return np.array(self.twist_covariance_flat(twist, period_s)).reshape(6, 6)
+
+
+def _propagate_sensitivity(sens: Sequence[tuple[float, float, float]],
+                           parameters: ParameterUncertainty, yaw: float, vx: float, vy: float,
+                           w: float, dt_s: float) -> list[tuple[float, float, float]]:
+    """One step of S' = F S + G d(increment)/dk (uncertainty module docstring), on floats.
+
+    The increment's derivative is taken to second order in the step: a speed change acts along
+    the mid-step heading, and a yaw-rate change turns the step by dw dt / 2.
+    """
+    _, _, _, dx, dy = step_scalar(0.0, 0.0, yaw, vx, vy, w, dt_s)
+    cos_t = math.cos(yaw)
+    sin_t = math.sin(yaw)
+    mid = yaw + 0.5 * w * dt_s
+    cos_m = math.cos(mid)
+    sin_m = math.sin(mid)
+    a = -sin_t * dx - cos_t * dy  # F[0, 2]
+    b = cos_t * dx - sin_t * dy   # F[1, 2]
+    half = 0.5 * dt_s
+    out = []
+    for (sx, sy, syaw), (dvx, dvy, dw) in zip(sens, parameters.twist_jacobian(vx, vy, w)):
+        out.append((sx + a * syaw + dt_s * (cos_m * dvx - sin_m * dvy) + half * dw * a,
+                    sy + b * syaw + dt_s * (sin_m * dvx + cos_m * dvy) + half * dw * b,
+                    syaw + dt_s * dw))
+    return out

@@ -1,0 +1,103 @@
+"""The calibration's own uncertainty: how an error in the fitted parameters moves the pose.
+
+After calibration the parameters k are known up to their covariance Sigma_k (the fit's, written
+per model to the parameters file as ``models.<m>.parameter_covariance``). An error dk is the same
+for the whole drive, so the pose error it causes grows in proportion to the distance, not with
+its square root like the per-metre noise: over a whole drive it dominates, and a covariance
+without it is over-confident (issue 17: NEES 5.2 over 300 s drives). With S = d pose / d k, the
+sensitivity of the integrated pose to the parameters, the pose covariance gains S Sigma_k S^T.
+
+S is propagated alongside the pose covariance by the same step (first order):
+
+    S' = F S + G dt d(twist)/dk
+
+F and G are the step's Jacobians (:func:`skidkin_ros.core.odometry.propagation.step_jacobians`),
+and d(twist)/dk is taken at the twist of the step. For a model linear in the wheel speeds
+(twist = R(k) w) it is a function of the twist alone: d(twist)/dk_j = dR/dk_j R^+ twist, with
+R^+ the pseudo-inverse (the twist lies in the range of R, so R^+ twist recovers w exactly). The
+matrices M_j = dR/dk_j R^+ are computed once per model (:class:`ParameterUncertainty`), so a
+step costs a few dozen multiplications and does not depend on which wheel sample the integrator
+holds over the step. The ROC model is not linear in the wheel speeds: its parameter covariance
+is not propagated (the calibrator still writes it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from skidkin_ros.errors import ParameterError
+
+__all__ = ['ParameterUncertainty', 'check_parameter_covariance']
+
+
+def check_parameter_covariance(name: str, values: Sequence[float], size: int) -> np.ndarray:
+    """Return a flat row-major covariance as a (size, size) matrix, or raise ParameterError."""
+    matrix = np.asarray(values, dtype=float)
+    if matrix.size != size * size or not np.all(np.isfinite(matrix)):
+        raise ParameterError(f'parameter {name!r} must hold {size * size} finite numbers (a '
+                             f'{size} x {size} covariance, row-major), got {list(values)[:8]}')
+    matrix = matrix.reshape(size, size)
+    if not np.allclose(matrix, matrix.T, rtol=1e-6, atol=1e-15):
+        raise ParameterError(f'parameter {name!r} is not symmetric; write the covariance the '
+                             'calibrator wrote or zeros (no parameter uncertainty)')
+    matrix = 0.5 * (matrix + matrix.T)
+    if size and np.linalg.eigvalsh(matrix).min() < -1e-9 * max(np.abs(matrix).max(), 1e-300):
+        raise ParameterError(f'parameter {name!r} is not positive semi-definite; write the '
+                             'covariance the calibrator wrote or zeros (no parameter uncertainty)')
+    return matrix
+
+
+@dataclass(frozen=True)
+class ParameterUncertainty:
+    """Sigma_k of one bound linear model and the twist sensitivity matrices M_j (module doc)."""
+
+    covariance: np.ndarray              # (p, p)
+    sensitivity: tuple[tuple[float, ...], ...]  # p rows of 9 floats: M_j row-major
+
+    @classmethod
+    def of_model(cls, model, k: np.ndarray, geometry, covariance: np.ndarray,
+                 rel_step: float = 1e-6) -> 'ParameterUncertainty | None':
+        """Return the uncertainty of ``model`` at ``k``; None when it cannot be propagated.
+
+        None: no parameter, an all-zero covariance, or a model not linear in the wheel speeds.
+        """
+        k = np.asarray(k, dtype=float)
+        covariance = np.asarray(covariance, dtype=float)
+        if k.size == 0 or not np.any(covariance):
+            return None
+        rows = model.rows(k, geometry)
+        if rows is None:
+            return None
+        pinv = np.linalg.pinv(np.asarray(rows, dtype=float))
+        mats = []
+        for j in range(k.size):
+            step = rel_step * max(abs(float(k[j])), 1.0)
+            plus, minus = k.copy(), k.copy()
+            plus[j] += step
+            minus[j] -= step
+            d_rows = (np.asarray(model.rows(plus, geometry))
+                      - np.asarray(model.rows(minus, geometry))) / (2.0 * step)
+            mats.append(tuple((d_rows @ pinv).ravel().tolist()))
+        return cls(covariance, tuple(mats))
+
+    @property
+    def size(self) -> int:
+        return len(self.sensitivity)
+
+    def twist_jacobian(self, vx: float, vy: float, w: float) -> list[tuple[float, float, float]]:
+        """Return d(twist)/dk_j for every j as (d vx, d vy, d w) triples."""
+        out = []
+        for m0, m1, m2, m3, m4, m5, m6, m7, m8 in self.sensitivity:
+            out.append((m0 * vx + m1 * vy + m2 * w, m3 * vx + m4 * vy + m5 * w,
+                        m6 * vx + m7 * vy + m8 * w))
+        return out
+
+    def pose_covariance(self, sens: Sequence[Sequence[float]]) -> tuple[float, ...]:
+        """Upper triangle of S Sigma_k S^T for S given as p columns (d x, d y, d yaw)/dk_j."""
+        s = np.asarray(sens, dtype=float).T  # (3, p)
+        c = s @ self.covariance @ s.T
+        return (float(c[0, 0]), float(c[0, 1]), float(c[0, 2]), float(c[1, 1]), float(c[1, 2]),
+                float(c[2, 2]))
