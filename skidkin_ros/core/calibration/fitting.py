@@ -155,6 +155,8 @@ class FitResult:
     warnings: tuple[str, ...] = ()
     seconds: float = 0.0
     trimmed_mask: np.ndarray = field(default=None, repr=False)
+    # s^2 (J^T J)^-1 in the order of the model's parameters (the std_errors are its diagonal)
+    covariance: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def valid(self) -> bool:
@@ -259,13 +261,14 @@ def _best_solution(model: KinematicModel, geometry: Geometry, segments: SegmentS
     return best, len(starts), screen is segments
 
 
-def _std_errors(sol: optimize.OptimizeResult, n_params: int) -> np.ndarray:
+def _parameter_covariance(sol: optimize.OptimizeResult, n_params: int) -> np.ndarray:
+    """Return s^2 (J^T J)^-1 at the solution (module docstring), symmetric."""
     m = sol.fun.size
     dof = max(m - n_params, 1)
     s2 = 2.0 * sol.cost / dof
     jtj = sol.jac.T @ sol.jac
     cov = np.linalg.pinv(jtj) * s2
-    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return 0.5 * (cov + cov.T)
 
 
 def _null_space_params(model: KinematicModel, geometry: Geometry, jac: np.ndarray,
@@ -330,7 +333,8 @@ def _assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
                 trimmed: int, kept: np.ndarray, seconds: float) -> FitResult:
     """Turn a solution into a FitResult: standard errors, bounds, observability, convergence."""
     names = model.param_names
-    se = _std_errors(sol, len(names))
+    param_cov = _parameter_covariance(sol, len(names))
+    se = np.sqrt(np.clip(np.diag(param_cov), 0.0, None))
     warnings = []
     specs = model.params
     on_bound = tuple(spec.name for spec, value in zip(specs, sol.x) if spec.on_bound(value))
@@ -377,7 +381,7 @@ def _assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
         cost=float(sol.cost), rms_error=tuple(float(v) for v in np.sqrt((err ** 2).mean(0))),
         segments_used=len(used), segments_trimmed=trimmed, converged=converged,
         status=str(sol.message), starts=n_starts, on_bound=on_bound, unobservable=ordered,
-        warnings=tuple(warnings), seconds=seconds, trimmed_mask=~kept)
+        warnings=tuple(warnings), seconds=seconds, trimmed_mask=~kept, covariance=param_cov)
 
 
 def fit_models(geometry: Geometry, segments: SegmentSet,

@@ -7,7 +7,11 @@
 2. fit the requested models on them (skidkin_ros.core.calibration.fitting);
 3. cut the evaluation drives (a deterministic hold-out of the training drives when none are given)
    into segments of h_e and score every model on the same segments (eps_t, eps_theta);
-4. calibrate each model's noise rates on its evaluation residuals, with a consistency figure;
+4. calibrate each model's noise on its evaluation residuals at several horizons
+   (``noise_horizon_factors`` times h_e: a variance per metre and a length-independent part),
+   with the fit's own parameter covariance as a fixed term, and check it two-fold per horizon
+   (average NEES against its chi2 band; a warning says when the held-out data are too few to
+   support the claim, or disagree with it);
 5. pick the best model by the rule below.
 
 Best-model rule: among the valid fits (ideal_dd always counts as valid), score each model by
@@ -18,7 +22,7 @@ parameters wins (the paper's argument for the symmetric EDD).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 import logging
 import math
 from typing import Any, Mapping, Sequence
@@ -38,7 +42,7 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
-__all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best',
+__all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best', 'noise_warnings',
            'result_to_parameters', 'horizon_study', 'HorizonStudy']
 
 LOG = logging.getLogger(__name__)
@@ -59,6 +63,9 @@ class CalibrationOptions(HorizonOptions):
     holdout_mode: str = 'auto'
     holdout_block_s: float = 60.0
     holdout_key: str | None = None
+    noise_horizon_factors: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0)
+    noise_constant: bool = True
+    parameter_covariance: bool = True
 
     def __post_init__(self) -> None:
         for name in self.models:
@@ -80,7 +87,14 @@ class CalibrationOptions(HorizonOptions):
         out = asdict(self)
         out['models'] = list(self.models)
         out['sigma_diag'] = list(self.sigma_diag)
+        out['noise_horizon_factors'] = list(self.noise_horizon_factors)
         return out
+
+    def noise_horizons(self) -> dict[float, SegmentOptions]:
+        """Return the segment options of every noise-fit horizon but h_e itself."""
+        base = self.eval_segments()
+        return {self.h_e * f: replace(base, horizon_m=self.h_e * f)
+                for f in self.noise_horizon_factors if f > 0 and f != 1.0}
 
 
 @dataclass(frozen=True)
@@ -148,11 +162,16 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
                                  options.min_eval_path_m)
     noise = {}
     warnings = [w for fit in fits.values() for w in fit.warnings]
+    other = {h: cut_segments(evaluate, seg) for h, seg in options.noise_horizons().items()}
     for name, fit in fits.items():
+        param_cov = fit.covariance if options.parameter_covariance else None
         try:
-            noise[name] = calibrate_noise(name, fit.values, geometry, eval_seg)
+            noise[name] = calibrate_noise(name, fit.values, geometry, eval_seg, other, param_cov,
+                                          options.h_e, options.noise_constant)
         except DataError as err:
             warnings.append(f'{name}: noise model not calibrated: {err}')
+            continue
+        warnings += noise_warnings(noise[name])
     counts = train_seg.counts
     if counts.stationary:
         warnings.append(f'{counts.stationary} training segment(s) without motion were excluded')
@@ -163,9 +182,36 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
         'train_segments': len(train_seg), 'evaluate_segments': len(eval_seg),
         'holdout': holdout, 'options': options.as_dict(),
         'noise_coverage_scale': {name: round(nf.coverage_scale, 4) for name, nf in noise.items()},
+        'noise_heldout_horizons_m': [options.h_e * f for f in
+                                     sorted(set(options.noise_horizon_factors) | {1.0})],
+        'noise_heldout_nees': {name: [round(c.mean_nees, 3) for c in nf.consistency.horizons]
+                               for name, nf in noise.items()},
     }
     return CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
                              tuple(warnings), train_seg, eval_seg, holdout, provenance)
+
+
+def noise_warnings(fit: NoiseFit) -> list[str]:
+    """Return what the held-out check of a noise model cannot support (one line per horizon).
+
+    Over-confident horizons and horizons with too few segments are said; a conservative one is
+    not (the coverage scale makes the covariance conservative for typical errors on purpose,
+    and the per-horizon NEES is in the provenance).
+    """
+    out = []
+    for check in fit.consistency.horizons:
+        verdict = check.verdict
+        if verdict in ('consistent', 'conservative'):
+            continue
+        if verdict == 'too few segments to tell':
+            out.append(f'{fit.model}: only {check.segments} held-out segments of '
+                       f'{check.horizon_m:g} m: too few to check the covariance there (the '
+                       'data cannot support a consistency claim at this horizon); drive more')
+        else:
+            out.append(f'{fit.model}: the covariance is {verdict} on held-out '
+                       f'{check.horizon_m:g} m segments (average NEES {check.mean_nees:.2f}, band '
+                       f'[{check.band[0]:.2f}, {check.band[1]:.2f}], {check.segments} segments)')
+    return out
 
 
 def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | None = None,
@@ -191,6 +237,10 @@ def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | No
             flat[f'models.{name}.noise.calibrated'] = True
             for spec in NOISE_SPECS:
                 flat[f'models.{name}.noise.{spec.name}'] = float(getattr(noise.noise, spec.name))
+            if (fit.covariance is not None and fit.covariance.size
+                    and result.options.parameter_covariance):
+                flat[f'models.{name}.parameter_covariance'] = [
+                    float(v) for v in np.asarray(fit.covariance, dtype=float).ravel()]
         written.append(name)
     trained = [m for m in written if get_model(m).params]
     if not trained and not allow_invalid:
