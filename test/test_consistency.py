@@ -105,8 +105,12 @@ def test_estimation_study_odometry_and_filter_are_consistent_and_the_filter_wins
     odom_position, odom_yaw = study.runs.odom_rmse()
     assert ekf_position < 0.5 * odom_position
     assert ekf_yaw < odom_yaw
+    whole = study.whole  # whole drives from the start: one value per drive and distance
+    assert whole.nees.shape[0] == 4 and whole.distances_m[0] == 1.0
+    assert whole.distances_m[-1] == pytest.approx(whole.drive_length_m.min())
+    assert np.all(np.isfinite(whole.nees)) and whole.checkpoint_nees.size == 4 * 10
     figures = write_estimation_figures(tmp_path / 'figures', study)
-    assert len(figures) == 3
+    assert len(figures) == 4
     for path in figures.values():
         assert path.exists() and path.stat().st_size > 10_000
     lines = study.summary_lines()

@@ -3,18 +3,23 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 from skidkin_ros.cli.common import check_report_dir, say
 from skidkin_ros.report.estimation import write_estimation_figures
-from skidkin_ros.studies.estimation import run_estimation_study
+from skidkin_ros.studies.estimation import run_estimation_study, StudyOptions
 
 __all__ = ['add_parser']
 
 
 def run(args: argparse.Namespace) -> int:
     check_report_dir(args.out, args.force, '--out')
-    study = run_estimation_study(seed=args.seed, quick=args.quick)
+    options = StudyOptions.quick() if args.quick else StudyOptions()
+    options = replace(options, wheel_stamp_shift_samples=args.stamp_shift,
+                      parameter_covariance=not args.no_parameter_covariance,
+                      truth_noise_m=args.truth_noise[0], truth_noise_rad=args.truth_noise[1])
+    study = run_estimation_study(seed=args.seed, options=options)
     figures = write_estimation_figures(args.out, study)
     figure_lines = [f'figure {name}: {path}' for name, path in figures.items()]
     for line in study.summary_lines() + figure_lines:
@@ -39,4 +44,13 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--quick', action='store_true', help='smaller study (about 40 s)')
     parser.add_argument('--force', action='store_true', help='overwrite the figures')
+    parser.add_argument('--no-parameter-covariance', action='store_true',
+                        help="leave the calibration's own uncertainty out of the covariance")
+    parser.add_argument('--stamp-shift', type=float, default=0.0, metavar='SAMPLES',
+                        help='move every simulated wheel stamp by this many sample periods '
+                        '(-0.5: the midpoint interval convention, no half-sample lag)')
+    parser.add_argument('--truth-noise', type=float, nargs=2, default=(0.0, 0.0),
+                        metavar=('M', 'RAD'),
+                        help='white noise on the calibration ground truth (ICP-like, e.g. '
+                        '0.01 0.0035); the test drives are scored against the exact truth')
     parser.set_defaults(run=run)

@@ -14,12 +14,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from skidkin_ros.core.estimation.nees import NeesSummary, SegmentNees  # noqa: E402
+from skidkin_ros.core.estimation.nees import DriveNees, NeesSummary, SegmentNees  # noqa: E402
 from skidkin_ros.report.figures import save_figure  # noqa: E402
 from skidkin_ros.studies.estimation import EstimationStudy, FilterRuns  # noqa: E402
 
 __all__ = ['error_over_time', 'nees_over_time_figure', 'segment_nees_figure',
-           'write_estimation_figures']
+           'drive_nees_figure', 'write_estimation_figures']
 
 
 def error_over_time(runs: FilterRuns, path: Path) -> Path:
@@ -100,12 +100,46 @@ def segment_nees_figure(odometry: SegmentNees, horizons: Mapping[float, NeesSumm
     return save_figure(fig, path)
 
 
+def drive_nees_figure(whole: DriveNees, horizons: Mapping[float, NeesSummary],
+                      path: Path) -> Path:
+    """Average NEES against the distance from the start of whole drives, with its chi2 band.
+
+    The windows' average NEES (independent windows of each length) is drawn beside it: windows
+    show the noise at one horizon, whole drives add the parameter error.
+    """
+    summaries = whole.summaries()
+    distances = sorted(summaries)
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    ax.scatter(np.maximum(whole.checkpoint_distance_m, 0.5), whole.checkpoint_nees, s=6,
+               color='0.6', label=f'every {whole.checkpoint_s:g} s of every drive')
+    ax.fill_between(distances, [summaries[d].band[0] for d in distances],
+                    [summaries[d].band[1] for d in distances], color='tab:green', alpha=0.2,
+                    label=f'chi2 95 % band of the average ({whole.nees.shape[0]} drives)')
+    ax.plot(distances, [summaries[d].mean for d in distances], 'o-', color='tab:red',
+            label='whole drives: average NEES at that distance from the start')
+    lengths = sorted(horizons)
+    ax.plot(lengths, [horizons[h].mean for h in lengths], 's--', color='tab:blue',
+            label='independent windows of that length')
+    ax.axhline(3.0, color='k', lw=0.6, ls=':')
+    ax.set_xscale('log')
+    ax.set_yscale('log')
+    ax.set_xlabel('distance from the start (m)')
+    ax.set_ylabel('NEES (3 dof)')
+    ax.legend(fontsize=8)
+    ax.set_title('Odometry alone: is the published covariance honest from 1 m to a whole drive?')
+    return save_figure(fig, path)
+
+
 def write_estimation_figures(out_dir: Path, study: EstimationStudy) -> dict[str, Path]:
-    """Write the study's three figures into ``out_dir`` (created) and return name -> path."""
+    """Write the study's figures into ``out_dir`` (created) and return name -> path."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     runs = study.runs
-    return {'error_over_time': error_over_time(runs, out_dir / 'estimation_error.png'),
-            'nees_over_time': nees_over_time_figure(runs, out_dir / 'estimation_nees.png'),
-            'segment_nees': segment_nees_figure(study.odometry, study.horizons,
-                                                out_dir / 'odometry_nees.png')}
+    figures = {'error_over_time': error_over_time(runs, out_dir / 'estimation_error.png'),
+               'nees_over_time': nees_over_time_figure(runs, out_dir / 'estimation_nees.png'),
+               'segment_nees': segment_nees_figure(study.odometry, study.horizons,
+                                                   out_dir / 'odometry_nees.png')}
+    if study.whole is not None:
+        figures['drive_nees'] = drive_nees_figure(study.whole, study.horizons,
+                                                  out_dir / 'drive_nees.png')
+    return figures

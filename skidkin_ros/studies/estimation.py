@@ -10,7 +10,10 @@
    statistics vary from drive to drive: one 1800 s drive gave rates 20 % off those of the test
    drives and an average NEES ~10 % above 3 on all four seeds tried);
 2. simulate held-out test drives (other seeds, never seen by the calibration);
-3. odometry alone: NEES over independent windows of the test drives
+3. odometry alone over whole drives: NEES against the distance from the start, 1 m to the
+   drive's length (:func:`skidkin_ros.core.estimation.nees.drive_nees`), with the parameter
+   covariance of the calibration propagated (``parameter_covariance``) or not;
+   and odometry alone: NEES over independent windows of the test drives
    (:func:`skidkin_ros.core.estimation.nees.segment_nees`: non-overlapping windows of h_e of
    ground-truth path, each predicted from the true pose with zero covariance), at the calibration
    horizon h_e and, to show how far the rate model carries, at other horizons;
@@ -42,17 +45,20 @@ import math
 from typing import Any, Sequence
 
 import numpy as np
+from scipy import stats
 
 from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
 from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions, CalibrationResult
 from skidkin_ros.core.calibration.segments import SegmentOptions
-from skidkin_ros.core.drive import Drive, PoseTrack
+from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.estimation.ekf import PlanarEkf, PoseFix
-from skidkin_ros.core.estimation.nees import (nees, nees_over_time, NeesOverTime, NeesSummary,
-                                              segment_nees, SegmentNees, summarize_nees)
+from skidkin_ros.core.estimation.nees import (drive_nees, DriveNees, nees, nees_over_time,
+                                              NeesOverTime, NeesSummary, segment_nees,
+                                              SegmentNees, summarize_nees)
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.integrator import wrap_angle
 from skidkin_ros.core.odometry.noise import NoiseModel
+from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.errors import FitError, ParameterError
 from skidkin_ros.sim.simulate import SimConfig, simulate
 
@@ -90,6 +96,10 @@ class StudyOptions:
     models: tuple[str, ...] = ('ideal_dd', 'edd_symmetric', 'edd_asymmetric', 'roc',
                                'full_linear')
     n_starts: int = 4
+    drive_distances_m: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
+    checkpoint_s: float = 15.0
+    parameter_covariance: bool = True
+    wheel_stamp_shift_samples: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ('train_s', 'test_s', 'horizon_m', 'fix_period_s',
@@ -115,6 +125,7 @@ class StudyOptions:
         out['models'] = list(self.models)
         out['other_horizons_m'] = list(self.other_horizons_m)
         out['fix_sweep'] = [list(item) for item in self.fix_sweep]
+        out['drive_distances_m'] = list(self.drive_distances_m)
         return out
 
 
@@ -193,6 +204,7 @@ class EstimationStudy:
     runs: FilterRuns = field(repr=False)
     sweep: dict[tuple[float, float | None], FilterRuns] = field(default_factory=dict, repr=False)
     provenance: dict[str, Any] = field(default_factory=dict)
+    whole: DriveNees | None = field(default=None, repr=False)
 
     @property
     def odometry_summary(self) -> NeesSummary:
@@ -238,6 +250,8 @@ class EstimationStudy:
             lines.append(f'  at {horizon:g} m ({summary.count} windows): average NEES '
                          f'{summary.mean:.2f}, band [{summary.band[0]:.2f}, '
                          f'{summary.band[1]:.2f}]: {summary.verdict()}')
+        if self.whole is not None:
+            lines += self._whole_drive_lines()
         lines += [
             f'EKF with a fix every {opts.fix_period_s:g} s ({fix}), {over_time.runs} runs of '
             f'{opts.test_s:g} s:',
@@ -261,6 +275,25 @@ class EstimationStudy:
             lines.append(f'  other fixes ({label}): position RMSE {position:.3f} m, yaw RMSE '
                          f'{math.degrees(yaw):.2f} deg, NEES {summary.mean:.2f} in '
                          f'[{summary.band[0]:.2f}, {summary.band[1]:.2f}]: {summary.verdict()}')
+        return lines
+
+    def _whole_drive_lines(self) -> list[str]:
+        """Return the whole-drive NEES lines (odometry alone from the start)."""
+        whole = self.whole
+        share = float((whole.checkpoint_nees <= stats.chi2.ppf(0.95, 3)).mean())
+        check = whole.checkpoint_summary()
+        lines = [f'odometry alone over whole drives ({whole.nees.shape[0]} drives of '
+                 f'{float(np.median(whole.drive_length_m)):.0f} m median, parameter covariance '
+                 f'{"on" if self.options.parameter_covariance else "off"}): average NEES from the '
+                 'start, over the drives, against the band for that many drives:']
+        for distance, summary in whole.summaries().items():
+            lines.append(f'  at {distance:g} m: {summary.mean:.2f}, band [{summary.band[0]:.2f}, '
+                         f'{summary.band[1]:.2f}]: {summary.verdict()}; '
+                         f'{100 * summary.inside_95:.0f} % inside the 95 % region')
+        median = float(np.median(whole.checkpoint_nees))
+        lines.append(f'  every {whole.checkpoint_s:g} s ({check.count} checkpoints, not '
+                     f'independent): average NEES {check.mean:.2f}, median {median:.2f}; '
+                     f'{100 * share:.0f} % inside the 95 % region')
         return lines
 
 
@@ -348,9 +381,21 @@ def run_filter(drives: Sequence[Drive], source, noise: NoiseModel, options: Stud
     return FilterRuns(t_s, odom_err, odom_cov, ekf_err, ekf_cov, fix_index, np.array(nis))
 
 
-def _simulate_drive(name: str, duration_s: float, seed: int, wheel_rate_hz: float) -> Drive:
+def _simulate_drive(name: str, duration_s: float, seed: int, wheel_rate_hz: float,
+                    shift_samples: float = 0.0) -> Drive:
+    """Simulate a drive; ``shift_samples`` moves every wheel stamp by that many periods.
+
+    A shift of -0.5 makes the integrator's zero-order hold of sample k over [t_k, t_k+1) cover
+    the interval the sample describes, centred on its stamp: the midpoint convention, which
+    removes the half-sample lag (issue 11 item 4) until the integrator offers it itself.
+    """
     config = SimConfig(duration_s=duration_s, seed=seed, wheel_rate_hz=wheel_rate_hz)
-    return simulate(config).drive(name)
+    drive = simulate(config).drive(name)
+    if not shift_samples:
+        return drive
+    offset = int(round(shift_samples * 1e9 / wheel_rate_hz))
+    wheels = WheelSamples(drive.wheels.t_ns + offset, drive.wheels.omega_l, drive.wheels.omega_r)
+    return replace(drive, wheels=wheels)
 
 
 def run_estimation_study(seed: int = 0, quick: bool = False,
@@ -363,10 +408,12 @@ def run_estimation_study(seed: int = 0, quick: bool = False,
     options = options or (StudyOptions.quick() if quick else StudyOptions())
     rng = np.random.default_rng([seed, 6])
     geometry = SimConfig().geometry
-    train = _noisy_truth(_simulate_drive('train', options.train_s, seed, options.wheel_rate_hz),
+    train = _noisy_truth(_simulate_drive('train', options.train_s, seed, options.wheel_rate_hz,
+                                         options.wheel_stamp_shift_samples),
                          options.truth_noise_m, options.truth_noise_rad, rng)
     held = [_noisy_truth(_simulate_drive(f'calibration_holdout_{i}', options.test_s, seed + 1 + i,
-                                         options.wheel_rate_hz),
+                                         options.wheel_rate_hz,
+                                         options.wheel_stamp_shift_samples),
                          options.truth_noise_m, options.truth_noise_rad, rng)
             for i in range(options.calib_drives)]
     cal_options = CalibrationOptions(h_e=options.horizon_m, models=options.models,
@@ -380,14 +427,27 @@ def run_estimation_study(seed: int = 0, quick: bool = False,
     source = get_model(model).bind(calibration.fits[model].values, geometry)
     LOG.info('calibrated %s: %s, noise %s', model, calibration.fits[model].values, noise)
     tests = [_simulate_drive(f'test_{i}', options.test_s, seed + 100 + i,
-                             options.wheel_rate_hz)
+                             options.wheel_rate_hz, options.wheel_stamp_shift_samples)
              for i in range(options.test_drives)]
+    fit = calibration.fits[model]
+    parameters = None
+    if options.parameter_covariance and fit.covariance is not None:
+        spec = get_model(model)
+        parameters = ParameterUncertainty.of_model(spec, spec.vector(fit.values, geometry),
+                                                   geometry, fit.covariance)
     window = SegmentOptions(horizon_m=options.horizon_m, short_drive='drop')
-    odometry = segment_nees(tests, source, noise, window)
+    odometry = segment_nees(tests, source, noise, window, parameters)
     horizons = {options.horizon_m: odometry.summary()}
     for horizon in options.other_horizons_m:
         other = SegmentOptions(horizon_m=horizon, short_drive='drop')
-        horizons[float(horizon)] = segment_nees(tests, source, noise, other).summary()
+        horizons[float(horizon)] = segment_nees(tests, source, noise, other,
+                                                parameters).summary()
+    whole = drive_nees(tests, source, noise, options.drive_distances_m, options.checkpoint_s,
+                       parameters)
+    shortest = float(whole.drive_length_m.min())
+    whole = drive_nees(tests, source, noise,
+                       [d for d in options.drive_distances_m if d < shortest] + [shortest],
+                       options.checkpoint_s, parameters)
     runs = run_filter(tests, source, noise, options, rng)
     sweep = {}
     for sigma_m, sigma_yaw in options.fix_sweep:
@@ -397,4 +457,4 @@ def run_estimation_study(seed: int = 0, quick: bool = False,
                   'values': dict(calibration.fits[model].values),
                   'noise': noise.as_dict(), 'calibration': calibration.provenance}
     return EstimationStudy(options, seed, calibration, model, noise, odometry, horizons, runs,
-                           sweep, provenance)
+                           sweep, provenance, whole)

@@ -17,6 +17,16 @@ sample and start from the truth, so their errors are independent as far as the o
 white; what is left of systematic model error correlates them, which the band does not allow
 for (a reason to read the band as a check, not a proof).
 
+Odometry over whole drives (:func:`drive_nees`): each held-out drive is predicted from its true
+start pose with a zero covariance by :func:`skidkin_ros.core.odometry.propagation.predict_track`
+(the node's propagator: per-metre noise, length-independent part, parameter covariance), and the
+error is scored at the first sample where the ground-truth path reaches each distance (1 m to the
+drive's length) and at checkpoints every ``checkpoint_s``. At one distance the M drives give M
+independent values (the band for M runs); the checkpoints of one drive are not independent, so
+their pooled average is a summary, not a test. Windows test the noise at one horizon; whole drives
+add what a window cannot show: the parameter error, the same for the whole drive, whose effect
+grows in proportion to the distance.
+
 A filter over time (:func:`nees_over_time`): with M independent runs (held-out drives) the NEES
 at each time step is averaged over the runs and compared with the band for M runs (N = M); the
 share of time steps inside that band should be close to 95 %.
@@ -33,13 +43,14 @@ from scipy import stats
 from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
 from skidkin_ros.core.calibration.segments import cut_segments, segment_frame_error, SegmentOptions
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.odometry.integrator import TwistSource
+from skidkin_ros.core.odometry.integrator import TwistSource, wrap_angle
 from skidkin_ros.core.odometry.noise import NoiseModel
-from skidkin_ros.core.odometry.propagation import predict
+from skidkin_ros.core.odometry.propagation import predict, predict_track
+from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.errors import DataError
 
 __all__ = ['nees', 'chi2_band', 'NeesSummary', 'summarize_nees', 'SegmentNees', 'segment_nees',
-           'NeesOverTime', 'nees_over_time']
+           'NeesOverTime', 'nees_over_time', 'DriveNees', 'drive_nees']
 
 
 def nees(errors: np.ndarray, covs: np.ndarray) -> np.ndarray:
@@ -107,7 +118,8 @@ class SegmentNees:
 
 
 def segment_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel,
-                 options: SegmentOptions | None = None) -> SegmentNees:
+                 options: SegmentOptions | None = None,
+                 parameters: ParameterUncertainty | None = None) -> SegmentNees:
     """NEES of odometry alone over independent windows of held-out drives (module docstring)."""
     options = options or SegmentOptions(horizon_m=2.0, short_drive='drop')
     segments = cut_segments(drives, options)
@@ -126,7 +138,7 @@ def segment_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel
         omega_l = np.concatenate([[wheels.omega_l[first]], inner.omega_l, [0.0]])
         omega_r = np.concatenate([[wheels.omega_r[first]], inner.omega_r, [0.0]])
         predicted[i], cov = predict(segments.start[i], np.zeros((3, 3)), t_ns, omega_l,
-                                    omega_r, source, noise)
+                                    omega_r, source, noise, parameters=parameters)
         cos_a, sin_a = np.cos(segments.start[i, 2]), np.sin(segments.start[i, 2])
         to_start = np.array([[cos_a, sin_a, 0.0], [-sin_a, cos_a, 0.0], [0.0, 0.0, 1.0]])
         covs[i] = to_start @ cov @ to_start.T + MIN_VARIANCE * np.eye(3)
@@ -166,3 +178,65 @@ def nees_over_time(t_s: np.ndarray, errors: np.ndarray, covs: np.ndarray,
     runs, _, dof = errors.shape
     return NeesOverTime(np.asarray(t_s, dtype=float), values.mean(axis=0),
                         chi2_band(runs, dof, level), runs, dof)
+
+
+@dataclass(frozen=True)
+class DriveNees:
+    """Odometry alone over whole drives: NEES against the distance from the start.
+
+    ``nees`` (M, D): drive m at distance d (NaN where a drive is shorter); ``checkpoints``: the
+    NEES at every ``checkpoint_s`` of every drive, with their distance from the start.
+    """
+
+    distances_m: np.ndarray
+    nees: np.ndarray
+    checkpoint_s: float
+    checkpoint_nees: np.ndarray
+    checkpoint_distance_m: np.ndarray
+    drive_length_m: np.ndarray
+
+    def summaries(self) -> dict[float, NeesSummary]:
+        """Return the average over the drives at every distance, against the band for M runs."""
+        out = {}
+        for j, distance in enumerate(self.distances_m):
+            values = self.nees[:, j]
+            values = values[np.isfinite(values)]
+            if values.size:
+                out[float(distance)] = summarize_nees(values, 3)
+        return out
+
+    def checkpoint_summary(self) -> NeesSummary:
+        return summarize_nees(self.checkpoint_nees, 3)
+
+
+def drive_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel,
+               distances_m: Sequence[float], checkpoint_s: float = 15.0,
+               parameters: ParameterUncertainty | None = None) -> DriveNees:
+    """NEES of odometry alone from the start of every drive (module docstring)."""
+    if not drives:
+        raise DataError('no drive to score')
+    distances = np.asarray(sorted({float(d) for d in distances_m}), dtype=float)
+    table = np.full((len(drives), distances.size), np.nan)
+    check_nees, check_dist, lengths = [], [], []
+    for m, drive in enumerate(drives):
+        wheels = drive.wheels
+        truth = drive.truth.interpolate(wheels.t_ns)
+        poses, covs = predict_track(truth[0], np.zeros((3, 3)), wheels.t_ns, wheels.omega_l,
+                                    wheels.omega_r, source, noise, parameters=parameters)
+        errors = truth - poses
+        errors[:, 2] = wrap_angle(errors[:, 2])
+        covs = covs + MIN_VARIANCE * np.eye(3)
+        path = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(truth[:, 0]),
+                                                         np.diff(truth[:, 1])))])
+        lengths.append(float(path[-1]))
+        for j, distance in enumerate(distances):
+            i = int(np.searchsorted(path, distance))
+            if i < path.size:
+                table[m, j] = float(nees(errors[i], covs[i]))
+        t_s = (wheels.t_ns - wheels.t_ns[0]) * 1e-9
+        wanted = np.arange(checkpoint_s, t_s[-1] + 1e-9, checkpoint_s)
+        idx = np.clip(np.searchsorted(t_s, wanted), 0, t_s.size - 1)
+        check_nees.append(nees(errors[idx], covs[idx]))
+        check_dist.append(path[idx])
+    return DriveNees(distances, table, float(checkpoint_s), np.concatenate(check_nees),
+                     np.concatenate(check_dist), np.asarray(lengths))
