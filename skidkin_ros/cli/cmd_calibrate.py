@@ -11,7 +11,8 @@ from skidkin_ros.cli.common import (add_geometry_args, add_source_args, calibrat
                                     check_report_dir, geometry_from_args, input_parameters,
                                     print_calibration, print_notes, say, source_options)
 from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions, horizon_study,
-                                                   result_to_parameters)
+                                                   result_to_parameters, SELECTIONS)
+from skidkin_ros.core.calibration.weighting import WEIGHTINGS
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.odometry.config import write_params_file
 from skidkin_ros.errors import FitError
@@ -25,7 +26,7 @@ def _options(args: argparse.Namespace) -> CalibrationOptions:
         h_t=args.h_t, h_e=args.h_e, loss=args.loss, f_scale=args.f_scale,
         n_starts=args.starts, seed=args.seed, models=tuple(args.models),
         sigma_diag=tuple(args.sigma), holdout_every=2 if args.split_by else args.holdout_every,
-        holdout_key=args.split_by)
+        holdout_key=args.split_by, weighting=args.weighting, selection=args.selection)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,10 +60,14 @@ def run(args: argparse.Namespace) -> int:
         page = write_report(result, args.report, force=args.force, study=study)
         say(f'report: {page}')
     invalid = [m for m, f in result.fits.items() if not f.valid and get_model(m).params]
-    if invalid and not args.accept_invalid:
+    if invalid and args.strict and not args.accept_invalid:
         raise FitError(f'fit(s) of {", ".join(invalid)} are invalid (not converged, on a bound '
                        'or not observable; see the warnings) and were not written; the other '
-                       'models were. Pass --accept-invalid to exit 0 anyway.')
+                       'models were. Without --strict this is a warning.')
+    if invalid:
+        say(f'warning: fit(s) of {", ".join(invalid)} are invalid (not converged, on a bound or '
+            f'not observable; see the warnings above) and were not written; the written model '
+            f'{result.best} is valid (--strict makes this exit 4)')
     return 0
 
 
@@ -98,8 +103,19 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--horizon-study', action='store_true',
                         help='add the h_t x h_e study figure to the report')
+    parser.add_argument('--strict', action='store_true',
+                        help='exit 4 when any fit is invalid, even one that was not selected '
+                        '(default: a warning; the written model is always a valid fit)')
     parser.add_argument('--accept-invalid', action='store_true',
-                        help='exit 0 even when a fit is invalid (it is still not written)')
+                        help='exit 0 even with --strict when a fit is invalid (it is still not '
+                        'written)')
+    parser.add_argument('--weighting', choices=WEIGHTINGS, default='iterated',
+                        help='loss weights: iterated (each segment by the covariance the noise '
+                        'model predicts for it, refitted until the parameters settle) or fixed '
+                        '(--sigma for every segment)')
+    parser.add_argument('--selection', choices=SELECTIONS, default='likelihood',
+                        help='best-model rule: held-out likelihood (counts heading) or the '
+                        "paper's eps_t + eps_theta")
     add_geometry_args(parser)
     add_source_args(parser)
     parser.set_defaults(run=run)

@@ -14,7 +14,7 @@ from skidkin_ros.cli.tables import error_table
 from skidkin_ros.core.calibration.evaluation import evaluate_models
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.errors import DataError, OutputError
+from skidkin_ros.errors import DataError, OutputError, ParameterError
 from skidkin_ros.report.figures import error_distributions
 
 __all__ = ['add_parser']
@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     if len(segments) == 0:
         raise DataError(f'no evaluation segment of {args.h_e:g} m in the given data '
                         f'({segments.counts.as_dict()})')
-    models = args.models or list(config.model_values)
+    models = _models_to_score(args.models, config, args.params)
     values = {m: config.model_values[m] for m in models}
     evaluation = evaluate_models(values, config.geometry, segments)
     say(f'{len(segments)} segments of h_e = {args.h_e:g} m; parameters from {args.params} '
@@ -51,6 +51,32 @@ def run(args: argparse.Namespace) -> int:
         atomic_write_text(args.report / 'report.md', page, force=True)
         say(f'report: {args.report / "report.md"}')
     return 0
+
+
+def _models_to_score(requested: list[str] | None, config: OdometryConfig,
+                     path: Path) -> list[str]:
+    """Return the models to score: all the file holds, or the requested ones if it holds them.
+
+    A model the file does not hold would be scored with its defaults (the ideal differential
+    drive) and look like a calibrated one: it is refused when asked for, and named when left out.
+    """
+    held = list(config.models_in_file)
+    if requested:
+        unknown = [m for m in requested if m not in config.model_values]
+        if unknown:
+            raise ParameterError(f'unknown model(s) {", ".join(unknown)}; known: '
+                                 f'{", ".join(config.model_values)}')
+        missing = [m for m in requested if m not in held]
+        if missing:
+            raise ParameterError(
+                f'model(s) {", ".join(missing)} not in the file {path} (it holds '
+                f'{", ".join(held)}); their fit was invalid or they were not calibrated: '
+                'recalibrate, or score one of those')
+        return list(dict.fromkeys(requested))
+    left_out = [m for m in config.model_values if m not in held]
+    if left_out:
+        say(f'not in the file (not scored): {", ".join(left_out)}')
+    return held
 
 
 def add_parser(subparsers) -> None:

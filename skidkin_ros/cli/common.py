@@ -215,7 +215,16 @@ def print_calibration(result: CalibrationResult) -> None:
     say(f'\nsegments: {len(result.train_segments)} training (h_t = {result.options.h_t:g} m), '
         f'{len(result.eval_segments)} evaluation (h_e = {result.options.h_e:g} m, '
         f'{result.holdout})')
-    say(error_table(result.evaluation, result.fits, result.noise, result.best))
+    say(error_table(result.evaluation, result.fits, result.noise, result.best,
+                    result.window_end, result.likelihood))
+    if result.selection_rule == 'likelihood':
+        say('best model: lowest held-out NLL per segment (noise fitted on the other half, by '
+            'group); a model with fewer parameters is taken within 2 paired standard errors. '
+            f'end yaw: median |heading error| (rad) at the end of held-out '
+            f'{result.options.window_s:g} s windows; fit: {result.options.weighting} weighting')
+    else:
+        say('best model: eps_t and eps_theta relative to the best (a model with fewer '
+            'parameters within 2 %)')
     say('\nfitted parameters (± standard error):')
     for line in parameter_lines(result.fits):
         say(line)

@@ -7,18 +7,26 @@
 2. fit the requested models on them (skidkin_ros.core.calibration.fitting);
 3. cut the evaluation drives (a deterministic hold-out of the training drives when none are given)
    into segments of h_e and score every model on the same segments (eps_t, eps_theta);
-4. calibrate each model's noise rates on its evaluation residuals, with a consistency figure;
+4. calibrate each model's noise rates on its evaluation residuals, with a consistency figure,
+   and measure the errors at the end of held-out windows of ``window_s`` (heading drift);
 5. pick the best model by the rule below.
 
-Best-model rule: among the valid fits (ideal_dd always counts as valid), score each model by
-median eps_t / (best median eps_t) + median eps_theta / (best median eps_theta), both over the
-valid models; the lowest score wins, and when two scores are within 2 % the model with fewer
-parameters wins (the paper's argument for the symmetric EDD).
+The fit (step 2) is the iterated one of :mod:`skidkin_ros.core.calibration.weighting` (each
+segment weighted by the covariance the noise model predicts for it) unless ``weighting`` is
+``fixed`` (the loss covariance ``sigma_diag`` for every segment, as before).
+
+Best-model rule (``selection: likelihood``, :mod:`skidkin_ros.core.calibration.selection`): the
+lowest held-out negative log-likelihood per segment among the valid fits; a model with fewer
+parameters is taken when it is within 2 paired standard errors (clustered by drive or hold-out
+group). When the likelihood cannot be computed (too little held-out data) or with ``selection:
+paper``: score each valid model by median eps_t / (best median eps_t) + median eps_theta /
+(best median eps_theta); the lowest score wins, and when two scores are within 2 % the model
+with fewer parameters wins (the paper's argument for the symmetric EDD).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 import logging
 import math
 from typing import Any, Mapping, Sequence
@@ -26,12 +34,16 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from skidkin_ros import __version__
-from skidkin_ros.core.calibration.evaluation import evaluate_models, ModelEvaluation
-from skidkin_ros.core.calibration.fitting import fit_models, FitOptions, FitResult
+from skidkin_ros.core.calibration.evaluation import (evaluate_models, ModelEvaluation,
+                                                     window_end_errors, WindowEnd)
+from skidkin_ros.core.calibration.fitting import FitOptions, FitResult
 from skidkin_ros.core.calibration.holdout import resolve_holdout
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
                                                    SegmentSet, usable_segments)
+from skidkin_ros.core.calibration.selection import (choose_by_likelihood, heldout_nll,
+                                                    Likelihood, segment_clusters)
+from skidkin_ros.core.calibration.weighting import fit_models_weighted, WEIGHTINGS
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
@@ -39,10 +51,11 @@ from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
 __all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best',
-           'result_to_parameters', 'horizon_study', 'HorizonStudy']
+           'result_to_parameters', 'horizon_study', 'HorizonStudy', 'SELECTIONS']
 
 LOG = logging.getLogger(__name__)
 TIE_TOLERANCE = 0.02
+SELECTIONS = ('likelihood', 'paper')
 
 
 @dataclass(frozen=True)
@@ -59,8 +72,18 @@ class CalibrationOptions(HorizonOptions):
     holdout_mode: str = 'auto'
     holdout_block_s: float = 60.0
     holdout_key: str | None = None
+    weighting: str = 'iterated'
+    selection: str = 'likelihood'
+    window_s: float = 2.0
 
     def __post_init__(self) -> None:
+        if self.weighting not in WEIGHTINGS:
+            raise ParameterError(f'weighting must be one of {WEIGHTINGS}, got {self.weighting!r}')
+        if self.selection not in SELECTIONS:
+            raise ParameterError(f'selection must be one of {SELECTIONS}, '
+                                 f'got {self.selection!r}')
+        if not (math.isfinite(self.window_s) and self.window_s > 0):
+            raise ParameterError(f'window_s must be a duration > 0 s, got {self.window_s!r}')
         for name in self.models:
             get_model(name)
         if not self.models:
@@ -99,6 +122,9 @@ class CalibrationResult:
     eval_segments: SegmentSet = field(repr=False)
     holdout: str = 'given'
     provenance: dict[str, Any] = field(default_factory=dict)
+    likelihood: dict[str, Likelihood] = field(default_factory=dict)
+    window_end: dict[str, WindowEnd] = field(default_factory=dict)
+    selection_rule: str = 'paper'
 
     @property
     def counts(self) -> dict[str, Any]:
@@ -143,9 +169,12 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation',
                                needed_by='a calibration')
     models = tuple(dict.fromkeys(('ideal_dd',) + tuple(options.models)))
-    fits = fit_models(geometry, train_seg, options.fit_options(), models)
+    fits = fit_models_weighted(geometry, train_seg, options.fit_options(), models,
+                               options.weighting)
     evaluation = evaluate_models({m: f.values for m, f in fits.items()}, geometry, eval_seg,
                                  options.min_eval_path_m)
+    windows = cut_segments(evaluate, replace(options.eval_segments(), horizon_s=options.window_s))
+    window_end = {m: window_end_errors(m, f.values, geometry, windows) for m, f in fits.items()}
     noise = {}
     warnings = [w for fit in fits.values() for w in fit.warnings]
     for name, fit in fits.items():
@@ -157,6 +186,14 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     if counts.stationary:
         warnings.append(f'{counts.stationary} training segment(s) without motion were excluded')
     best, scores = choose_best(fits, evaluation)
+    likelihood, rule = {}, 'paper'
+    if options.selection == 'likelihood':
+        try:
+            best, likelihood = _choose_by_likelihood(fits, geometry, eval_seg, evaluate,
+                                                     options.holdout_key)
+            rule = 'likelihood'
+        except DataError as err:
+            warnings.append(f'best model chosen on eps_t and eps_theta: {err}')
     provenance = {
         'tool': f'skidkin_ros {__version__}',
         'train_drives': len(train), 'evaluate_drives': len(evaluate),
@@ -164,8 +201,20 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
         'holdout': holdout, 'options': options.as_dict(),
         'noise_coverage_scale': {name: round(nf.coverage_scale, 4) for name, nf in noise.items()},
     }
+    provenance['selection'] = rule
     return CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
-                             tuple(warnings), train_seg, eval_seg, holdout, provenance)
+                             tuple(warnings), train_seg, eval_seg, holdout, provenance,
+                             likelihood, window_end, rule)
+
+
+def _choose_by_likelihood(fits: Mapping[str, FitResult], geometry: Geometry,
+                          eval_seg: SegmentSet, evaluate: Sequence[Drive],
+                          key: str | None) -> tuple[str, dict[str, Likelihood]]:
+    """Held-out NLL of every valid fit, then the rule of selection.choose_by_likelihood."""
+    clusters = segment_clusters(eval_seg, evaluate, key)
+    valid = [m for m, f in fits.items() if f.valid]
+    nll = {m: heldout_nll(m, fits[m].values, geometry, eval_seg, clusters) for m in valid}
+    return choose_by_likelihood(nll, clusters, {m: len(get_model(m).params) for m in valid})
 
 
 def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | None = None,
@@ -235,7 +284,8 @@ def horizon_study(train: Sequence[Drive], evaluate: Sequence[Drive], geometry: G
         if len(train_seg) < 8:
             LOG.warning('h_t = %g m leaves %d training segments: skipped', h_t, len(train_seg))
             continue
-        fits = fit_models(geometry, train_seg, options.fit_options(), models)
+        fits = fit_models_weighted(geometry, train_seg, options.fit_options(), models,
+                                   options.weighting)
         for j, eval_seg in enumerate(eval_sets):
             if len(eval_seg) == 0:
                 continue

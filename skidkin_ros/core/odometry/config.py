@@ -280,6 +280,8 @@ class OdometryConfig:
     augmented_base: str = 'ideal_dd'
     augmented_extensions: tuple[str, ...] = ()
     augmented_values: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    # Models whose parameters the source gave (ideal_dd needs none): the others hold defaults.
+    models_in_file: tuple[str, ...] = ()
 
     def __getitem__(self, name: str) -> Any:
         return self.values[name]
@@ -368,8 +370,11 @@ class OdometryConfig:
             ext.vector(augmented_values[ext.name])
         if values['model'] != AUGMENTED_NAME:
             get_model(values['model'])
+        given = tuple(m.name for m in MODELS.values()
+                      if not m.params or any(f'models.{m.name}.{p.name}' in flat
+                                             for p in m.params))
         return cls(values['model'], geometry, model_values, noise, values,
-                   values['augmented.base'], extensions, augmented_values)
+                   values['augmented.base'], extensions, augmented_values, given)
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
