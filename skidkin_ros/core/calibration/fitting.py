@@ -54,6 +54,7 @@ __all__ = [
     'predict_end_poses',
     'segment_errors',
     'measure_excitation',
+    'parameter_scales',
     'solve_model',
     'assess_fit',
     'fit_model',
@@ -201,7 +202,7 @@ def measure_excitation(segments: SegmentSet, options: FitOptions) -> Excitation:
                       float(rotation.sum()), float(segments.path_m.sum()))
 
 
-def _scales(model: KinematicModel, geometry: Geometry) -> np.ndarray:
+def parameter_scales(model: KinematicModel, geometry: Geometry) -> np.ndarray:
     """Typical magnitude of each parameter (for start draws and relative uncertainty)."""
     unit_scale = {'m': geometry.track_width, 'm/rad': geometry.wheel_radius,
                   '-': 1.0}
@@ -219,7 +220,7 @@ def _starts(model: KinematicModel, geometry: Geometry, options: FitOptions,
     if len(model.params) < options.multi_start_min_params:
         return starts
     lo, hi = ParameterLayout.of_model(model.name, geometry).bounds()
-    scales = _scales(model, geometry)
+    scales = parameter_scales(model, geometry)
     for _ in range(options.n_starts - 1):
         draw = x0 + rng.uniform(-0.5, 0.5, size=x0.size) * scales
         starts.append(np.clip(draw, lo + 1e-3 * scales, hi - 1e-3 * scales))
@@ -280,7 +281,7 @@ def _std_errors(sol: optimize.OptimizeResult, n_params: int) -> np.ndarray:
 def _null_space_params(model: KinematicModel, geometry: Geometry, jac: np.ndarray,
                        tol: float) -> set[str]:
     """Parameters involved in near-null directions of the column-scaled Jacobian."""
-    scaled = jac * _scales(model, geometry)
+    scaled = jac * parameter_scales(model, geometry)
     norms = np.linalg.norm(scaled, axis=0)
     names = set()
     top = norms.max() if norms.size else 0.0
@@ -367,7 +368,7 @@ def assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
                 f'{model.name}: not enough {gap} in the training data ({have} of '
                 f'{excitation.segments} segments, need {need}): {", ".join(params)} cannot be '
                 f'observed; drive {remedy}')
-    scales = _scales(model, geometry)
+    scales = parameter_scales(model, geometry)
     vague = [n for n, s, sc in zip(names, se, scales) if s > options.max_relative_se * sc]
     if vague:
         unobservable.update(vague)

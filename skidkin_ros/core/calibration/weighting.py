@@ -14,9 +14,12 @@ that segment and couples heading to position through the lever arm. So, as a rec
    noise model); W_i = L_i^-1 with L_i L_i^T = Sigma_i.
 3. **Refit** from the current parameters with the per-segment whitening W_i (the one engine).
 4. **Repeat** 2-3 until no parameter moves by more than ``tolerance`` relative to its typical
-   magnitude, at most ``max_iterations`` times.
+   magnitude, at most ``max_iterations`` times (the noise rates are fitted on at most
+   ``max_noise_segments`` segments, evenly spread: four rates need no more, and the cost grows
+   with the count).
 5. **Trim** (the project's rule, :func:`skidkin_ros.core.calibration.engine.trim_mask`) on the
-   whitened distances e_i^T Sigma_i^-1 e_i, then repeat 2-4 on the kept segments.
+   whitened distances e_i^T Sigma_i^-1 e_i, at every iteration: the refit of step 3 uses the
+   kept segments, and the next noise fit too.
 
 The standard errors then come from the whitened Jacobian, as for the fixed-Sigma fit. The scale
 of Sigma does not move the minimum, only the relative weight of the segments and of x, y and
@@ -35,7 +38,7 @@ import numpy as np
 
 from skidkin_ros.core.calibration.engine import trim_mask
 from skidkin_ros.core.calibration.fitting import (assess_fit, fit_model, FitOptions, FitResult,
-                                                  segment_errors, solve_model)
+                                                  parameter_scales, segment_errors, solve_model)
 from skidkin_ros.core.calibration.noise_fit import (fit_noise_model, segment_covariances,
                                                     segment_motion)
 from skidkin_ros.core.calibration.segments import SegmentSet
@@ -55,7 +58,8 @@ class IterationOptions:
     """Bounds of the iteration (module docstring, step 4)."""
 
     max_iterations: int = 8
-    tolerance: float = 1e-4
+    tolerance: float = 1e-3
+    max_noise_segments: int = 300
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -66,17 +70,25 @@ class IterationOptions:
 
 def noise_covariances(name: str, values: dict[str, float], geometry: Geometry,
                       fit_segments: SegmentSet, fit_errors: np.ndarray,
-                      segments: SegmentSet | None = None) -> np.ndarray:
+                      segments: SegmentSet | None = None,
+                      max_fit_segments: int | None = None) -> np.ndarray:
     """Fit the model's noise on ``fit_errors`` and return the covariances (N, 3, 3) of segments.
 
     The one place the fit and the model choice call the noise model: maximum-likelihood rates
     on the errors of ``fit_segments`` (noise_fit.fit_noise_model), then each segment's predicted
     end-pose covariance (noise_fit.segment_covariances); ``segments`` defaults to the fit's own.
+    ``max_fit_segments``: fit the rates on at most that many of them, evenly spread (a few
+    rates need a few hundred segments; the cost of the fit grows with their number).
     """
+    target = fit_segments if segments is None else segments
+    if max_fit_segments is not None and len(fit_segments) > max_fit_segments:
+        pick = np.unique(np.linspace(0, len(fit_segments) - 1, max_fit_segments).round()
+                         .astype(int))
+        fit_segments, fit_errors = fit_segments.subset(pick), fit_errors[pick]
     motion = segment_motion(name, values, geometry, fit_segments)
     noise = fit_noise_model(fit_errors, motion)
-    if segments is not None and segments is not fit_segments:
-        motion = segment_motion(name, values, geometry, segments)
+    if target is not fit_segments:
+        motion = segment_motion(name, values, geometry, target)
     return segment_covariances(noise, motion)
 
 
@@ -85,28 +97,32 @@ def whitening_matrices(cov: np.ndarray) -> np.ndarray:
     return np.linalg.inv(np.linalg.cholesky(cov))
 
 
-def _typical(model_name: str, geometry: Geometry) -> np.ndarray:
-    model = get_model(model_name)
-    return np.array([max(abs(s.default_for(geometry)), 0.1 * geometry.wheel_radius, 1e-3)
-                     for s in model.params])
-
-
 def _settle(name: str, geometry: Geometry, segments: SegmentSet, options: FitOptions,
             k: np.ndarray, iterations: IterationOptions):
-    """Run steps 2-4 on ``segments`` from ``k``: (solution, weights, iterations, settled)."""
+    """Run steps 2-5 from ``k``: (solution, kept mask, iterations, settled).
+
+    The trimming rule is applied at every iteration to the current whitened distances, and the
+    noise is fitted on the segments the previous iteration kept: one loop, not two.
+    """
     model = get_model(name)
-    typical = _typical(name, geometry)
-    sol, weight = None, None
+    typical = parameter_scales(model, geometry)
+    kept = np.ones(len(segments), bool)
+    sol = None
     for count in range(1, iterations.max_iterations + 1):
         errors = segment_errors(model, k, geometry, segments)
-        weight = whitening_matrices(noise_covariances(name, model.mapping(k), geometry,
-                                                      segments, errors))
-        sol = solve_model(model, geometry, segments, options, k, weight=weight)
+        fit_idx = np.nonzero(kept)[0]
+        weight = whitening_matrices(noise_covariances(
+            name, model.mapping(k), geometry, segments.subset(fit_idx), errors[fit_idx],
+            segments, max_fit_segments=iterations.max_noise_segments))
+        if options.trim:
+            kept = trim_mask(errors, weight, options.trim_chi2, options.trim_max_fraction)
+        used = segments if kept.all() else segments.subset(np.nonzero(kept)[0])
+        sol = solve_model(model, geometry, used, options, k, weight=weight[kept])
         step = float(np.max(np.abs(sol.x - k) / typical))
         k = sol.x
         if step < iterations.tolerance:
-            return sol, weight, count, True
-    return sol, weight, iterations.max_iterations, False
+            return sol, kept, count, True
+    return sol, kept, iterations.max_iterations, False
 
 
 def fit_model_iterated(name: str, geometry: Geometry, segments: SegmentSet,
@@ -122,29 +138,19 @@ def fit_model_iterated(name: str, geometry: Geometry, segments: SegmentSet,
     tic = time.perf_counter()
     k = model.vector(start.values, geometry)
     try:
-        sol, weight, used_iterations, settled = _settle(name, geometry, segments, options, k,
-                                                        iterations)
+        sol, kept, count, settled = _settle(name, geometry, segments, options, k, iterations)
     except (DataError, np.linalg.LinAlgError) as err:
         LOG.warning('%s: iterated weighting not possible (%s); kept the fixed-Sigma fit',
                     name, err)
         return fit_model(name, geometry, segments, options)
-    kept = np.ones(len(segments), bool)
-    used = segments
-    if options.trim:
-        kept = trim_mask(segment_errors(model, sol.x, geometry, segments), weight,
-                         options.trim_chi2, options.trim_max_fraction)
-        if not kept.all():
-            used = segments.subset(kept)
-            sol, weight, more, settled = _settle(name, geometry, used, options, sol.x,
-                                                 iterations)
-            used_iterations += more
+    used = segments if kept.all() else segments.subset(np.nonzero(kept)[0])
     result = assess_fit(model, geometry, used, options, sol, start.starts, int((~kept).sum()),
                         kept, start.seconds + time.perf_counter() - tic, weighting='iterated')
     if not settled:
         result = replace(result, warnings=result.warnings + (
-            f'{name}: the iterated weighting had not settled after {used_iterations} '
-            'iterations (the last one is used)',))
-    return replace(result, iterations=used_iterations)
+            f'{name}: the iterated weighting had not settled after {count} iterations (the '
+            'last one is used)',))
+    return replace(result, iterations=count)
 
 
 def fit_models_weighted(geometry: Geometry, segments: SegmentSet,
