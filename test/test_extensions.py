@@ -139,15 +139,20 @@ def test_sparse_correction_adds_the_library_terms():
     assert out[2] == pytest.approx(base[2] * 1.05)
 
 
-def test_lag_is_the_exact_response_to_a_held_input():
+@pytest.mark.parametrize('interval, step_ns', [('starting', 500_000_000),
+                                                ('ending', 450_000_000)])
+def test_lag_is_the_exact_response_to_a_held_input(interval, step_ns):
     model = augmented({'first_order_lag': {'tau_s': 0.3}})
     t_ns = np.arange(0, 41) * 50_000_000
     wl = np.where(t_ns >= 500_000_000, 4.0, 0.0)
-    poses = rollout_stream(model, t_ns, wl, wl)
+    # under ending, the sample at 0.5 s describes [0.45, 0.5]: the input steps at 0.45 s
+    poses = rollout_stream(model, t_ns, wl, wl, interval=interval)
+    streamed = predict_wheels(WheelSamples(t_ns, wl, wl), model, interval=interval)
     v_ss = BASE.twist(4.0, 4.0)[0]
-    # step at t0 = 0.5 s: x(t) = v (T - tau (1 - exp(-T / tau))), T = t - t0
+    # step at t0: x(t) = v (T - tau (1 - exp(-T / tau))), T = t - t0
     for i in (20, 30, 40):
-        elapsed = (t_ns[i] - 500_000_000) * 1e-9
+        elapsed = (t_ns[i] - step_ns) * 1e-9
+        assert streamed.poses[i, 0] == pytest.approx(poses[i, 0], rel=1e-12, abs=1e-12)
         expected = v_ss * (elapsed - 0.3 * (1 - math.exp(-elapsed / 0.3)))
         assert poses[i, 0] == pytest.approx(expected, rel=1e-12, abs=1e-12)
     d, g = lag_factors(np.array([0.0, 0.05]), 0.3)
@@ -199,10 +204,16 @@ def test_time_offset_shifts_published_stamps_only():
 
 def test_base_model_speed_is_unchanged_and_reset_clears_the_state():
     model = augmented({'first_order_lag': {'tau_s': 0.5}})
-    stream = StreamingIntegrator(model)
+    stream = StreamingIntegrator(model, interval='starting')
     stream.step(0, 0.0, 0.0)
     stream.step(100_000_000, 5.0, 5.0)
     assert stream.state is not None and stream.held_twist[0] == 0.0  # lags behind the input
+    # ending: the first interval starts the response at its own input, later ones lag
+    ending = StreamingIntegrator(model, interval='ending')
+    for t_ns, speed in ((0, 0.0), (100_000_000, 0.0), (200_000_000, 5.0)):
+        ending.step(t_ns, speed, speed)
+    # the speed of 5 rad/s over [0.1, 0.2] s has moved the response 1 - exp(-0.1 / 0.5) of the way
+    assert ending.held_twist[0] == pytest.approx(BASE.twist(5.0, 5.0)[0] * (1 - math.exp(-0.2)))
     stream.reset()
     assert stream.state is None
     stream.step(0, 5.0, 5.0)
@@ -217,7 +228,7 @@ def _drive_with_truth(seed):
     t_ns[300 * 5 // 8:] -= 2_000_000_000  # no gap here
     t_ns = np.unique(t_ns)
     wl, wr = wl[:t_ns.size], wr[:t_ns.size]
-    truth = rollout(BASE.twist(wl[:-1], wr[:-1]), np.diff(t_ns) * 1e-9)
+    truth = rollout(BASE.twist(wl[1:], wr[1:]), np.diff(t_ns) * 1e-9)  # interval: ending
     keep = np.arange(0, t_ns.size, 2)
     return Drive(f'd{seed}', WheelSamples(t_ns, wl, wr),
                  PoseTrack(t_ns[keep], *truth[keep].T))
@@ -310,8 +321,13 @@ def test_constant_rate_lag_uses_the_filter_path_and_still_matches_streaming():
     t_ns = np.arange(600, dtype=np.int64) * 50_000_000
     wl = np.repeat(rng.uniform(-5, 5, 30), 20)
     wr = np.repeat(rng.uniform(-5, 5, 30), 20)
-    streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model)
-    batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5)
+    for interval in ('ending', 'midpoint'):
+        streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model, interval=interval)
+        batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5, interval=interval)
+        np.testing.assert_allclose(batch, streamed.poses, rtol=0, atol=1e-9)
+    # the published twists are the held samples' under starting
+    streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model, interval='starting')
+    batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5, interval='starting')
     np.testing.assert_allclose(batch, streamed.poses, rtol=0, atol=1e-9)
     held, _ = model.intervals(t_ns[None], wl[None], wr[None],
                               np.append(np.diff(t_ns) * 1e-9, 0.0)[None],

@@ -10,11 +10,13 @@ from skidkin_ros.atomic import check_writable
 from skidkin_ros.cli.common import (add_geometry_args, add_source_args, calibration_provenance,
                                     check_report_dir, geometry_from_args, input_parameters,
                                     print_calibration, print_notes, say, source_options)
-from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions, horizon_study,
-                                                   result_to_parameters, SELECTIONS)
+from skidkin_ros.core.calibration.pipeline import (calibrate_interval, CalibrationOptions,
+                                                   horizon_study, result_to_parameters,
+                                                   SELECTIONS)
 from skidkin_ros.core.calibration.weighting import WEIGHTINGS
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.odometry.config import write_params_file
+from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.errors import FitError
 from skidkin_ros.report.page import write_report
 
@@ -29,6 +31,19 @@ def _options(args: argparse.Namespace) -> CalibrationOptions:
         holdout_key=args.split_by, weighting=args.weighting, selection=args.selection)
 
 
+def _print_interval(result) -> None:
+    """Say which sample-interval convention was used, and how the others did."""
+    chosen = result.options.interval
+    if not result.interval_errors:
+        say(f'\nsample interval: {chosen} (given)')
+        return
+    say(f'\nsample interval: {chosen} (chosen on the evaluation segments; {result.best}, '
+        'median eps_t [m/m] / eps_theta [deg/m]):')
+    for interval, (eps_t, eps_th) in result.interval_errors.items():
+        mark = '  <- written' if interval == chosen else ''
+        say(f'  {interval:<9} {eps_t:.4f} / {eps_th:.3f}{mark}')
+
+
 def run(args: argparse.Namespace) -> int:
     check_writable(args.out, args.force)
     check_report_dir(args.report, args.force)
@@ -41,9 +56,12 @@ def run(args: argparse.Namespace) -> int:
     train = load_sources(args.train, src_opts)
     evaluate = load_sources(args.eval, src_opts) if args.eval else []
     print_notes(train + evaluate)
-    result = calibrate([d for s in train for d in s.drives],
-                       [d for s in evaluate for d in s.drives] or None, geometry, options)
+    intervals = INTERVALS if args.interval == 'auto' else (args.interval,)
+    result = calibrate_interval([d for s in train for d in s.drives],
+                                [d for s in evaluate for d in s.drives] or None, geometry,
+                                options, intervals)
     print_calibration(result)
+    _print_interval(result)
     base = {'robot': args.robot, **input_parameters(train)}
     flat = result_to_parameters(result, base, allow_invalid=False)
     prov = calibration_provenance(result, train, evaluate, 'skidkin calibrate')
@@ -86,6 +104,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--force', action='store_true', help='overwrite existing outputs')
     parser.add_argument('--models', nargs='+', choices=MODEL_NAMES, default=list(MODEL_NAMES))
     parser.add_argument('--robot', default='', help='robot name recorded in the file')
+    parser.add_argument('--interval', choices=('auto',) + INTERVALS, default='auto',
+                        help='which interval a wheel sample describes: auto (chosen on the '
+                        'evaluation data, default), ending, starting or midpoint')
     parser.add_argument('--split-by', metavar='COLUMN',
                         help='tables without --eval: even values of COLUMN train, odd evaluate '
                         '(e.g. calib_step)')

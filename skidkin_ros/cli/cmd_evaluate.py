@@ -26,7 +26,8 @@ def run(args: argparse.Namespace) -> int:
     sources = load_sources(args.sources, source_options(args))
     print_notes(sources)
     drives = [d for s in sources for d in s.drives]
-    segments = cut_segments(drives, SegmentOptions(horizon_m=args.h_e))
+    segments = cut_segments(drives, SegmentOptions(horizon_m=args.h_e,
+                                                   interval=config['interval']))
     if len(segments) == 0:
         raise DataError(f'no evaluation segment of {args.h_e:g} m in the given data '
                         f'({segments.counts.as_dict()})')
@@ -34,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     values = {m: config.model_values[m] for m in models}
     evaluation = evaluate_models(values, config.geometry, segments)
     say(f'{len(segments)} segments of h_e = {args.h_e:g} m; parameters from {args.params} '
-        f'(active model {config.model})')
+        f'(active model {config.model}, interval {config["interval"]})')
     table = error_table(evaluation, best=config.model)
     say(table)
     if args.report is not None:

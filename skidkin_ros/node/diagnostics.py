@@ -54,6 +54,7 @@ class StatusReport:
                                   hardware_id=config['robot'])
         values = {
             'model': config.model,
+            'interval': config['interval'],
             'input': config['input'],
             'covariance': 'calibrated' if config.active_noise else 'fallback',
             'rate_hz': f'{recent["published"] / period_s:.2f}',

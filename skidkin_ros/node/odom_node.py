@@ -172,6 +172,7 @@ class OdomNode(Node):
         self.get_logger().info(
             f'odometry with model {config.model!r} (r {config.geometry.wheel_radius:g} m, '
             f'b {config.geometry.track_width:g} m), input {self._input}, '
+            f'interval {config["interval"]}, '
             f'covariance {"calibrated" if config.active_noise else "fallback diagonals"}')
 
     # ------------------------------------------------------------------ parameters

@@ -112,7 +112,8 @@ def run_case(effect: Effect | None, duration_s: float = 120.0,
     base = fit_model('edd_symmetric', GEOMETRY, cut_segments(train, options.train_segments()))
     result = diagnose(train, evaluate, GEOMETRY, {'edd_symmetric': base.values}, 'edd_symmetric',
                       options)
-    predictor = SegmentPredictor(evaluate, cut_segments(evaluate, options.eval_segments()))
+    predictor = SegmentPredictor(evaluate, cut_segments(evaluate, options.eval_segments()),
+                                 interval=options.interval)
     errors = predictor.errors(true_state(effect, duration_s).bind('edd_symmetric', GEOMETRY))
     eps_t, eps_theta = relative_errors(errors, predictor.segments.path_m,
                                        options.min_eval_path_m)

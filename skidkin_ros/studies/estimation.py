@@ -52,6 +52,7 @@ from skidkin_ros.core.estimation.nees import (nees, nees_over_time, NeesOverTime
                                               segment_nees, SegmentNees, summarize_nees)
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.integrator import wrap_angle
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, held_wheels
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.errors import FitError, ParameterError
 from skidkin_ros.sim.simulate import SimConfig, simulate
@@ -303,8 +304,12 @@ def _world_errors(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
 
 
 def run_filter(drives: Sequence[Drive], source, noise: NoiseModel, options: StudyOptions,
-               rng: np.random.Generator) -> FilterRuns:
+               rng: np.random.Generator, interval: str = DEFAULT_INTERVAL) -> FilterRuns:
     """Run odometry alone and the EKF on each drive from its true start pose.
+
+    The filters hold each sample's speeds until the next one; they are fed the speeds the
+    sample-interval convention ``interval`` holds (:func:`held_wheels`, offline: it looks one
+    sample ahead), so they move as the calibrated odometry does.
 
     Odometry alone starts with a zero covariance (the start is exact); the EKF with the loose
     prior diag(initial_sigma_m^2, initial_sigma_m^2, initial_sigma_yaw_rad^2), forgotten within
@@ -333,8 +338,9 @@ def run_filter(drives: Sequence[Drive], source, noise: NoiseModel, options: Stud
         odom_pose = np.empty((count, 3))
         ekf_pose = np.empty((count, 3))
         run_nis = []
-        for i, (t_ns, omega_l, omega_r) in enumerate(zip(drive.wheels.t_ns, drive.wheels.omega_l,
-                                                         drive.wheels.omega_r)):
+        wheels = held_wheels(drive.wheels, interval)
+        for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns, wheels.omega_l,
+                                                         wheels.omega_r)):
             odom.predict(int(t_ns), omega_l, omega_r)
             ekf.predict(int(t_ns), omega_l, omega_r)
             if i in fixes:
@@ -388,7 +394,7 @@ def run_estimation_study(seed: int = 0, quick: bool = False,
     for horizon in options.other_horizons_m:
         other = SegmentOptions(horizon_m=horizon, short_drive='drop')
         horizons[float(horizon)] = segment_nees(tests, source, noise, other).summary()
-    runs = run_filter(tests, source, noise, options, rng)
+    runs = run_filter(tests, source, noise, options, rng, cal_options.interval)
     sweep = {}
     for sigma_m, sigma_yaw in options.fix_sweep:
         other = replace(options, fix_sigma_m=sigma_m, fix_sigma_yaw_rad=sigma_yaw)

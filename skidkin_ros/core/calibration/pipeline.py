@@ -22,6 +22,14 @@ group). When the likelihood cannot be computed (too little held-out data) or wit
 paper``: score each valid model by median eps_t / (best median eps_t) + median eps_theta /
 (best median eps_theta); the lowest score wins, and when two scores are within 2 % the model
 with fewer parameters wins (the paper's argument for the symmetric EDD).
+
+The sample-interval convention (``options.interval``,
+:mod:`skidkin_ros.core.odometry.interval`) is part of the model: :func:`calibrate_interval`
+chooses it on the held-out data. It calibrates under ``ending`` (the default), refits the model
+that won under ``starting`` and ``midpoint`` on the same segments, scores the three by the paper's
+rule on the model's held-out errors (median eps_t / best + median eps_theta / best; within 2 %
+of the lowest, ``ending`` is kept, then the order of :data:`INTERVALS`), and returns the
+calibration under the winner; the parameters file records it (``interval``).
 """
 
 from __future__ import annotations
@@ -47,10 +55,12 @@ from skidkin_ros.core.calibration.weighting import fit_models_weighted, WEIGHTIN
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
 __all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best',
+           'calibrate_interval', 'choose_interval',
            'result_to_parameters', 'horizon_study', 'HorizonStudy', 'SELECTIONS']
 
 LOG = logging.getLogger(__name__)
@@ -125,6 +135,8 @@ class CalibrationResult:
     likelihood: dict[str, Likelihood] = field(default_factory=dict)
     window_end: dict[str, WindowEnd] = field(default_factory=dict)
     selection_rule: str = 'paper'
+    # Held-out median (eps_t m/m, eps_theta deg/m) of the best model under each convention tried.
+    interval_errors: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @property
     def counts(self) -> dict[str, Any]:
@@ -155,6 +167,51 @@ def choose_best(fits: Mapping[str, FitResult],
     tied = [m for m in valid if scores[m] <= lowest * (1.0 + TIE_TOLERANCE)]
     best = min(tied, key=lambda m: (len(get_model(m).params), scores[m]))
     return best, scores
+
+
+def choose_interval(errors: Mapping[str, tuple[float, float]]) -> tuple[str, dict[str, float]]:
+    """Return the convention the module docstring's rule picks, and each one's score.
+
+    ``errors``: held-out median (eps_t, eps_theta) of one model under each convention.
+    """
+    finite = {k: v for k, v in errors.items() if math.isfinite(v[0]) and math.isfinite(v[1])}
+    if not finite:
+        raise FitError('no sample-interval convention gave finite held-out errors')
+    best_t = max(min(v[0] for v in finite.values()), 1e-12)
+    best_th = max(min(v[1] for v in finite.values()), 1e-12)
+    scores = {k: v[0] / best_t + v[1] / best_th for k, v in finite.items()}
+    lowest = min(scores.values())
+    tied = [k for k in INTERVALS if k in scores and scores[k] <= lowest * (1.0 + TIE_TOLERANCE)]
+    return tied[0], scores
+
+
+def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
+                       geometry: Geometry, options: CalibrationOptions | None = None,
+                       intervals: Sequence[str] = INTERVALS) -> CalibrationResult:
+    """Calibrate and choose the sample-interval convention on held-out data (module docstring).
+
+    ``intervals``: the conventions to try, the first one calibrated with every model; one name
+    calibrates under it alone.
+    """
+    options = options or CalibrationOptions()
+    intervals = tuple(dict.fromkeys(intervals))
+    first = calibrate(train, evaluate, geometry, replace(options, interval=intervals[0]))
+    if len(intervals) == 1:
+        return first
+    model = first.best
+    errors = {}
+    for interval in intervals:
+        result = first if interval == intervals[0] else calibrate(
+            train, evaluate, geometry, replace(options, interval=interval, models=(model,)))
+        stats = result.evaluation[model]
+        errors[interval] = (float(stats.stats_t.median), float(stats.stats_theta.median))
+    chosen, _ = choose_interval(errors)
+    if chosen != intervals[0]:
+        first = calibrate(train, evaluate, geometry, replace(options, interval=chosen))
+    provenance = dict(first.provenance)
+    provenance['interval_errors'] = {k: [round(v[0], 6), round(v[1], 6)]
+                                     for k, v in errors.items()}
+    return replace(first, provenance=provenance, interval_errors=errors)
 
 
 def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry: Geometry,
@@ -246,6 +303,7 @@ def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | No
         problems = '; '.join(w for w in result.warnings) or 'see the fit status'
         raise FitError(f'no kinematic model could be calibrated from this data: {problems}')
     flat['model'] = result.best
+    flat['interval'] = result.options.interval
     return flat
 
 

@@ -34,6 +34,7 @@ from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
 from skidkin_ros.core.calibration.segments import cut_segments, segment_frame_error, SegmentOptions
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.integrator import TwistSource
+from skidkin_ros.core.odometry.interval import held_wheels
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.propagation import predict
 from skidkin_ros.errors import DataError
@@ -118,7 +119,7 @@ def segment_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel
     predicted = np.empty((n, 3))
     covs = np.empty((n, 3, 3))
     for i in range(n):
-        wheels = drives[int(segments.drive[i])].wheels
+        wheels = held_wheels(drives[int(segments.drive[i])].wheels, options.interval)
         # The window starts on a wheel stamp or after it: hold the last sample <= t_a from t_a.
         first = int(np.searchsorted(wheels.t_ns, segments.t_a_ns[i], side='right')) - 1
         inner = wheels.between(int(segments.t_a_ns[i]) + 1, int(segments.t_b_ns[i]) - 1)
@@ -126,7 +127,7 @@ def segment_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel
         omega_l = np.concatenate([[wheels.omega_l[first]], inner.omega_l, [0.0]])
         omega_r = np.concatenate([[wheels.omega_r[first]], inner.omega_r, [0.0]])
         predicted[i], cov = predict(segments.start[i], np.zeros((3, 3)), t_ns, omega_l,
-                                    omega_r, source, noise)
+                                    omega_r, source, noise, interval='starting')
         cos_a, sin_a = np.cos(segments.start[i, 2]), np.sin(segments.start[i, 2])
         to_start = np.array([[cos_a, sin_a, 0.0], [-sin_a, cos_a, 0.0], [0.0, 0.0, 1.0]])
         covs[i] = to_start @ cov @ to_start.T + MIN_VARIANCE * np.eye(3)

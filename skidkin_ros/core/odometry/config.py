@@ -21,6 +21,7 @@ from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
 from skidkin_ros.errors import brief, ConfigError, ParameterError
@@ -36,6 +37,7 @@ __all__ = [
     'flatten',
     'nest',
     'parse_extensions',
+    'implied_interval',
     'read_params_file',
     'read_params_document',
     'parse_params_text',
@@ -141,6 +143,21 @@ def _augmented_entries() -> list[SchemaEntry]:
     return entries
 
 
+def implied_interval(flat: Mapping[str, Any]) -> str:
+    """Return the sample-interval convention parameters mean when they do not name one.
+
+    A parameters file written by ``skidkin calibrate`` (it carries ``provenance.*``) before the
+    convention existed was fitted with the zero-order hold from the stamp, and its parameters
+    (a time offset above all) are right only under it: such a file keeps meaning
+    ``starting`` (:data:`LEGACY_INTERVAL`). Anything else takes the default, ``ending``.
+    """
+    if 'interval' in flat:
+        return flat['interval']
+    if any(str(name).startswith('provenance.') for name in flat):
+        return LEGACY_INTERVAL
+    return DEFAULT_INTERVAL
+
+
 def parse_extensions(text: str) -> tuple[str, ...]:
     """Return the extension names of a comma-separated list, in application order."""
     names = [part.strip() for part in str(text).replace(';', ',').split(',')]
@@ -165,6 +182,11 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
         SchemaEntry('model', 'string', 'ideal_dd',
                     'kinematic model to run (augmented: a base model plus extensions, see '
                     'augmented.*)', choices=tuple(MODELS) + (AUGMENTED_NAME,)),
+        SchemaEntry('interval', 'string', DEFAULT_INTERVAL,
+                    'which interval a wheel sample describes: ending (the one up to its stamp, '
+                    'as diff_drive_controller), starting (held from its stamp on) or midpoint '
+                    '(trapezoid); a calibrated file without it means starting',
+                    choices=INTERVALS),
         SchemaEntry('input', 'string', 'joint_state',
                     'joint_state (sensor_msgs/JointState) or wheel_topics (two std_msgs/Float64)',
                     choices=INPUT_MODES),
@@ -337,8 +359,9 @@ class OdometryConfig:
             raise ParameterError(f'unknown parameter(s) {brief(unknown, 400)}; see the README for '
                                  'the parameters the node accepts')
         values = {}
+        defaults = {'interval': implied_interval(flat)}
         for name, entry in schema.items():
-            values[name] = _check_entry(entry, flat.get(name, entry.default))
+            values[name] = _check_entry(entry, flat.get(name, defaults.get(name, entry.default)))
         _check_node_values(values)
         if values['schema_version'] != SCHEMA_VERSION:
             raise ConfigError(

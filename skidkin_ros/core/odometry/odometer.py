@@ -43,6 +43,7 @@ from skidkin_ros.core.drive import WheelSamples
 from skidkin_ros.core.odometry.config import node_default, OdometryConfig
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, StepResult,
                                                   StreamingIntegrator, TwistSource)
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
 from skidkin_ros.core.odometry.noise import FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL
 from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
 from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer
@@ -145,8 +146,9 @@ class Odometer:
                  rules: SampleRules | None = None,
                  covariance: PoseCovariancePropagator | None = None, *,
                  counters: collections.Counter[str] | None = None, warn: Warn | None = None,
-                 fresh: Callable[[], None] | None = None) -> None:
-        self.integrator = StreamingIntegrator(source, limits)
+                 fresh: Callable[[], None] | None = None,
+                 interval: str = DEFAULT_INTERVAL) -> None:
+        self.integrator = StreamingIntegrator(source, limits, interval)
         self.covariance = covariance or PoseCovariancePropagator(
             None, FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL)
         self.counters: collections.Counter[str] = (collections.Counter() if counters is None
@@ -167,7 +169,8 @@ class Odometer:
                     fresh: Callable[[], None] | None = None) -> 'Odometer':
         """Return the odometer a configuration describes (``model`` replaces its model)."""
         return cls(config.bound_model(model), config.limits, SampleRules.from_config(config),
-                   _propagator(config), counters=counters, warn=warn, fresh=fresh)
+                   _propagator(config), counters=counters, warn=warn, fresh=fresh,
+                   interval=config['interval'])
 
     # ------------------------------------------------------------------ state
     @property
@@ -190,7 +193,7 @@ class Odometer:
 
     def configure(self, config: OdometryConfig) -> None:
         """Switch to a validated configuration; the pose and its covariance are kept."""
-        self.integrator.set_source(config.bound_model())
+        self.integrator.set_source(config.bound_model(), config['interval'])
         self.integrator.limits = config.limits
         covariance = _propagator(config)
         covariance.cov = self.covariance.cov.copy()
@@ -396,6 +399,7 @@ class Prediction:
 
 def predict_wheels(wheels: WheelSamples, source: TwistSource,
                    limits: IntegratorLimits | None = None,
-                   start: Sequence[float] = (0.0, 0.0, 0.0)) -> Prediction:
+                   start: Sequence[float] = (0.0, 0.0, 0.0),
+                   interval: str = DEFAULT_INTERVAL) -> Prediction:
     """Run ``source`` over every wheel sample from ``start``, through the node's odometer."""
-    return Odometer(source, limits).predict(wheels, start)
+    return Odometer(source, limits, interval=interval).predict(wheels, start)

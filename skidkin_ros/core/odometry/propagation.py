@@ -32,6 +32,7 @@ import numpy as np
 
 from skidkin_ros.core.odometry.integrator import (body_increment, IntegratorLimits, SampleStatus,
                                                   step_scalar, StreamingIntegrator, TwistSource)
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, interval_speed
 from skidkin_ros.core.odometry.noise import NoiseModel
 
 __all__ = [
@@ -156,13 +157,13 @@ def propagate_scalar(x: float, y: float, yaw: float, vx: float, vy: float, w: fl
 
 def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
             omega_l: Sequence[float], omega_r: Sequence[float], source: TwistSource,
-            noise: NoiseModel | None, input_variance: float = 0.0
-            ) -> tuple[np.ndarray, np.ndarray]:
+            noise: NoiseModel | None, input_variance: float = 0.0,
+            interval: str = DEFAULT_INTERVAL) -> tuple[np.ndarray, np.ndarray]:
     """Predict the pose and its covariance from t_ns[0] to t_ns[-1].
 
-    ``pose`` (x, y, yaw) and ``cov`` (3 x 3) hold at t_ns[0]; the wheel speeds of each sample are
-    held until the next one (the integrator's zero-order hold), so the last sample only sets the
-    end time. The samples go through the node's streaming integrator, so a stateful ``source``
+    ``pose`` (x, y, yaw) and ``cov`` (3 x 3) hold at t_ns[0]; the speeds between two samples are
+    the sample-interval convention's (``interval``, see
+    :mod:`skidkin_ros.core.odometry.interval`). The samples go through the node's streaming integrator, so a stateful ``source``
     (an augmented model with a lag, a time-in-drive regime) predicts what the node publishes;
     duplicate stamps update the held speeds, and samples with an older stamp or a non-finite
     speed are skipped, as in the node (there is no limit on the step length or the speed here).
@@ -170,7 +171,7 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
     the model's Jacobian with respect to the inputs.
     """
     unlimited = IntegratorLimits(max_dt_s=math.inf, max_wheel_speed_rad_s=math.inf)
-    integrator = StreamingIntegrator(source, unlimited)
+    integrator = StreamingIntegrator(source, unlimited, interval)
     integrator.reset(pose)
     state = np.asarray(pose, dtype=float).copy()
     covariance = np.asarray(cov, dtype=float).copy()
@@ -181,7 +182,9 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
         result = integrator.step(t, left, right)
         if result.status is not SampleStatus.INTEGRATED:
             continue
-        jac_in = (increment_input_jacobian(source, *held, result.dt_s)
+        speeds = (interval_speed(held[0], left, interval),
+                  interval_speed(held[1], right, interval))
+        jac_in = (increment_input_jacobian(source, *speeds, result.dt_s)
                   if input_variance > 0.0 else None)
         _, covariance = propagate_step(np.asarray(result.start_pose), covariance,
                                        np.asarray(result.step_twist), result.dt_s, noise,

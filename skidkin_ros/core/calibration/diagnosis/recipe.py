@@ -1,10 +1,12 @@
 """The diagnosis recipe: refit, trace, select, and measure before and after.
 
 :func:`diagnose` runs the steps of :mod:`skidkin_ros.core.calibration.diagnosis` in order; each
-step's module says how and why. The stamp convention is decided here: with the integrator's
-zero-order hold, a wheel speed held from its stamp describes the middle of the interval it is
-held over, so effect-free data gains from a -dt/2 time offset. That offset is part of the
-baseline (its own row in the table), never a found effect.
+step's module says how and why. The stamp convention is decided here: under ``interval:
+starting`` (a zero-order hold from the stamp), a wheel speed held from its stamp describes the
+middle of the interval it is held over, so effect-free data gains from a -dt/2 time offset. That
+offset is part of the baseline (its own row in the table), never a found effect. Under
+``ending`` or ``midpoint`` (:mod:`skidkin_ros.core.odometry.interval`) no offset is needed and
+there is no such row.
 """
 
 from __future__ import annotations
@@ -47,8 +49,12 @@ def wheel_period_s(drives: Sequence[Drive]) -> float:
 
 
 def _stamp_convention(drives: Sequence[Drive], options: DiagnosisOptions) -> float:
-    """Return -dt/2 (s) for options.stamp_convention 'mid' (median wheel period), else 0."""
-    if options.stamp_convention != 'mid':
+    """Return -dt/2 (s) for options.stamp_convention 'mid' under the ``starting`` interval, else 0.
+
+    Only the zero-order hold from the stamp (``interval: starting``) lags by half a sample; the
+    ``ending`` and ``midpoint`` conventions need no offset.
+    """
+    if options.stamp_convention != 'mid' or options.interval != 'starting':
         return 0.0
     return -0.5 * wheel_period_s(drives)
 
@@ -83,7 +89,8 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                                'a diagnosis')
     given_state = ModelState((), given, {})
     convention_s = _stamp_convention(train, options)
-    predictor = SegmentPredictor(train, train_seg, options.max_dt_s)
+    predictor = SegmentPredictor(train, train_seg, options.max_dt_s,
+                                 options.interval)
     refit, _ = fit_state(predictor, base_model_name, geometry, given_state, options)
     trimmed = 0
     if options.trim:
@@ -93,7 +100,8 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
         trimmed = int((~kept).sum())
         if trimmed:
             train_seg = train_seg.subset(kept)
-            predictor = SegmentPredictor(train, train_seg, options.max_dt_s)
+            predictor = SegmentPredictor(train, train_seg, options.max_dt_s,
+                                         options.interval)
             refit, _ = fit_state(predictor, base_model_name, geometry, refit, options)
     null = refit
     if convention_s != 0.0:
@@ -113,7 +121,8 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                      max(durations) if durations else 0.0)
     fitter = CandidateFitter(train, train_seg, base_model_name, geometry, options, samples, hints)
     final, scores, accepted = select(fitter, null, jobs, progress)
-    eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s)
+    eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s,
+                                      options.interval)
     steps = [_evaluate(eval_predictor, f'{base_model_name} (given)', given_state,
                        base_model_name, geometry, options),
              _evaluate(eval_predictor, f'{base_model_name} (refitted)', refit, base_model_name,

@@ -86,11 +86,12 @@ def truth_velocities(drive: Drive, half_window_s: float
 
 
 def _model_velocities(source: Any, drive: Drive, t_ns: np.ndarray,
-                      half_window_s: float, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+                      half_window_s: float, max_dt_s: float, interval: str
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """Model body twists at the stamps, through the same differentiator as the ground truth."""
     wheels = drive.wheels
     poses = rollout_stream(source, wheels.t_ns, wheels.omega_l, wheels.omega_r,
-                           max_dt_s=max_dt_s)
+                           max_dt_s=max_dt_s, interval=interval)
     shift = int(getattr(source, 'output_offset_ns', 0))
     at = np.asarray(t_ns, dtype=np.int64) - shift
     ref = wheels.t_ns
@@ -192,7 +193,7 @@ def pose_residuals(drives: Sequence[Drive], samples: PoseSamples, source: Any,
     for index in np.unique(samples.drive):
         rows = samples.drive == index
         model, ok = _model_velocities(source, drives[index], samples.t_ns[rows],
-                                      options.smoothing_s, options.max_dt_s)
+                                      options.smoothing_s, options.max_dt_s, options.interval)
         residual[rows] = samples.truth[rows] - model
         valid[rows] &= ok
     return residual, valid

@@ -120,9 +120,10 @@ class DiagnosisResult:
         ``self.provenance`` to write_params_file); the result keeps it and sets
         model = augmented, augmented.base, augmented.extensions and every extension value, and
         the base model's parameters as fitted jointly with the extensions. With no extension the
-        base model is kept (model = base).
+        base model is kept (model = base). ``interval`` is the convention diagnosed under.
         """
         flat = {k: v for k, v in base_flat.items() if not k.startswith('provenance.')}
+        flat['interval'] = self.options.interval
         flat['wheel_radius'] = float(self.geometry.wheel_radius)
         flat['track_width'] = float(self.geometry.track_width)
         if not self.final.found:
