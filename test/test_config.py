@@ -176,3 +176,19 @@ def test_params_file_that_is_not_a_regular_small_file_is_refused(tmp_path):
     deep.write_text('/**:\n  ros__parameters:\n    robot: ' + '[' * 100000 + ']' * 100000 + '\n')
     with pytest.raises(ConfigError, match='nests too deeply|not valid YAML'):
         read_params_file(deep)
+
+
+def test_interval_defaults_to_ending_and_an_old_calibrated_file_keeps_starting(tmp_path):
+    assert OdometryConfig.from_flat({})['interval'] == 'ending'
+    assert OdometryConfig.from_flat({'interval': 'midpoint'})['interval'] == 'midpoint'
+    # written by calibrate before the convention existed: provenance, no interval
+    old = write_params_file(tmp_path / 'old.yaml', {'model': 'ideal_dd'}, {'tool': 'x'})
+    assert OdometryConfig.from_file(old)['interval'] == 'starting'
+    # a hand-written file without provenance takes the default
+    hand = tmp_path / 'hand.yaml'
+    hand.write_text('/**:\n  ros__parameters:\n    model: ideal_dd\n')
+    assert OdometryConfig.from_file(hand)['interval'] == 'ending'
+    new = write_params_file(tmp_path / 'new.yaml', {'interval': 'ending'}, {'tool': 'x'})
+    assert OdometryConfig.from_file(new)['interval'] == 'ending'
+    with pytest.raises(ParameterError, match="'interval'.*ending, starting, midpoint"):
+        OdometryConfig.from_flat({'interval': 'end'})

@@ -20,22 +20,46 @@ AUGMENTED = {
 }
 
 
-def test_node_with_augmented_file_reproduces_predict(tmp_path):
+@pytest.mark.parametrize('interval', ['ending', 'starting', 'midpoint'])
+def test_node_with_augmented_file_reproduces_predict(tmp_path, interval):
     sim = simulate(SimConfig(duration_s=12.0, seed=5))
     wheels = sim.wheels
-    path = write_params_file(tmp_path / 'augmented.yaml', AUGMENTED, {'source': 'test'})
+    path = write_params_file(tmp_path / 'augmented.yaml', {**AUGMENTED, 'interval': interval},
+                             {'source': 'test'})
     config = OdometryConfig.from_file(path)
     assert config.bound_model().output_offset_ns == 80_000_000
+    assert config['interval'] == interval
     expected = Odometer.from_config(config).predict(wheels)
     result = replay_through_node(wheels, params_file=path)
     assert len(result) == len(wheels)
     # published stamps carry the time offset: sample stamp + 80 ms
     assert np.array_equal(result.t_ns, wheels.t_ns + 80_000_000)
     assert np.array_equal(result.t_ns, expected.t_ns)
-    np.testing.assert_allclose(result.poses, expected.poses, atol=1e-9)
-    np.testing.assert_allclose(result.vx, expected.twists[:, 0], atol=1e-12)
-    np.testing.assert_allclose(result.vy, expected.twists[:, 1], atol=1e-12)
-    np.testing.assert_allclose(result.wz, expected.twists[:, 2], atol=1e-12)
+    # bit for bit: the node and predict run the same odometer on the same floats (the yaw goes
+    # through a quaternion on the wire)
+    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
+    np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
+    assert np.array_equal(np.stack([result.vx, result.vy, result.wz], axis=-1), expected.twists)
     # the state matters: the base model alone goes elsewhere
-    base = predict_wheels(wheels, config.bound_model('edd_symmetric'))
+    base = predict_wheels(wheels, config.bound_model('edd_symmetric'), interval=interval)
     assert np.hypot(*(base.poses[-1, :2] - result.poses[-1, :2])) > 0.05
+    # and so does the convention: another one goes elsewhere too
+    other = 'starting' if interval != 'starting' else 'ending'
+    moved = Odometer.from_config(OdometryConfig.from_flat({**config.values, 'interval': other}))
+    assert np.abs(moved.predict(wheels).poses[-1] - result.poses[-1]).max() > 1e-4
+
+
+def test_node_runs_a_calibrated_file_without_interval_as_starting(tmp_path):
+    # a file written by calibrate before the convention existed: provenance, no interval
+    sim = simulate(SimConfig(duration_s=6.0, seed=6))
+    flat = {k: v for k, v in AUGMENTED.items() if not k.startswith('augmented')}
+    path = write_params_file(tmp_path / 'old.yaml', {**flat, 'model': 'edd_symmetric'},
+                             {'tool': 'skidkin_ros 0.9'})
+    assert 'interval' not in path.read_text()
+    config = OdometryConfig.from_file(path)
+    assert config['interval'] == 'starting'
+    result = replay_through_node(sim.wheels, params_file=path)
+    expected = Odometer.from_config(config).predict(sim.wheels)
+    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
+    ending = predict_wheels(sim.wheels, config.bound_model(), interval='ending')
+    assert np.abs(ending.poses[-1, :2] - result.poses[-1, :2]).max() > 1e-4
