@@ -16,7 +16,8 @@ from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, w
 from skidkin_ros.errors import OutputError, ParameterError
 from skidkin_ros.report.diagnosis import write_diagnosis_report
 from skidkin_ros.sim.effects import EFFECT_NAMES, make_effect
-from skidkin_ros.studies.effects import drawn_effect, run_case as study_case, run_study
+from skidkin_ros.studies.effects import (drawn_effect, run_case as study_case, run_study,
+                                         SIM_INTERVAL)
 
 
 def run_case(effect, duration_s=120.0, options=None):
@@ -125,7 +126,7 @@ def test_every_residual_plot_of_the_registry_has_its_signal_in_the_trace():
 def test_found_effect_goes_into_a_parameters_file_and_a_report(tmp_path):
     """A short run with a strong skid; candidates narrowed so it stays quick."""
     options = DiagnosisOptions(candidates=('time_offset', 'lateral_skid', 'speed_slip'),
-                               max_extensions=2)
+                               max_extensions=2, interval=SIM_INTERVAL)
     result, _, _ = run_case(make_effect('lateral_skid', 0.1), 60.0, options)
     assert result.extensions == ('lateral_skid',)
     assert result.final.ext_values['lateral_skid']['k'] == pytest.approx(0.1, abs=0.03)
@@ -136,6 +137,7 @@ def test_found_effect_goes_into_a_parameters_file_and_a_report(tmp_path):
     flat = result.to_parameters(base_flat)
     path = write_params_file(tmp_path / 'augmented.yaml', flat, result.provenance)
     config = OdometryConfig.from_flat(read_params_file(path))
+    assert config['interval'] == SIM_INTERVAL  # the file says what it was diagnosed under
     assert config.model == 'augmented' and config.augmented_base == 'edd_symmetric'
     assert 'lateral_skid' in config.augmented_extensions and config['robot'] == 'sim'
     bound = config.bound_model()
@@ -148,6 +150,28 @@ def test_found_effect_goes_into_a_parameters_file_and_a_report(tmp_path):
         write_diagnosis_report(result, tmp_path / 'report')
     # the found effect lowers the held-out error
     assert result.steps[-1].stats_t.median < 0.8 * result.steps[1].stats_t.median
+
+
+def test_the_right_interval_needs_no_stamp_convention_row():
+    """Effect-free simulated drives: the simulator's speeds are instantaneous (midpoint)."""
+    cases = {}
+    for interval in ('midpoint', 'starting', 'ending'):
+        options = DiagnosisOptions(candidates=('time_offset',), max_extensions=1,
+                                   interval=interval)
+        cases[interval] = run_case(None, 60.0, options)[0]
+    labels = {k: [step.label for step in r.steps] for k, r in cases.items()}
+    midpoint, starting, ending = cases['midpoint'], cases['starting'], cases['ending']
+    # midpoint: no stamp-convention row and no time offset found; its refitted base model is
+    # as good as the zero-order hold with its -25 ms convention row
+    assert not any('stamp convention' in label for label in labels['midpoint'])
+    assert midpoint.extensions == () and midpoint.convention_s == 0.0
+    assert '+ stamp convention -25 ms' in labels['starting']
+    refit_mid = midpoint.steps[1].stats_t.median
+    assert refit_mid < 0.9 * starting.steps[1].stats_t.median
+    assert refit_mid <= 1.05 * starting.steps[2].stats_t.median
+    # ending leads by half a period: the diagnosis finds it as a time offset of about +25 ms
+    assert ending.extensions == ('time_offset',)
+    assert ending.final.ext_values['time_offset']['offset_s'] == pytest.approx(0.025, abs=0.01)
 
 
 # ------------------------------------------------------------------------------------ heavy

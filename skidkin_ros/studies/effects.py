@@ -7,6 +7,12 @@ grid), calibrate ``edd_symmetric``, run :func:`skidkin_ros.core.calibration.diag
 without telling it the effect, and score on the evaluation drives: the base model, the augmented
 one, and the simulator's true model driven by the same noisy wheel speeds.
 
+The simulator reports each wheel's speed at its stamp, so the trapezoid between two samples
+(``interval: midpoint``, what ``skidkin calibrate`` chooses on these drives) integrates them
+without a time offset, and the diagnosis runs under it (:data:`SIM_INTERVAL`): it then needs no
+stamp-convention row. Under ``starting`` the speeds lag by half a period, under ``ending`` they
+lead by as much (:func:`convention_offset_s`).
+
 ``skidkin effects`` prints the table in the README (:func:`run_study` yields the rows one case at
 a time; each :class:`EffectCase` gives its table row).
 """
@@ -29,13 +35,21 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.sim.effects import Effect, EFFECT_NAMES, EFFECTS, make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
 
-__all__ = ['GEOMETRY', 'TRUE_PARAMS', 'STRENGTH_SEED', 'TABLE_HEADER', 'icp_like', 'sim_drives',
+__all__ = ['GEOMETRY', 'TRUE_PARAMS', 'STRENGTH_SEED', 'SIM_INTERVAL', 'TABLE_HEADER', 'icp_like',
+           'sim_drives', 'convention_offset_s',
            'true_state', 'drawn_effect', 'EffectCase', 'run_case', 'run_study']
 
 GEOMETRY = Geometry(0.1651, 0.555)
 TRUE_PARAMS = {'alpha': 0.9, 'b_hat': 0.85}
 WHEEL_PERIOD_S = 0.05
 STRENGTH_SEED = 7
+# The sample-interval convention that integrates the simulator's wheel speeds exactly.
+SIM_INTERVAL = 'midpoint'
+
+
+def convention_offset_s(interval: str) -> float:
+    """Return the time offset (s) that makes the simulator's speeds right under ``interval``."""
+    return {'starting': -0.5, 'midpoint': 0.0, 'ending': 0.5}[interval] * WHEEL_PERIOD_S
 
 
 def icp_like(drive: Drive, rng: np.random.Generator, sigma_xy: float = 0.01,
@@ -59,13 +73,15 @@ def sim_drives(effect: Effect | None, seeds: Sequence[int], duration_s: float) -
     return drives
 
 
-def true_state(effect: Effect | None, duration_s: float) -> ModelState:
-    """Return the simulator's true model as an augmented model (wheel speeds held centred)."""
-    extensions = {'time_offset': {'offset_s': -WHEEL_PERIOD_S / 2}}
+def true_state(effect: Effect | None, duration_s: float,
+               interval: str = SIM_INTERVAL) -> ModelState:
+    """Return the simulator's true model as an augmented model run under ``interval``."""
+    centre = convention_offset_s(interval)
+    extensions = {'time_offset': {'offset_s': centre}} if centre else {}
     if effect is not None:
         k = effect.strength
         extensions[effect.name] = {
-            'time_offset': {'offset_s': k - WHEEL_PERIOD_S / 2}, 'first_order_lag': {'tau_s': k},
+            'time_offset': {'offset_s': k + centre}, 'first_order_lag': {'tau_s': k},
             'speed_slip': {'k': k}, 'ratio_yaw_slip': {'k': k}, 'lateral_skid': {'k': k},
             'direction_asymmetry': {'k': k},
             'terrain_regime': {'k': k, 'switch_s': 0.5 * duration_s}}[effect.name]
@@ -108,13 +124,14 @@ def run_case(effect: Effect | None, duration_s: float = 120.0,
              options: DiagnosisOptions | None = None) -> EffectCase:
     train = sim_drives(effect, [1, 2], duration_s)
     evaluate = sim_drives(effect, [3, 4, 5], duration_s)
-    options = options or DiagnosisOptions()
+    options = options or DiagnosisOptions(interval=SIM_INTERVAL)
     base = fit_model('edd_symmetric', GEOMETRY, cut_segments(train, options.train_segments()))
     result = diagnose(train, evaluate, GEOMETRY, {'edd_symmetric': base.values}, 'edd_symmetric',
                       options)
     predictor = SegmentPredictor(evaluate, cut_segments(evaluate, options.eval_segments()),
                                  interval=options.interval)
-    errors = predictor.errors(true_state(effect, duration_s).bind('edd_symmetric', GEOMETRY))
+    errors = predictor.errors(true_state(effect, duration_s, options.interval).bind(
+        'edd_symmetric', GEOMETRY))
     eps_t, eps_theta = relative_errors(errors, predictor.segments.path_m,
                                        options.min_eval_path_m)
     return EffectCase(effect, result, ErrorStats.of(eps_t), ErrorStats.of(eps_theta))
