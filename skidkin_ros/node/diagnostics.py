@@ -38,11 +38,13 @@ class StatusReport:
 
     def status(self, name: str, config: OdometryConfig, counters: collections.Counter[str],
                stale: bool, age_s: float | None,
-               side_ages_s: Mapping[str, float | None] | None = None) -> DiagnosticStatus:
+               side_ages_s: Mapping[str, float | None] | None = None,
+               wheel_signal: str = 'velocity') -> DiagnosticStatus:
         """Return the status of the period since the last call, and start a new period.
 
         ``age_s``: steady-clock age of the last accepted sample (None: none yet);
-        ``side_ages_s``: the same per wheel topic (wheel_topics input only).
+        ``side_ages_s``: the same per wheel topic (wheel_topics input only); ``wheel_signal``:
+        the signal (velocity or position) that measured the last interval.
         """
         now = time.monotonic_ns()
         period_s = max((now - self._start_mono_ns) / NS_PER_S, 1e-9)
@@ -56,6 +58,7 @@ class StatusReport:
             'model': config.model,
             'interval': config['interval'],
             'input': config['input'],
+            'wheel_signal': f'{config["wheel_signal"]} (in use: {wheel_signal})',
             'covariance': 'calibrated' if config.active_noise else 'fallback',
             'rate_hz': f'{recent["published"] / period_s:.2f}',
             'accepted_rate_hz': f'{_accepted(recent) / period_s:.2f}',

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import math
 import sys
 import threading
 import time
@@ -62,9 +63,10 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Estimate, Odometer
-from skidkin_ros.core.odometry.wheels import (check_velocity_count, DuplicateJointError,
-                                              joint_indices, MissingJointError,
-                                              repeated_names, speeds_at)
+from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
+                                              DuplicateJointError, joint_indices,
+                                              MissingJointError, positions_at, repeated_names,
+                                              speeds_at)
 from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_msg,
@@ -119,7 +121,7 @@ class OdomNode(Node):
             raise
         config = self._config
         self._odometer = Odometer.from_config(config, counters=self.counters, warn=self._warn,
-                                              fresh=self._mark_fresh)
+                                              fresh=self._mark_fresh, note=self._note_signal)
         self._last_accepted_mono_ns: int | None = None
         self._stale = True
         self._stale_reported = False
@@ -221,8 +223,11 @@ class OdomNode(Node):
             fields = self._joint_state_fields(msg)
             if fields is None:
                 return
-            names, velocity = fields.names, fields.velocity
-            check_velocity_count(len(names), len(velocity))  # raises: reported by _guarded
+            names, velocity, position = fields.names, fields.velocity, fields.position
+            has_position = (self._config['wheel_signal'] != 'velocity'
+                            and check_position_count(len(names), len(position)))  # may raise
+            if not (has_position and self._config['wheel_signal'] == 'position' and not velocity):
+                check_velocity_count(len(names), len(velocity))  # raises: reported by _guarded
             if names != self._joint_names:
                 config = self._config
                 try:
@@ -240,11 +245,14 @@ class OdomNode(Node):
                     self._warn('repeated_joint', f'JointState lists joint(s) {repeated} more '
                                'than once; they are not wheel joints, odometry is unaffected; '
                                'fix the driver so that each joint is listed once')
-            omega_l, omega_r = speeds_at(velocity, *self._joint_index)
+            omega_l, omega_r = (speeds_at(velocity, *self._joint_index) if velocity
+                                else (math.nan, math.nan))
+            positions = positions_at(position, *self._joint_index) if has_position else None
             now_ns = self._clock_now_ns()
             if now_ns is None:
                 return
-            estimate = self._odometer.joint_sample(fields.stamp_ns, omega_l, omega_r, now_ns)
+            estimate = self._odometer.joint_sample(fields.stamp_ns, omega_l, omega_r, now_ns,
+                                                   positions)
             if estimate is not None:
                 self._publish(estimate)
 
@@ -435,6 +443,10 @@ class OdomNode(Node):
         self.counters[cause] += 1
         self._warn(cause, message)
 
+    def _note_signal(self, message: str) -> None:
+        """Say which wheel signal is integrated, when that changes (wheel_signal auto)."""
+        self.get_logger().info(message)
+
     def _warn(self, cause: str, message: str, error: bool = False) -> None:
         """Log at most once a second per cause, saying how many were suppressed."""
         self.last_warnings[cause] = message
@@ -507,7 +519,7 @@ class OdomNode(Node):
                              for side, seen in self._side_seen_mono_ns.items()}
             return self._status_report.status(
                 f'{self.get_fully_qualified_name()}: wheel odometry', self._config,
-                self.counters, stale, age_s, side_ages)
+                self.counters, stale, age_s, side_ages, self._odometer.signal.in_use)
 
     @_guarded
     def _on_diagnostics(self) -> None:

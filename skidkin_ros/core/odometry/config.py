@@ -24,6 +24,7 @@ from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
+from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.errors import brief, ConfigError, ParameterError
 import yaml
 
@@ -187,6 +188,10 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                     'as diff_drive_controller), starting (held from its stamp on) or midpoint '
                     '(trapezoid); a calibrated file without it means starting',
                     choices=INTERVALS),
+        SchemaEntry('wheel_signal', 'string', 'velocity',
+                    'what a JointState wheel reading integrates: velocity, position (the travel '
+                    'between two samples, wraps of continuous joints handled) or auto (positions '
+                    'when they change, velocities otherwise)', choices=WHEEL_SIGNALS),
         SchemaEntry('input', 'string', 'joint_state',
                     'joint_state (sensor_msgs/JointState) or wheel_topics (two std_msgs/Float64)',
                     choices=INPUT_MODES),

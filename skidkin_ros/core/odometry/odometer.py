@@ -46,7 +46,7 @@ from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
 from skidkin_ros.core.odometry.noise import FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL
 from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
-from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer
+from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer, WheelSignal
 
 __all__ = ['SampleRules', 'Estimate', 'Odometer', 'Prediction', 'predict_wheels',
            'check_pose', 'check_covariance', 'POSE_LIMIT_M', 'VARIANCE_LIMIT',
@@ -147,8 +147,11 @@ class Odometer:
                  covariance: PoseCovariancePropagator | None = None, *,
                  counters: collections.Counter[str] | None = None, warn: Warn | None = None,
                  fresh: Callable[[], None] | None = None,
-                 interval: str = DEFAULT_INTERVAL) -> None:
+                 interval: str = DEFAULT_INTERVAL, wheel_signal: str = 'velocity',
+                 note: Callable[[str], None] | None = None) -> None:
         self.integrator = StreamingIntegrator(source, limits, interval)
+        self.signal = WheelSignal(wheel_signal, self.integrator.limits.max_wheel_speed_rad_s)
+        self._note = note or _ignore
         self.covariance = covariance or PoseCovariancePropagator(
             None, FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL)
         self.counters: collections.Counter[str] = (collections.Counter() if counters is None
@@ -166,11 +169,15 @@ class Odometer:
     @classmethod
     def from_config(cls, config: OdometryConfig, model: str | None = None, *,
                     counters: collections.Counter[str] | None = None, warn: Warn | None = None,
-                    fresh: Callable[[], None] | None = None) -> 'Odometer':
-        """Return the odometer a configuration describes (``model`` replaces its model)."""
+                    fresh: Callable[[], None] | None = None,
+                    note: Callable[[str], None] | None = None) -> 'Odometer':
+        """Return the odometer a configuration describes (``model`` replaces its model).
+
+        ``note(message)`` hears which wheel signal is in use when that changes.
+        """
         return cls(config.bound_model(model), config.limits, SampleRules.from_config(config),
                    _propagator(config), counters=counters, warn=warn, fresh=fresh,
-                   interval=config['interval'])
+                   interval=config['interval'], wheel_signal=config['wheel_signal'], note=note)
 
     # ------------------------------------------------------------------ state
     @property
@@ -195,6 +202,9 @@ class Odometer:
         """Switch to a validated configuration; the pose and its covariance are kept."""
         self.integrator.set_source(config.bound_model(), config['interval'])
         self.integrator.limits = config.limits
+        if (config['wheel_signal'], config['max_wheel_speed']) != (
+                self.signal.mode, self.signal.max_speed_rad_s):
+            self.signal = WheelSignal(config['wheel_signal'], config['max_wheel_speed'])
         covariance = _propagator(config)
         covariance.cov = self.covariance.cov.copy()
         self.covariance = covariance
@@ -218,6 +228,7 @@ class Odometer:
         self.period_s = 0.0
         self.last_published_t_ns = None
         self.pairer.clear()
+        self.signal.clear()
         self._step_back_run.clear()
 
     def clock_changed(self) -> None:
@@ -226,9 +237,15 @@ class Odometer:
         self.last_input_t_ns = None
 
     # ------------------------------------------------------------------ inputs
-    def joint_sample(self, t_ns: int, omega_l: float, omega_r: float,
-                     now_ns: int) -> Estimate | None:
-        """Take a stamped sample (a JointState's) received at ``now_ns`` on the node clock."""
+    def joint_sample(self, t_ns: int, omega_l: float, omega_r: float, now_ns: int,
+                     positions: tuple[Sequence[float], Sequence[float]] | None = None
+                     ) -> Estimate | None:
+        """Take a stamped sample (a JointState's) received at ``now_ns`` on the node clock.
+
+        ``positions``: the left and right wheel joints' positions (rad), None when the message
+        has none; ``wheel_signal`` says which of them and the speeds is integrated
+        (:class:`~skidkin_ros.core.odometry.wheels.WheelSignal`).
+        """
         if t_ns == 0:
             if not self.rules.zero_stamp_uses_receive_time:
                 self._reject('zero_stamp', 'JointState header.stamp is zero; sample rejected '
@@ -247,7 +264,14 @@ class Odometer:
                          f'clock (future_tolerance {self.rules.future_tolerance_s:g} s); sample '
                          'rejected: check the clocks of the driver and this machine')
             return None
-        return self.update(t_ns, omega_l, omega_r)
+        taken = self.signal.take(t_ns, omega_l, omega_r, positions)
+        if taken.switched:
+            self._note(f'wheel signal: integrating the wheel {taken.switched}s (wheel_signal '
+                       f'{self.signal.mode})')
+        if taken.speeds is None:
+            self._reject(taken.cause, taken.detail)
+            return None
+        return self.update(t_ns, *taken.speeds)
 
     def wheel_sample(self, side: str, omega_rad_s: float, now_ns: int) -> Estimate | None:
         """Take one side's unstamped speed (a Float64 topic's) received at ``now_ns``."""
