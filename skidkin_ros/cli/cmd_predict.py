@@ -13,17 +13,23 @@ from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.errors import ParameterError
 
 __all__ = ['add_parser']
 
 
 def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
-    """Return how to read the recording: with the node's wheel limits and pairing."""
+    """Return how to read the recording: with the node's wheel limits, pairing and signal."""
+    given = getattr(args, 'wheel_signal', None)
+    if given is not None and given != config['wheel_signal']:
+        raise ParameterError(f'--wheel-signal {given} differs from the parameters file\'s '
+                             f'wheel_signal {config["wheel_signal"]}, which the node uses; '
+                             'drop the option (predict reads what the node reads)')
     return dataclasses.replace(source_options(args),
                                max_wheel_speed_rad_s=config['max_wheel_speed'],
                                pair_tolerance_s=config['pair_tolerance'],
                                max_wheel_acceleration=config['max_wheel_acceleration'],
-                               max_dt_s=config['max_dt'])
+                               max_dt_s=config['max_dt'], wheel_signal=config['wheel_signal'])
 
 
 def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:

@@ -20,6 +20,7 @@ from skidkin_ros.cli.progress import Progress
 from skidkin_ros.cli.tables import error_table, parameter_lines
 from skidkin_ros.core.calibration.pipeline import CalibrationResult
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.core.parallel import usable_cpus
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
@@ -102,6 +103,11 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
                        help='JointState names of the right wheels (default: names with "right")')
     group.add_argument('--left-topic', help='std_msgs/Float64 left wheel speed topic (rad/s)')
     group.add_argument('--right-topic', help='std_msgs/Float64 right wheel speed topic (rad/s)')
+    group.add_argument('--wheel-signal', choices=WHEEL_SIGNALS,
+                       help='JointState: integrate the wheel velocities, the joint positions '
+                       '(travel between samples) or auto (positions when they change); written '
+                       'to the parameters file so the node reads the same (default velocity; '
+                       "predict: the parameters file's; tables hold speeds only)")
     group.add_argument('--imu-topic', help='sensor_msgs/Imu topic (optional)')
     if not ground_truth:
         return
@@ -167,7 +173,8 @@ def source_options(args: argparse.Namespace) -> SourceOptions:
         ground_truth=get('ground_truth') or 'icp', base_frame=get('base_frame') or 'base_link',
         extrinsic=extrinsic_from_xyz_rpy(extrinsic) if extrinsic else None,
         cache_dir=cache, icp=icp, chunks=chunks,
-        on_progress=None if get('no_progress') else Progress('kiss-icp', 'frames'))
+        on_progress=None if get('no_progress') else Progress('kiss-icp', 'frames'),
+        wheel_signal=get('wheel_signal') or 'velocity')
 
 
 def check_report_dir(path: Path | None, force: bool, what: str = '--report') -> None:
@@ -185,7 +192,8 @@ def input_parameters(sources: Sequence[LoadedSource]) -> dict[str, Any]:
         wheel = source.wheel_input
         if wheel.get('input') == 'joint_state':
             return {'input': 'joint_state', 'left_wheel_joints': wheel['left_wheel_joints'],
-                    'right_wheel_joints': wheel['right_wheel_joints']}
+                    'right_wheel_joints': wheel['right_wheel_joints'],
+                    'wheel_signal': wheel.get('wheel_signal', 'velocity')}
         if wheel.get('input') == 'wheel_topics':
             return {'input': 'wheel_topics'}
     return {}
