@@ -140,7 +140,7 @@ def test_sparse_correction_adds_the_library_terms():
 
 
 @pytest.mark.parametrize('interval, step_ns', [('starting', 500_000_000),
-                                                ('ending', 450_000_000)])
+                                               ('ending', 450_000_000)])
 def test_lag_is_the_exact_response_to_a_held_input(interval, step_ns):
     model = augmented({'first_order_lag': {'tau_s': 0.3}})
     t_ns = np.arange(0, 41) * 50_000_000

@@ -94,7 +94,7 @@ def _stream(limits=IntegratorLimits(max_dt_s=0.5, max_wheel_speed_rad_s=50.0)):
 
 
 @pytest.mark.parametrize('interval, metres', [('starting', 0.03), ('ending', 0.15),
-                                               ('midpoint', 0.09)])
+                                              ('midpoint', 0.09)])
 def test_each_interval_integrates_its_speeds(interval, metres):
     s = StreamingIntegrator(get_model('ideal_dd').bind({}, Geometry(0.3, 0.5)),
                             IntegratorLimits(max_dt_s=0.5, max_wheel_speed_rad_s=50.0), interval)

@@ -568,7 +568,8 @@ class BagRecording:
         time, noted); a side's speed is the mean of its joints' velocities, as the node takes it
         (:mod:`skidkin_ros.core.odometry.wheels`), or with ``wheel_signal`` position / auto the
         travel between joint positions, by the node's rule (:class:`WheelSignal`); joints default
-        to those whose names contain 'left' / 'right'. Float64 pairs: see :meth:`_read_float_pair`. Either way, samples whose
+        to those whose names contain 'left' / 'right'. Float64 pairs: see
+        :meth:`_read_float_pair`. Either way, samples whose
         speed jumps faster than ``max_wheel_acceleration`` (rad/s^2) are dropped and noted
         (:meth:`_drop_jumps`).
         """

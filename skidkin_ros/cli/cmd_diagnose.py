@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
         holdout_every=2 if args.split_by else 3, holdout_key=args.split_by, trim=args.trim,
         h_t=args.h_t, h_e=args.h_e, interval=args.interval or config['interval'])
     say(f'sample interval: {options.interval}'
-        + (' (given)' if args.interval else f" (from {args.params})"))
+        + (' (given)' if args.interval else f' (from {args.params})'))
     bars = None if args.no_progress else RoundBars()
     try:
         result = diagnose([d for s in train for d in s.drives],

@@ -22,8 +22,8 @@ def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
     """Return how to read the recording: with the node's wheel limits, pairing and signal."""
     given = getattr(args, 'wheel_signal', None)
     if given is not None and given != config['wheel_signal']:
-        raise ParameterError(f'--wheel-signal {given} differs from the parameters file\'s '
-                             f'wheel_signal {config["wheel_signal"]}, which the node uses; '
+        raise ParameterError(f'--wheel-signal {given} differs from the wheel_signal of the '
+                             f'parameters file, {config["wheel_signal"]}, which the node uses; '
                              'drop the option (predict reads what the node reads)')
     return dataclasses.replace(source_options(args),
                                max_wheel_speed_rad_s=config['max_wheel_speed'],

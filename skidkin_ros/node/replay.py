@@ -149,7 +149,9 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
                         left_joints: Sequence[str] | None = None,
                         right_joints: Sequence[str] | None = None,
                         timeout_s: float = 60.0,
-                        stamp_offset_ns: int | None = None) -> ReplayResult:
+                        stamp_offset_ns: int | None = None,
+                        positions: Sequence[tuple[float, float] | None] | None = None
+                        ) -> ReplayResult:
     """Feed ``samples`` to a real OdomNode as JointState messages and return its odometry.
 
     ``params_file`` and ``overrides`` (flat parameter names, e.g. ``{'model': 'roc'}``) configure
@@ -157,6 +159,8 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
     Joint names default to the node's ``left_wheel_joints`` / ``right_wheel_joints``. Stamps are
     shifted by ``stamp_offset_ns`` (default: only when the first stamp is <= 0, which the node
     would reject as unset) and shifted back in the result. ``timeout_s`` bounds the whole run.
+    ``positions``: per sample, the (left, right) joint positions (rad) the messages carry, or
+    None for a message without positions (default: none carries any).
     Raises ConfigError if the node refuses the configuration, ReplayError on a timeout.
     """
     params = dict(overrides or {})
@@ -190,6 +194,9 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
                 msg.name = names
                 msg.velocity = ([float(samples.omega_l[i])] * len(left)
                                 + [float(samples.omega_r[i])] * len(right))
+                if positions is not None and positions[i] is not None:
+                    msg.position = ([float(positions[i][0])] * len(left)
+                                    + [float(positions[i][1])] * len(right))
                 harness.publisher.publish(msg)
             sent = stop
             target = sent

@@ -163,7 +163,8 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
 
     ``pose`` (x, y, yaw) and ``cov`` (3 x 3) hold at t_ns[0]; the speeds between two samples are
     the sample-interval convention's (``interval``, see
-    :mod:`skidkin_ros.core.odometry.interval`). The samples go through the node's streaming integrator, so a stateful ``source``
+    :mod:`skidkin_ros.core.odometry.interval`). The samples go through the node's streaming
+    integrator, so a stateful ``source``
     (an augmented model with a lag, a time-in-drive regime) predicts what the node publishes;
     duplicate stamps update the held speeds, and samples with an older stamp or a non-finite
     speed are skipped, as in the node (there is no limit on the step length or the speed here).
