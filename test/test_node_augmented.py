@@ -1,11 +1,15 @@
 """The real node runs an augmented parameters file exactly like the odometer offline."""
 
+import math
+
 import numpy as np
 import pytest
+from skidkin_ros.adapters.bag_reader import open_recording
+from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.odometry.odometer import Odometer, predict_wheels
 from skidkin_ros.node.replay import replay_through_node
-from skidkin_ros.sim.simulate import SimConfig, simulate
+from skidkin_ros.sim.simulate import JOINT_NAMES, SimConfig, simulate
 
 pytestmark = pytest.mark.ros
 
@@ -63,3 +67,62 @@ def test_node_runs_a_calibrated_file_without_interval_as_starting(tmp_path):
     assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
     ending = predict_wheels(sim.wheels, config.bound_model(), interval='ending')
     assert np.abs(ending.poses[-1, :2] - result.poses[-1, :2]).max() > 1e-4
+
+
+def _encoder_bag(path, sim, hostile):
+    """A JointState bag of the simulated drive: velocities and wrapped positions (+ faults)."""
+    left, right = sim.wheel_pos_l.copy(), sim.wheel_pos_r.copy()
+    if hostile:
+        left[60:] -= 3.0  # the left counter steps back by 3 rad (60 rad/s in one sample)
+    wrapped = [((l + math.pi) % (2 * math.pi) - math.pi, (r + math.pi) % (2 * math.pi) - math.pi)
+               for l, r in zip(left, right)]
+    if hostile:
+        wrapped[30] = (math.nan, wrapped[30][1])
+        for i in (90, 91, 120):
+            wrapped[i] = None  # messages without positions
+    with BagWriter(path) as writer:
+        for i, t_ns in enumerate(sim.wheels.t_ns.tolist()):
+            wl, wr = float(sim.wheels.omega_l[i]), float(sim.wheels.omega_r[i])
+            pos = None if wrapped[i] is None else [wrapped[i][0]] * 2 + [wrapped[i][1]] * 2
+            writer.write_joint_state('/joint_states', t_ns, JOINT_NAMES, [wl, wl, wr, wr],
+                                     positions=pos)
+    return wrapped
+
+
+@pytest.mark.parametrize('signal, hostile', [('position', False), ('auto', True),
+                                             ('position', True)])
+def test_node_and_predict_read_encoder_positions_alike(tmp_path, signal, hostile):
+    sim = simulate(SimConfig(duration_s=8.0, seed=7, encoder_noise_rad_s=0.3))
+    assert np.ptp(sim.wheel_pos_l) > 2 * math.pi  # the simulator writes turning joint angles
+    positions = _encoder_bag(tmp_path / 'bag', sim, hostile)
+    flat = {'robot': 'sim', 'wheel_radius': sim.config.geometry.wheel_radius,
+            'track_width': sim.config.geometry.track_width, 'model': 'ideal_dd',
+            'interval': 'ending', 'wheel_signal': signal, 'max_wheel_speed': 30.0}
+    path = write_params_file(tmp_path / 'p.yaml', flat, {'source': 'test'})
+    config = OdometryConfig.from_file(path)
+    with open_recording(tmp_path / 'bag') as rec:  # what skidkin predict / calibrate read
+        wheels = rec.read_wheels(max_wheel_speed_rad_s=30.0, wheel_signal=signal)
+        notes = list(rec.notes)
+    assert any(f'wheel_signal {signal}' in note for note in notes)
+    expected = Odometer.from_config(config).predict(wheels)
+    result = replay_through_node(sim.wheels, params_file=path, positions=positions)
+    node = dict(zip(result.t_ns.tolist(), result.poses[:, :2].tolist()))
+    offline = dict(zip(expected.t_ns.tolist(), expected.poses[:, :2].tolist()))
+    assert set(node) == set(offline)  # the same samples rejected
+    assert all(node[t] == offline[t] for t in node)  # bit for bit
+    dropped = len(sim.wheels) - len(wheels)
+    counters = result.counters
+    if hostile:
+        # NaN (position) and the counter step: counted like bad speeds; without positions:
+        # refused by position, taken from the velocities by auto
+        assert counters.get('non_finite', 0) == (1 if signal == 'position' else 0)
+        assert counters.get('implausible', 0) == 1
+        assert counters.get('no_position', 0) == (3 if signal == 'position' else 0)
+        assert dropped == sum(counters.get(k, 0) for k in ('non_finite', 'implausible',
+                                                           'no_position'))
+    else:
+        assert dropped == 0 and counters.get('implausible', 0) == 0
+        # the speeds are the travel over each interval, not the noisy velocities (0.3 rad/s)
+        true = sim.wheels_true.omega_l
+        assert np.sqrt(np.mean((wheels.omega_l[1:] - true[1:]) ** 2)) < 0.1
+        assert np.sqrt(np.mean((sim.wheels.omega_l[1:] - true[1:]) ** 2)) > 0.25
