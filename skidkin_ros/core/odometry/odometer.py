@@ -266,7 +266,8 @@ class Odometer:
             return None
         taken = self.signal.take(t_ns, omega_l, omega_r, positions)
         if taken.switched:
-            self._note(f'wheel signal: integrating the wheel {taken.switched}s (wheel_signal '
+            plural = 'positions' if taken.switched == 'position' else 'velocities'
+            self._note(f'wheel signal: integrating the wheel {plural} (wheel_signal '
                        f'{self.signal.mode})')
         if taken.speeds is None:
             self._reject(taken.cause, taken.detail)
