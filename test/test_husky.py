@@ -6,7 +6,9 @@ import pytest
 
 from skidkin_ros.adapters.table import read_table
 from skidkin_ros.core.calibration.holdout import split_holdout
-from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions
+from skidkin_ros.core.calibration.pipeline import (calibrate, calibrate_interval,
+                                                   CalibrationOptions, choose_interval,
+                                                   result_to_parameters)
 from skidkin_ros.core.kinematics.specs import Geometry
 
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
@@ -38,3 +40,23 @@ def test_husky_calibration():
         noise = result.noise[name]
         assert noise.coverage_scale > 1.2, name
         assert 0.93 <= noise.consistency.inside_95_3dof <= 0.98, name
+
+
+@pytest.mark.heavy
+@pytest.mark.skipif(not DATA.is_file(), reason='Husky table not available')
+def test_husky_encoder_speeds_describe_the_interval_that_ends_at_their_stamp():
+    train, evaluate = split_holdout(read_table(DATA), every=2, key='calib_step')
+    options = CalibrationOptions(models=('edd_symmetric',), n_starts=2)
+    result = calibrate_interval(train, evaluate, HUSKY, options)
+    assert result.options.interval == 'ending', result.interval_errors
+    ending, starting = result.interval_errors['ending'], result.interval_errors['starting']
+    assert ending[0] < starting[0] and ending[1] < 0.95 * starting[1]
+    assert result_to_parameters(result)['interval'] == 'ending'
+
+
+def test_the_interval_rule_keeps_ending_within_the_tie_tolerance():
+    assert choose_interval({'ending': (0.101, 1.0), 'starting': (0.1, 1.0),
+                            'midpoint': (0.2, 2.0)})[0] == 'ending'
+    assert choose_interval({'ending': (0.2, 1.2), 'starting': (0.2, 1.2),
+                            'midpoint': (0.1, 1.0)})[0] == 'midpoint'
+    assert choose_interval({'ending': (float('nan'), 1.0), 'starting': (0.2, 1.2)})[0] == 'starting'
