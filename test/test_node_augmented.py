@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.bag_writer import BagWriter
+from skidkin_ros.cli.main import main
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.odometry.odometer import Odometer, predict_wheels
 from skidkin_ros.node.replay import replay_through_node
@@ -110,6 +111,18 @@ def test_node_and_predict_read_encoder_positions_alike(tmp_path, signal, hostile
     offline = dict(zip(expected.t_ns.tolist(), expected.poses[:, :2].tolist()))
     assert set(node) == set(offline)  # the same samples rejected
     assert all(node[t] == offline[t] for t in node)  # bit for bit
+    # skidkin predict reads the bag with the file's wheel_signal (9 decimals in its CSV)
+    out = tmp_path / 'pred.csv'
+    assert main(['predict', str(tmp_path / 'bag'), '--params', str(path), '--out',
+                 str(out)]) == 0
+    rows = out.read_text().splitlines()[1:]
+    assert len(rows) == len(wheels)
+    last = rows[-1].split(',')
+    np.testing.assert_allclose([float(last[2]), float(last[3])], expected.poses[-1, :2],
+                               atol=2e-9)
+    other = 'velocity' if signal != 'velocity' else 'auto'
+    assert main(['predict', str(tmp_path / 'bag'), '--params', str(path), '--out',
+                 str(tmp_path / 'no.csv'), '--wheel-signal', other]) == 2
     dropped = len(sim.wheels) - len(wheels)
     counters = result.counters
     if hostile:
