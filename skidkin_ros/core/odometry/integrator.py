@@ -406,7 +406,8 @@ class StreamingIntegrator:
         return StepResult(status, self._pose, self._twist, dt_s, detail, self._pose,
                           self._twist)
 
-    def _hold(self, t_ns: int, omega_l: float, omega_r: float, restart: bool = False) -> None:
+    def _hold(self, t_ns: int, omega_l: float, omega_r: float, restart: bool = False,
+              twist: Triple | None = None) -> None:
         self.last_t_ns = t_ns
         self.held_speeds = (omega_l, omega_r)
         if self._deferred:
@@ -419,7 +420,8 @@ class StreamingIntegrator:
             self.state, twist = self.source.begin(self.state, t_ns, omega_l, omega_r, restart)
             self._twist = _triple(twist)
             return
-        self._twist = _scalar_twist(self.source, omega_l, omega_r)
+        # ``twist``: these very speeds' twist, already computed (ending): not computed twice
+        self._twist = twist if twist is not None else _scalar_twist(self.source, omega_l, omega_r)
 
     def _interval_twist(self, omega_l: float, omega_r: float, dt_s: float
                         ) -> tuple[Triple, Any]:
@@ -497,7 +499,8 @@ class StreamingIntegrator:
         if self._stateful:
             self.state = new_state
             self._restart = False
-        self._hold(t_ns, omega_l, omega_r)
+        self._hold(t_ns, omega_l, omega_r, twist=(
+            step_twist if self.interval == 'ending' and not self._stateful else None))
         return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
                           step_twist)
 

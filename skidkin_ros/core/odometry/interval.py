@@ -22,16 +22,13 @@ zero-order hold as ever applies. Both give the same numbers, bit for bit.
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Sequence
-
 import numpy as np
 
-from skidkin_ros.core.drive import Drive, WheelSamples
+from skidkin_ros.core.drive import WheelSamples
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['INTERVALS', 'DEFAULT_INTERVAL', 'LEGACY_INTERVAL', 'check_interval',
-           'interval_speed', 'held_speeds', 'held_wheels', 'held_drives']
+           'interval_speed', 'held_speeds', 'held_wheels']
 
 INTERVALS = ('ending', 'starting', 'midpoint')
 DEFAULT_INTERVAL = 'ending'
@@ -80,9 +77,3 @@ def held_wheels(wheels: WheelSamples, interval: str) -> WheelSamples:
     return WheelSamples(wheels.t_ns, held_speeds(wheels.omega_l, interval),
                         held_speeds(wheels.omega_r, interval))
 
-
-def held_drives(drives: Sequence[Drive], interval: str) -> list[Drive]:
-    """Return the drives with :func:`held_wheels` applied (the batch tools' input)."""
-    check_interval(interval)
-    return [dataclasses.replace(drive, wheels=held_wheels(drive.wheels, interval))
-            for drive in drives]
