@@ -6,6 +6,9 @@ import numpy as np
 import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.bag_writer import BagWriter
+from skidkin_ros.adapters.sim_writer import write_truth_csv
+from skidkin_ros.adapters.sources import load_source, SourceOptions
+from skidkin_ros.cli.common import input_parameters
 from skidkin_ros.cli.main import main
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.odometry.odometer import Odometer, predict_wheels
@@ -120,6 +123,15 @@ def test_node_and_predict_read_encoder_positions_alike(tmp_path, signal, hostile
     last = rows[-1].split(',')
     np.testing.assert_allclose([float(last[2]), float(last[3])], expected.poses[-1, :2],
                                atol=2e-9)
+    # calibrate writes the signal it read, so the node reads the same; a table has speeds only
+    loaded = load_source(tmp_path / 'bag', SourceOptions(wheel_signal=signal,
+                                                         max_wheel_speed_rad_s=30.0),
+                         need_truth=False)
+    assert input_parameters([loaded])['wheel_signal'] == signal
+    assert np.array_equal(loaded.drives[0].wheels.omega_l, wheels.omega_l)
+    table = write_truth_csv(sim, tmp_path / 'drive.csv')
+    notes = load_source(table, SourceOptions(wheel_signal=signal)).notes
+    assert any('holds wheel speeds only' in note for note in notes)
     other = 'velocity' if signal != 'velocity' else 'auto'
     assert main(['predict', str(tmp_path / 'bag'), '--params', str(path), '--out',
                  str(tmp_path / 'no.csv'), '--wheel-signal', other]) == 2
