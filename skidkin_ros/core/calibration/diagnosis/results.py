@@ -72,9 +72,13 @@ class DiagnosisResult:
         """Return the findings and the before/after table as text lines (for stdout)."""
         lines = [f'diagnosis of {self.base_model} ({self.holdout})']
         lag = self.trace.lag_s
-        lines.append(f'  wheel -> ground-truth lag (velocity refit): {lag * 1e3:+.0f} ms, '
-                     f'beyond the stamp convention ({self.convention_s * 1e3:+.0f} ms: speeds '
-                     'held from their stamp describe the middle of the interval)')
+        if self.convention_s:
+            lines.append(f'  wheel -> ground-truth lag (velocity refit): {lag * 1e3:+.0f} ms, '
+                         f'beyond the stamp convention ({self.convention_s * 1e3:+.0f} ms: '
+                         'speeds held from their stamp describe the middle of the interval)')
+        else:
+            lines.append(f'  wheel -> ground-truth lag (velocity refit): {lag * 1e3:+.0f} ms '
+                         f'(interval {self.options.interval}: no stamp convention)')
         lines.append('  strongest residual correlations: ' + ', '.join(
             f'{c}~{s} r={r:+.2f}' for c, s, r in self.trace.top(4)))
         if not self.final.found:
