@@ -59,4 +59,5 @@ def test_the_interval_rule_keeps_ending_within_the_tie_tolerance():
                             'midpoint': (0.2, 2.0)})[0] == 'ending'
     assert choose_interval({'ending': (0.2, 1.2), 'starting': (0.2, 1.2),
                             'midpoint': (0.1, 1.0)})[0] == 'midpoint'
-    assert choose_interval({'ending': (float('nan'), 1.0), 'starting': (0.2, 1.2)})[0] == 'starting'
+    nan = float('nan')
+    assert choose_interval({'ending': (nan, 1.0), 'starting': (0.2, 1.2)})[0] == 'starting'

@@ -74,12 +74,12 @@ def test_node_runs_a_calibrated_file_without_interval_as_starting(tmp_path):
 
 
 def _encoder_bag(path, sim, hostile):
-    """A JointState bag of the simulated drive: velocities and wrapped positions (+ faults)."""
+    """Write a JointState bag of the simulated drive: velocities, wrapped positions, faults."""
     left, right = sim.wheel_pos_l.copy(), sim.wheel_pos_r.copy()
     if hostile:
         left[60:] -= 3.0  # the left counter steps back by 3 rad (60 rad/s in one sample)
-    wrapped = [((l + math.pi) % (2 * math.pi) - math.pi, (r + math.pi) % (2 * math.pi) - math.pi)
-               for l, r in zip(left, right)]
+    wrapped = [((a + math.pi) % (2 * math.pi) - math.pi, (b + math.pi) % (2 * math.pi) - math.pi)
+               for a, b in zip(left, right)]
     if hostile:
         wrapped[30] = (math.nan, wrapped[30][1])
         for i in (90, 91, 120):

@@ -76,4 +76,3 @@ def held_wheels(wheels: WheelSamples, interval: str) -> WheelSamples:
         return wheels
     return WheelSamples(wheels.t_ns, held_speeds(wheels.omega_l, interval),
                         held_speeds(wheels.omega_r, interval))
-
