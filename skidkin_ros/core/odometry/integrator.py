@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import enum
 import math
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -328,6 +328,10 @@ class StreamingIntegrator:
         self.last_t_ns: int | None = None
         self.held_speeds: tuple[float, float] = (0.0, 0.0)
         self.state: Any = None
+        # Optional aid (an IMU's, see core/odometry/gyro.py): called with every interval about
+        # to be integrated, aid(t0_ns, t1_ns, dt_s, twist, speeds at t0, speeds at t1, yaw rate
+        # of speeds or None), it returns the twist to integrate instead.
+        self.aid: Callable[..., Triple] | None = None
 
     @property
     def source(self) -> TwistSource:
@@ -425,6 +429,9 @@ class StreamingIntegrator:
         if self._stateful:
             new_state, mean = self.source.advance(self.state, dt_s)
             step_twist = _triple(mean)
+        if self.aid is not None:
+            step_twist = self.aid(self.last_t_ns, t_ns, dt_s, step_twist, self.held_speeds,
+                                  (omega_l, omega_r), None if self._stateful else self._yaw_rate)
         vx, vy, w = step_twist
         start = self._pose
         x, y, theta = start
@@ -441,6 +448,9 @@ class StreamingIntegrator:
         self._hold(t_ns, omega_l, omega_r)
         return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
                           step_twist)
+
+    def _yaw_rate(self, omega_l: float, omega_r: float) -> float:
+        return _scalar_twist(self._source, omega_l, omega_r)[2]
 
     def _jump(self, omega_l: float, omega_r: float, dt_s: float) -> StepResult:
         sides = jumped_sides(self.held_speeds, omega_l, omega_r, dt_s,
