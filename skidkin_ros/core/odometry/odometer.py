@@ -516,6 +516,9 @@ class _GyroFeed:
         else:
             self.t = np.asarray(imu.t_ns, dtype=np.int64).tolist()
             self.rate = np.asarray(imu.yaw_rate, dtype=float).tolist()
+            newest = gyro.buffer.newest_ns
+            if newest is not None and self.t[0] <= newest:   # a new recording's clock
+                gyro.buffer.clear()
         self.i = 0
 
     def _add(self) -> None:
