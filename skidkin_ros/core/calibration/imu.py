@@ -28,7 +28,8 @@ from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.errors import DataError, FitError
 
-__all__ = ['GyroFit', 'fit_gyro', 'gyro_parameters', 'predict_drives', 'evaluate_imu_mode']
+__all__ = ['GyroFit', 'fit_gyro', 'gyro_parameters', 'predict_drives', 'ModeScore',
+           'evaluate_imu_mode']
 
 TRIM_SIGMAS = 5.0
 OFFSET_RANGE_S = 0.5
@@ -195,12 +196,23 @@ def predict_drives(config: OdometryConfig, drives: Sequence[Drive], model: str |
     return out
 
 
+@dataclass(frozen=True)
+class ModeScore:
+    """One model in one imu mode: segment errors, and the errors at each drive's end."""
+
+    evaluation: ModelEvaluation
+    end_position_m: ErrorStats     # |position error| at the drive's last true pose
+    end_yaw_deg: ErrorStats        # |heading error| there
+
+
 def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet,
-                      model: str, mode: str, min_path_m: float = 0.1) -> ModelEvaluation:
+                      model: str, mode: str, min_path_m: float = 0.1) -> ModeScore:
     """Score ``model`` in imu ``mode`` on ``segments`` (cut on ``drives``), like the node runs.
 
     The relative motion the odometry predicts from t_a to t_b (poses at the wheel samples,
-    interpolated at the segment ends) is replayed from the segment's true start pose.
+    interpolated at the segment ends) is replayed from the segment's true start pose. Each
+    drive's odometry starts at its first true pose; its end error is taken at its last one
+    (for the Husky table: the window-end errors).
     """
     if mode != 'off' and not any(d.imu is not None for d in drives):
         raise DataError(f'imu mode {mode} needs gyro samples; the data has none (a table needs '
@@ -225,5 +237,17 @@ def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments:
                                         predicted)[0]
     scored = segments.path_m >= min_path_m
     eps_t, eps_theta = relative_errors(errors, segments.path_m, min_path_m)
-    return ModelEvaluation(f'{model} ({mode})', errors, scored, eps_t, eps_theta,
-                           ErrorStats.of(eps_t), ErrorStats.of(eps_theta))
+    evaluation = ModelEvaluation(f'{model} ({mode})', errors, scored, eps_t, eps_theta,
+                                 ErrorStats.of(eps_t), ErrorStats.of(eps_theta))
+    end_pos, end_yaw = [], []
+    for drive, est in zip(drives, poses):
+        truth = drive.truth
+        if truth is None or len(truth) < 2:
+            continue
+        t_end = truth.t_ns[-1]
+        at = np.array([np.interp(t_end, drive.wheels.t_ns, est[:, j]) for j in range(3)])
+        end_pos.append(float(np.hypot(at[0] - truth.x[-1], at[1] - truth.y[-1])))
+        end_yaw.append(float(np.degrees(abs((at[2] - truth.yaw[-1] + np.pi) % (2 * np.pi)
+                                            - np.pi))))
+    return ModeScore(evaluation, ErrorStats.of(np.array(end_pos)),
+                     ErrorStats.of(np.array(end_yaw)))

@@ -38,6 +38,7 @@ from skidkin_ros.core.calibration.evaluation import (evaluate_models, ModelEvalu
                                                      window_end_errors, WindowEnd)
 from skidkin_ros.core.calibration.fitting import FitOptions, FitResult
 from skidkin_ros.core.calibration.holdout import resolve_holdout
+from skidkin_ros.core.calibration.imu import fit_gyro, GyroFit, gyro_parameters
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
                                                    SegmentSet, usable_segments)
@@ -125,6 +126,7 @@ class CalibrationResult:
     likelihood: dict[str, Likelihood] = field(default_factory=dict)
     window_end: dict[str, WindowEnd] = field(default_factory=dict)
     selection_rule: str = 'paper'
+    gyro: GyroFit | None = None
 
     @property
     def counts(self) -> dict[str, Any]:
@@ -194,6 +196,17 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
             rule = 'likelihood'
         except DataError as err:
             warnings.append(f'best model chosen on eps_t and eps_theta: {err}')
+    gyro = None
+    if any(drive.imu is not None for drive in train):
+        try:
+            gyro = fit_gyro(train)
+        except (DataError, FitError) as err:
+            warnings.append(f'gyro not calibrated (imu.* not written): {err}')
+        else:
+            if gyro.at_grid_edge:
+                warnings.append(f'gyro time offset {gyro.time_offset:+.3f} s is at the edge of '
+                                'the searched range: the gyro and wheel clocks may differ by '
+                                'more; check the stamps')
     provenance = {
         'tool': f'skidkin_ros {__version__}',
         'train_drives': len(train), 'evaluate_drives': len(evaluate),
@@ -204,7 +217,7 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     provenance['selection'] = rule
     return CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
                              tuple(warnings), train_seg, eval_seg, holdout, provenance,
-                             likelihood, window_end, rule)
+                             likelihood, window_end, rule, gyro)
 
 
 def _choose_by_likelihood(fits: Mapping[str, FitResult], geometry: Geometry,
@@ -246,6 +259,8 @@ def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | No
         problems = '; '.join(w for w in result.warnings) or 'see the fit status'
         raise FitError(f'no kinematic model could be calibrated from this data: {problems}')
     flat['model'] = result.best
+    if result.gyro is not None:
+        flat.update(gyro_parameters(result.gyro))
     return flat
 
 
