@@ -59,9 +59,9 @@ IMU_SPECS: tuple[ParamSpec, ...] = (
               '0.06+)', lower_open=True),
     ParamSpec('max_wait', 's', 0.05, 0.0, 0.5,
               'node: longest wait of a wheel sample for the gyro samples that cover it'),
-    ParamSpec('saturation', 'rad/s', 0.0, 0.0, 1e4,
-              '|rate| at or above this is saturated and not used (0: no limit; set ~0.95 x '
-              'the gyro range)'),
+    ParamSpec('saturation', 'rad/s', 35.0, 0.0, 1e4,
+              '|rate| at or above this is saturated (or absurd) and not used; set ~0.95 x the '
+              'gyro range (default: 2000 deg/s, the largest usual MEMS range)', lower_open=True),
     ParamSpec('spike', 'rad/s', 0.5, 0.0, 1e4,
               'a sample this far from both its neighbours (a peak) is a glitch, skipped',
               lower_open=True),
@@ -106,7 +106,7 @@ class ImuParams:
     timeout: float = 0.2
     max_gap: float = 0.08
     max_wait: float = 0.05
-    saturation: float = 0.0
+    saturation: float = 35.0
     spike: float = 0.5
     arw: float = 2e-3
     bias_sigma: float = 1e-3
@@ -190,7 +190,7 @@ class GyroBuffer:
             status = GyroStatus.OLDER
         elif self._t and t_ns == self._t[-1]:
             status = GyroStatus.DUPLICATE
-        elif self.params.saturation > 0.0 and abs(rate) >= self.params.saturation:
+        elif abs(rate) >= self.params.saturation:
             status = GyroStatus.SATURATED
         else:
             status = GyroStatus.ACCEPTED
