@@ -48,6 +48,10 @@ def test_node_with_gyro_reproduces_predict(tmp_path, mode):
     assert abs(off.poses[-1, 2] - result.poses[-1, 2]) > 1e-3
 
 
+def _yaw(msg):
+    return 2 * math.atan2(msg.pose.pose.orientation.z, msg.pose.pose.orientation.w)
+
+
 def _imu(t_ns, rate, orientation_unknown=False, rate_unknown=False):
     msg = Imu()
     msg.header.stamp = ns_to_stamp(t_ns)
@@ -99,7 +103,7 @@ def test_hostile_imu_messages_are_counted_and_never_used(make_rig):
     covered = counters['imu_interval_covered']
     assert covered >= 30
     # the heading is the clean gyro's (0.3 rad/s) on the covered intervals, never the hostile
-    yaw = 2 * math.atan2(rig.odom[-1].pose.pose.orientation.z, rig.odom[-1].pose.pose.orientation.w)
+    yaw = _yaw(rig.odom[-1])
     integrated = (counters['imu_interval_covered']) * wheel_dt / NS_PER_S * rate
     assert yaw == pytest.approx(integrated, abs=1e-6)
     rig.spin_until(lambda: any(kv.key == 'imu.gain' for d in rig.diagnostics
@@ -117,7 +121,7 @@ def test_stale_gyro_never_stops_the_odometry(make_rig):
     assert rig.node.counters['imu_interval_stale'] == 19
     model = rig.node.config.bound_model()
     expected = model.scalar_twist(2.0, 3.0)[2] * 19 * 0.02
-    yaw = 2 * math.atan2(rig.odom[-1].pose.pose.orientation.z, rig.odom[-1].pose.pose.orientation.w)
+    yaw = _yaw(rig.odom[-1])
     assert yaw == pytest.approx(expected, rel=1e-9)
 
 
@@ -132,4 +136,3 @@ def test_imu_subscription_follows_the_mode(make_rig):
     assert not result[0].successful and 'imu.mode' in result[0].reason
     rig.node.set_parameters([Parameter('imu.mode', value='off')])
     assert rig.node._imu_sub is None
-

@@ -108,7 +108,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--imu-mode', nargs='+', choices=IMU_MODES + ('all',),
                         help="run the node's odometer in these imu modes (off, adapt, fuse, all) "
                         "with the file's imu.* gyro calibration, the learned gain carried from "
-                        'drive to drive as in one node; adds the errors at each drive\'s end')
+                        "drive to drive as in one node; adds the errors at each drive's end")
     parser.add_argument('--report', type=Path, help='folder for report.md and errors.png')
     parser.add_argument('--force', action='store_true', help='overwrite the report')
     add_source_args(parser)

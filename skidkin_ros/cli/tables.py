@@ -95,8 +95,9 @@ def imu_table(scores: Mapping[str, ModeScore], config: OdometryConfig) -> str:
     imu = config.imu
     lines = [f'gyro: scale {imu.scale:.4f}, bias {imu.bias:+.5f} rad/s, time offset '
              f'{imu.time_offset * 1e3:+.0f} ms (imu.* of the parameters file)',
-             f'{"model mode":<22} {"eps_t m/m median / p90":<24}{"eps_theta deg/m median / p90":<30}'
-             f'{"end pos m med / p90":<21}{"end yaw deg med / p90":<23}{"segs":>5}']
+             f'{"model mode":<22} {"eps_t m/m median / p90":<24}'
+             f'{"eps_theta deg/m median / p90":<30}{"end pos m med / p90":<21}'
+             f'{"end yaw deg med / p90":<23}{"segs":>5}']
     lines.append('-' * len(lines[-1]))
     for name, score in scores.items():
         t, th = score.evaluation.stats_t, score.evaluation.stats_theta

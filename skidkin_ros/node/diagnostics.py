@@ -54,9 +54,9 @@ class StatusReport:
         self._start_mono_ns = now
         level, summary = _level(recent, stale)
         if imu is not None and level == DiagnosticStatus.OK and imu.get('at_bound'):
-            level, summary = DiagnosticStatus.WARN, ('imu gain at its bound '
-                                                      '(imu.adapt.gain_min/gain_max): the model '
-                                                      'or the gyro calibration is far off')
+            level = DiagnosticStatus.WARN
+            summary = ('imu gain at its bound (imu.adapt.gain_min/gain_max): the model or the '
+                       'gyro calibration is far off')
         status = DiagnosticStatus(level=level, name=name, message=summary,
                                   hardware_id=config['robot'])
         values = {

@@ -149,7 +149,7 @@ def fit_gyro(drives: Sequence[Drive], bootstrap: int = 100, seed: int = 0) -> Gy
     if not a > 0 or not 0.5 <= 1.0 / a <= 2.0:
         scale = 1.0 / a if a != 0 else float('inf')
         raise FitError(f'the gyro yaw-rate scale fits {scale:.3g}: a yaw-rate gyro in rad/s about '
-                       'the robot\'s +z has 1. A scale near -1: the IMU z axis points down; near '
+                       "the robot's +z has 1. A scale near -1: the IMU z axis points down; near "
                        '57: the rate is in deg/s. Fix the IMU driver or its frame, then '
                        'calibrate again')
     scale, bias = 1.0 / a, -c / a
@@ -170,7 +170,7 @@ def fit_gyro(drives: Sequence[Drive], bootstrap: int = 100, seed: int = 0) -> Gy
 
 
 def gyro_parameters(fit: GyroFit) -> dict[str, float]:
-    """The imu.* values a gyro calibration writes (the mode stays the user's choice)."""
+    """Return the imu.* values a gyro calibration writes (the mode stays the user's choice)."""
     return {'imu.scale': fit.scale, 'imu.bias': fit.bias, 'imu.time_offset': fit.time_offset,
             'imu.max_gap': round(max(0.08, 2.5 * fit.period_s), 4),
             'imu.timeout': round(max(0.2, 5.0 * fit.period_s), 4),

@@ -38,7 +38,7 @@ from skidkin_ros.core.calibration.evaluation import (evaluate_models, ModelEvalu
                                                      window_end_errors, WindowEnd)
 from skidkin_ros.core.calibration.fitting import FitOptions, FitResult
 from skidkin_ros.core.calibration.holdout import resolve_holdout
-from skidkin_ros.core.calibration.imu import fit_gyro, GyroFit, gyro_parameters
+from skidkin_ros.core.calibration.imu import fit_gyro, gyro_parameters, GyroFit
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
                                                    SegmentSet, usable_segments)

@@ -199,7 +199,7 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
 def _imu_entries() -> list[SchemaEntry]:
     entries = [SchemaEntry('imu.mode', 'string', 'off',
                            'gyro use: off (wheels only), adapt (model yaw rate x a gain learned '
-                           'from the gyro) or fuse (the gyro yaw rate replaces the model\'s)',
+                           'from the gyro) or fuse (the gyro yaw rate replaces the model one)',
                            choices=IMU_MODES)]
     entries += [SchemaEntry(f'imu.{spec.name}', 'double', spec.default_for(None),
                             f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)

@@ -291,8 +291,10 @@ def _value_at(ts: list[int], gs: list[float], i: int, t: int) -> float:
 
 
 def _integral(ts: list[int], gs: list[float], j0: int, j1: int, t0: int, t1: int) -> float:
-    """Integral (rad/s x ns) of the piecewise-linear signal over [t0, t1]; ts[j0] <= t0,
-    ts[j1] >= t1."""
+    """Return the integral (rad/s x ns) of the piecewise-linear signal over [t0, t1].
+
+    Samples j0 and j1 bracket the interval: ts[j0] <= t0, ts[j1] >= t1.
+    """
     total = 0.0
     a = t0
     value_a = _value_at(ts, gs, j0, t0)
@@ -313,8 +315,9 @@ class GainBiasFilter:
     metre of wheel travel, bias per second) and, for a stale gyro, relaxes the gain toward 1 over
     ``fallback_distance`` with its variance growing back toward the prior. ``update`` takes one
     covered interval: moving, z = gamma w_mid + beta (only gamma is corrected; R = r_floor +
-    (r_rel w_mid)^2); at standstill z = beta (the bias is learned; R = arw^2 / dt). Huber-inflated R (an innovation beyond k sigma counts as k
-    sigma), Joseph form, gamma clamped to [gain_min, gain_max].
+    (r_rel w_mid)^2); at standstill z = beta (the bias is learned; R = arw^2 / dt).
+    Huber-inflated R (an innovation beyond k sigma counts as k sigma), Joseph form, gamma
+    clamped to [gain_min, gain_max].
     """
 
     def __init__(self, params: ImuParams) -> None:
@@ -464,9 +467,8 @@ class GyroAid:
         return kf.gain ** 2 * model_variance + model_yaw_rate ** 2 * kf.p00
 
     def state(self) -> dict[str, float]:
-        """The filter's state for /diagnostics and reports."""
+        """Return the filter's state for /diagnostics and reports."""
         kf = self.filter
         return {'gain': kf.gain, 'gain_sigma': math.sqrt(max(kf.p00, 0.0)), 'bias': kf.bias,
                 'bias_sigma': math.sqrt(max(kf.p11, 0.0)), 'updates': float(kf.updates),
                 'inflated': float(kf.inflated)}
-

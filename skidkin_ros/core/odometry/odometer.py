@@ -424,8 +424,10 @@ class Odometer:
         return result
 
     def _aided(self, gyro: GyroAid, result: StepResult) -> StepResult:
-        """Count the gyro interval, propagate the covariance of the aided step, and publish
-        the yaw rate that was integrated (fuse on the gyro) or the model's times the gain."""
+        """Count the gyro interval and propagate the covariance of the aided step.
+
+        Published: the yaw rate integrated (fuse on the gyro) or the model's times the gain.
+        """
         last = gyro.last
         self.counters['imu_interval_' + last.status.value] += 1
         vx, vy, w = result.step_twist
