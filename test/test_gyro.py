@@ -162,7 +162,7 @@ def test_bad_gyro_never_corrupts_and_stale_never_stops_the_odometry():
 
     def faults(t, g):
         g[::7] = np.nan
-        g[::13] = 40.0                     # spikes (single samples)
+        g[::13] = 20.0                     # spikes (single samples, below saturation)
         g[(t > 8 * 10**9) & (t < 12 * 10**9)] = np.nan   # a 4 s dropout: stale
 
     clean = _odometer('fuse').predict(wheels, imu=_gyro(wheels, rate))

@@ -362,6 +362,11 @@ class StreamingIntegrator:
         self.held_speeds = (0.0, 0.0)
         self.state = None
 
+    def restart_pose(self, pose: Triple) -> None:
+        """Move the pose to ``pose``; the held speeds, the stamp and any state are kept."""
+        x, y, yaw = pose
+        self._pose = (float(x), float(y), float(yaw))
+
     def set_source(self, source: TwistSource) -> None:
         """Switch model (parameters changed at runtime); the held twist is recomputed.
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass, replace
 import math
-from typing import Callable, NamedTuple, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -479,18 +479,25 @@ class Odometer:
 
     # ------------------------------------------------------------------ offline
     def predict(self, wheels: WheelSamples, start: Sequence[float] = (0.0, 0.0, 0.0),
-                imu: ImuSamples | None = None) -> 'Prediction':
+                imu: ImuSamples | None = None,
+                restarts: Mapping[int, Sequence[float]] | None = None) -> 'Prediction':
         """Restart at ``start`` and run every sample through :meth:`step`, as the node does.
 
         With the gyro in use, ``imu`` samples arrive in stamp order, as the node receives them:
         those stamped up to a wheel sample's stamp before it, then more while the wheel sample
         waits for its interval to be covered (at most imu.max_wait past its stamp). The gyro
         history and the learned gain and bias carry over from an earlier call (a drive cut in
-        windows); :meth:`reset_imu` forgets them.
+        windows). ``restarts`` ({sample index: pose}): after that sample, the pose is set and its
+        covariance zeroed, everything else kept (the windows of a NEES study); the prediction
+        then holds the pose covariance and the gain after every sample.
         """
         self.reset(start)
         poses = np.empty((len(wheels), 3))
         twists = np.empty((len(wheels), 3))
+        covariances = gains = None
+        if restarts is not None:
+            covariances = np.empty((len(wheels), 3, 3))
+            gains = np.ones(len(wheels))
         status = []
         gyro = self.gyro
         feed = _GyroFeed(gyro, imu, self.counters)
@@ -501,8 +508,15 @@ class Odometer:
             poses[i] = result.pose
             twists[i] = result.twist
             status.append(result.status)
+            if restarts is not None:
+                covariances[i] = self.covariance.cov
+                gains[i] = gyro.filter.gain if gyro is not None else 1.0
+                if i in restarts:
+                    self.integrator.restart_pose(check_pose(restarts[i]))
+                    self.covariance.reset()
         offset_ns = self.output_offset_ns
-        return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns)
+        return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns,
+                          covariances, gains)
 
 
 class _GyroFeed:
@@ -558,6 +572,8 @@ class Prediction:
     twists: np.ndarray
     status: tuple[SampleStatus, ...]
     offset_ns: int = 0
+    covariances: np.ndarray | None = None   # (N, 3, 3) pose covariance, with ``restarts``
+    imu_gain: np.ndarray | None = None      # (N,) the learned yaw-rate gain, with ``restarts``
 
     @property
     def accepted(self) -> np.ndarray:
