@@ -15,6 +15,7 @@ from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
 from skidkin_ros.errors import ParameterError
 
 MS = 1_000_000
+NS_PER_S = 1_000_000_000
 GEOMETRY = Geometry(0.1651, 0.555)
 
 
@@ -196,3 +197,57 @@ def test_imu_parameters_default_off_and_are_validated():
         OdometryConfig.from_flat({'imu.time_offset': 5.0})
     with pytest.raises(ParameterError, match='imu.adapt.gain_max'):
         OdometryConfig.from_flat({'imu.adapt.gain_max': 0.9})
+
+
+# ------------------------------------------------------------------ calibration
+def _shifted_gyro(sim, scale, bias, offset_s):
+    """The simulator's gyro as a real one: scaled, biased, stamped offset_s late."""
+    return ImuSamples(sim.imu.t_ns + int(offset_s * 1e9), scale * sim.imu.yaw_rate + bias)
+
+
+def test_fit_gyro_recovers_scale_bias_and_time_offset():
+    from dataclasses import replace
+
+    from skidkin_ros.core.calibration.imu import fit_gyro
+    from skidkin_ros.sim.simulate import SimConfig, simulate
+    sim = simulate(SimConfig(duration_s=40.0, seed=4))
+    drive = replace(sim.drive('g'), imu=_shifted_gyro(sim, 1.03, 0.02, -0.08))
+    fit = fit_gyro([drive], bootstrap=0)
+    assert fit.scale == pytest.approx(1.03, abs=0.005)
+    assert fit.bias == pytest.approx(0.02, abs=0.002)
+    assert fit.time_offset == pytest.approx(-0.08, abs=0.003)
+    # the fitted calibration undoes it: the buffer's mean equals the true yaw rate
+    buffer = GyroBuffer(ImuParams(mode='fuse', scale=fit.scale, bias=fit.bias,
+                                  time_offset=fit.time_offset))
+    t0 = int(sim.wheels.t_ns[400])
+    for t, g in zip(drive.imu.t_ns, drive.imu.yaw_rate):
+        if t <= t0 + NS_PER_S:          # the buffer keeps the last few seconds
+            buffer.add(int(t), float(g))
+    status, mean = buffer.mean_rate(t0, t0 + 500 * MS)
+    truth = sim.truth
+    true_mean = (np.interp(t0 + 500 * MS, truth.t_ns, truth.yaw)
+                 - np.interp(t0, truth.t_ns, truth.yaw)) / 0.5
+    assert status is GyroStatus.COVERED and mean == pytest.approx(true_mean, abs=0.01)
+
+
+def test_fit_gyro_refuses_an_upside_down_imu():
+    from dataclasses import replace
+
+    from skidkin_ros.core.calibration.imu import fit_gyro
+    from skidkin_ros.errors import FitError
+    from skidkin_ros.sim.simulate import SimConfig, simulate
+    sim = simulate(SimConfig(duration_s=30.0, seed=4))
+    drive = replace(sim.drive('g'), imu=_shifted_gyro(sim, -1.0, 0.0, 0.0))
+    with pytest.raises(FitError, match='z axis points down'):
+        fit_gyro([drive], bootstrap=0)
+
+
+def test_old_parameter_files_load_with_the_gyro_off(tmp_path):
+    from skidkin_ros.core.odometry.config import write_params_file
+    path = write_params_file(tmp_path / 'old.yaml', {'model': 'ideal_dd'})
+    text = path.read_text()
+    assert 'imu' not in text
+    config = OdometryConfig.from_file(path)
+    assert config.imu == ImuParams()
+    odometer = Odometer.from_config(config)
+    assert odometer.gyro is None and odometer.integrator.aid is None
