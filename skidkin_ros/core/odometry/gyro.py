@@ -366,9 +366,9 @@ class GainBiasFilter:
             r = nu * nu / k2 - hph
             s = nu * nu / k2
             self.inflated += 1
+        # Moving, H = [w_mid, 0] and the gain and bias errors stay uncorrelated (no update ever
+        # mixes them), so k1 = 0: the bias is learned at standstill only.
         k0, k1 = ph0 / s, ph1 / s
-        if moving:
-            k1 = 0.0            # the bias is learned at standstill only
         # Joseph form: P = (I - K H) P (I - K H)^T + R K K^T
         a00, a01 = 1.0 - k0 * h0, -k0 * h1
         a10, a11 = -k1 * h0, 1.0 - k1 * h1
