@@ -201,7 +201,7 @@ def test_imu_parameters_default_off_and_are_validated():
 
 # ------------------------------------------------------------------ calibration
 def _shifted_gyro(sim, scale, bias, offset_s):
-    """The simulator's gyro as a real one: scaled, biased, stamped offset_s late."""
+    """Return the simulator's gyro as a real one: scaled, biased, stamped offset_s late."""
     return ImuSamples(sim.imu.t_ns + int(offset_s * 1e9), scale * sim.imu.yaw_rate + bias)
 
 

@@ -11,9 +11,8 @@ __all__ = ['add_parser']
 
 
 def run(args: argparse.Namespace) -> int:
-    say('eps_t m/m / eps_theta deg/m, medians; ' + ', '.join(
-        f'{name} {value}' for name, value in (('seeds', args.seeds),
-                                               ('drive length s', args.duration))))
+    say(f'eps_t m/m / eps_theta deg/m, medians; seeds {args.seeds}, drive length s '
+        f'{args.duration}')
     for line in TABLE_HEADER:
         say(line)
     for case in run_study(args.cases, tuple(args.seeds), args.duration):

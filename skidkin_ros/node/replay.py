@@ -122,24 +122,8 @@ def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
                        max(deadline - time.monotonic(), 0.0), 'the node to subscribe to imu')
     counters = harness.odom.counters
     gyro_t = np.asarray(imu.t_ns, dtype=np.int64)
-    j = 0
-    for i in range(len(samples)):
-        t_wheel = int(samples.t_ns[i])
-        while j < gyro_t.size and gyro_t[j] <= t_wheel:
-            msg = Imu()
-            msg.header.stamp = ns_to_stamp(int(gyro_t[j]) + offset_ns)
-            msg.angular_velocity.z = float(imu.yaw_rate[j])
-            target = counters['imu_received'] + 1
-            harness.imu_publisher.publish(msg)
-            harness.spin_until(lambda: counters['imu_received'] >= target,
-                               max(deadline - time.monotonic(), 0.0), f'gyro sample {j}')
-            j += 1
-        target = counters['received'] + 1
-        harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
-                                               samples.omega_l[i], samples.omega_r[i]))
-        harness.spin_until(lambda: counters['received'] >= target,
-                           max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
-    for k in range(j, gyro_t.size):   # the rest releases the samples still waiting
+
+    def send_gyro(k: int) -> None:
         msg = Imu()
         msg.header.stamp = ns_to_stamp(int(gyro_t[k]) + offset_ns)
         msg.angular_velocity.z = float(imu.yaw_rate[k])
@@ -147,6 +131,20 @@ def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
         harness.imu_publisher.publish(msg)
         harness.spin_until(lambda: counters['imu_received'] >= target,
                            max(deadline - time.monotonic(), 0.0), f'gyro sample {k}')
+
+    j = 0
+    for i in range(len(samples)):
+        t_wheel = int(samples.t_ns[i])
+        while j < gyro_t.size and gyro_t[j] <= t_wheel:
+            send_gyro(j)
+            j += 1
+        target = counters['received'] + 1
+        harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
+                                               samples.omega_l[i], samples.omega_r[i]))
+        harness.spin_until(lambda: counters['received'] >= target,
+                           max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
+    for k in range(j, gyro_t.size):   # the rest releases the samples still waiting
+        send_gyro(k)
 
 
 class _Harness:

@@ -29,11 +29,11 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import ErrorStats, evaluate_model, relative_errors
+from skidkin_ros.core.calibration.imu import odometry_segment_errors
 from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
 from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
                                                    result_to_parameters)
-from skidkin_ros.core.calibration.segments import (cut_segments, segment_frame_error,
-                                                   SegmentOptions, SegmentSet)
+from skidkin_ros.core.calibration.segments import cut_segments, segment_frame_error, SegmentOptions
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.estimation.nees import nees, summarize_nees
 from skidkin_ros.core.kinematics.specs import Geometry
@@ -110,26 +110,6 @@ def _settled(case: str, drive: Drive, t_a: int, t_b: int) -> bool:
                 >= SETTLE_M)
 
 
-def _segment_errors(drives: Sequence[Drive], predictions: Sequence[Prediction],
-                    segments: SegmentSet) -> np.ndarray:
-    errors = np.zeros((len(segments), 3))
-    for k in range(len(segments)):
-        d = int(segments.drive[k])
-        t, est = drives[d].wheels.t_ns, predictions[d].poses
-        a, b = (np.array([np.interp(s, t, est[:, j]) for j in range(3)])
-                for s in (segments.t_a_ns[k], segments.t_b_ns[k]))
-        c, s = np.cos(a[2]), np.sin(a[2])
-        local = (c * (b[0] - a[0]) + s * (b[1] - a[1]), -s * (b[0] - a[0]) + c * (b[1] - a[1]),
-                 b[2] - a[2])
-        x0, y0, th0 = segments.start[k]
-        ct, st = np.cos(th0), np.sin(th0)
-        predicted = np.array([[x0 + ct * local[0] - st * local[1],
-                               y0 + st * local[0] + ct * local[1], th0 + local[2]]])
-        errors[k] = segment_frame_error(segments.start[k:k + 1], segments.end[k:k + 1],
-                                        predicted)[0]
-    return errors
-
-
 @dataclass(frozen=True)
 class ImuCase:
     """One case of the study: median errors per group and mode, recovery, NEES."""
@@ -181,13 +161,15 @@ def run_case(case: str, config: OdometryConfig, reference: OdometryConfig,
             predictions[mode].append(pred)
             if mode == 'adapt' and case == 'ground change':
                 recovery.append(_recovery_m(drive, pred))
-    errors = {mode: _segment_errors(drives, predictions[mode], segments) for mode in MODES}
+    errors = {mode: odometry_segment_errors(drives, [p.poses for p in predictions[mode]],
+                                            segments) for mode in MODES}
     settled = np.array([_settled(case, drives[int(segments.drive[k])], int(segments.t_a_ns[k]),
                                  int(segments.t_b_ns[k])) for k in range(len(segments))],
                        dtype=bool)
     ref_predictions = [Odometer.from_config(reference).predict(d.wheels, d.truth.poses[0])
                        for d in drives]
-    ref_errors = _segment_errors(drives, ref_predictions, segments)
+    ref_errors = odometry_segment_errors(drives, [p.poses for p in ref_predictions],
+                                         segments)
     groups: dict[str, dict[str, tuple[ErrorStats, ErrorStats]]] = {}
     selections = {'all': np.ones(len(segments), dtype=bool)}
     if case != 'effect-free':

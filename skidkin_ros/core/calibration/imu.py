@@ -28,8 +28,8 @@ from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.errors import DataError, FitError
 
-__all__ = ['GyroFit', 'fit_gyro', 'gyro_parameters', 'predict_drives', 'ModeScore',
-           'evaluate_imu_mode']
+__all__ = ['GyroFit', 'fit_gyro', 'gyro_parameters', 'predict_drives',
+           'odometry_segment_errors', 'ModeScore', 'evaluate_imu_mode']
 
 TRIM_SIGMAS = 5.0
 OFFSET_RANGE_S = 0.5
@@ -196,6 +196,32 @@ def predict_drives(config: OdometryConfig, drives: Sequence[Drive], model: str |
     return out
 
 
+def odometry_segment_errors(drives: Sequence[Drive], poses: Sequence[np.ndarray],
+                            segments: SegmentSet) -> np.ndarray:
+    """Return the (N, 3) start-frame end errors of odometry poses on the segments.
+
+    ``poses[d]`` holds the odometry's pose at every wheel sample of ``drives[d]``; its relative
+    motion from t_a to t_b (interpolated at the segment ends) is replayed from the segment's
+    true start pose.
+    """
+    errors = np.zeros((len(segments), 3))
+    for k in range(len(segments)):
+        drive = int(segments.drive[k])
+        t, est = drives[drive].wheels.t_ns, poses[drive]
+        a, b = (np.array([np.interp(s, t, est[:, j]) for j in range(3)])
+                for s in (segments.t_a_ns[k], segments.t_b_ns[k]))
+        c, s = np.cos(a[2]), np.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        local = (c * dx + s * dy, -s * dx + c * dy, b[2] - a[2])
+        x0, y0, th0 = segments.start[k]
+        ct, st = np.cos(th0), np.sin(th0)
+        predicted = np.array([[x0 + ct * local[0] - st * local[1],
+                               y0 + st * local[0] + ct * local[1], th0 + local[2]]])
+        errors[k] = segment_frame_error(segments.start[k:k + 1], segments.end[k:k + 1],
+                                        predicted)[0]
+    return errors
+
+
 @dataclass(frozen=True)
 class ModeScore:
     """One model in one imu mode: segment errors, and the errors at each drive's end."""
@@ -218,23 +244,7 @@ def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments:
         raise DataError(f'imu mode {mode} needs gyro samples; the data has none (a table needs '
                         'the imu_yaw_rate column, a bag a sensor_msgs/Imu topic)')
     poses = predict_drives(config, drives, model, mode)
-    errors = np.zeros((len(segments), 3))
-    for k in range(len(segments)):
-        drive = drives[int(segments.drive[k])]
-        t = drive.wheels.t_ns
-        est = poses[int(segments.drive[k])]
-        ends = [np.array([np.interp(s, t, est[:, j]) for j in range(3)])
-                for s in (segments.t_a_ns[k], segments.t_b_ns[k])]
-        a, b = ends
-        c, s = np.cos(a[2]), np.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        local = (c * dx + s * dy, -s * dx + c * dy, b[2] - a[2])
-        x0, y0, th0 = segments.start[k]
-        ct, st = np.cos(th0), np.sin(th0)
-        predicted = np.array([[x0 + ct * local[0] - st * local[1],
-                               y0 + st * local[0] + ct * local[1], th0 + local[2]]])
-        errors[k] = segment_frame_error(segments.start[k:k + 1], segments.end[k:k + 1],
-                                        predicted)[0]
+    errors = odometry_segment_errors(drives, poses, segments)
     scored = segments.path_m >= min_path_m
     eps_t, eps_theta = relative_errors(errors, segments.path_m, min_path_m)
     evaluation = ModelEvaluation(f'{model} ({mode})', errors, scored, eps_t, eps_theta,
