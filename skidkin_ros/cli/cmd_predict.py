@@ -14,6 +14,7 @@ from skidkin_ros.cli.common import add_source_args, print_notes, say, source_opt
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.gyro import IMU_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.errors import DataError
 
 __all__ = ['add_parser']
 
@@ -27,9 +28,17 @@ def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
                                max_dt_s=config['max_dt'])
 
 
+def _check_gyro(config: OdometryConfig, drives) -> None:
+    if config.imu.mode != 'off' and all(drive.imu is None for drive in drives):
+        raise DataError(f'imu mode {config.imu.mode} needs gyro samples and the recording has '
+                        'none: a table needs the imu_yaw_rate column, a bag a sensor_msgs/Imu '
+                        'topic (--imu-topic); or use --imu-mode off')
+
+
 def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
     loaded = load_source(args.source, _reading(args, config), need_truth=True)
     print_notes([loaded])
+    _check_gyro(config, loaded.drives)
     with args.source.open(newline='', encoding='utf-8-sig') as handle:
         rows = list(csv.reader(handle))
     header, body = rows[0], rows[1:]
@@ -50,6 +59,7 @@ def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[st
 def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
     loaded = load_source(args.source, _reading(args, config), need_truth=False)
     print_notes([loaded])
+    _check_gyro(config, loaded.drives)
     wheels = loaded.drives[0].wheels
     pred = Odometer.from_config(config).predict(wheels, imu=loaded.drives[0].imu)
     out = io.StringIO()

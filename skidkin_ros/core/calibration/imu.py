@@ -174,6 +174,8 @@ def gyro_parameters(fit: GyroFit) -> dict[str, float]:
     return {'imu.scale': fit.scale, 'imu.bias': fit.bias, 'imu.time_offset': fit.time_offset,
             'imu.max_gap': round(max(0.08, 2.5 * fit.period_s), 4),
             'imu.timeout': round(max(0.2, 5.0 * fit.period_s), 4),
+            # a wheel sample needs the gyro up to its stamp + offset and two samples more
+            'imu.max_wait': round(min(max(0.05, fit.time_offset + 2.5 * fit.period_s), 0.5), 4),
             'imu.bias_sigma': float(max(fit.bias_se if np.isfinite(fit.bias_se) else 1e-3,
                                         1e-4))}
 
