@@ -29,7 +29,11 @@ def _main_library_term(result: DiagnosisResult, name: str) -> tuple[str, str]:
     signals = result.trace.signals
     twist = np.stack([signals['body_speed'], np.zeros_like(signals['body_speed']),
                       signals['yaw_rate']], axis=-1)
-    spread = dict(zip((term.name for term in LIBRARY), sparse_features(twist).std(axis=0)))
+    zero = np.zeros_like(signals['body_speed'])
+    rate = np.stack([signals.get('d_body_speed', zero), zero, signals.get('d_yaw_rate', zero)],
+                    axis=-1)
+    spread = dict(zip((term.name for term in LIBRARY),
+                      sparse_features(twist, rate).std(axis=0)))
     signal_of = {term.name: term.signal for term in LIBRARY}
     values = result.final.ext_values.get(name, {})
     best = max(result.final.sparse_terms,

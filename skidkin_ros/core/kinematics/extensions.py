@@ -498,14 +498,19 @@ def get_extension(name: str) -> Extension:
                              f'{", ".join(EXTENSION_NAMES)}') from None
 
 
-def ordered(names: Sequence[str]) -> tuple[str, ...]:
-    """Return extension names in application order, checking each is known and unique."""
+def ordered(names: Sequence[str], exclusive: bool = True) -> tuple[str, ...]:
+    """Return extension names in application order, checking each is known and unique.
+
+    ``exclusive``: also check that no two share a group (a model's structure; a list of
+    candidates may hold rivals).
+    """
     seen = []
     for name in names:
         group = get_extension(name).group
         if name in seen:
             raise ParameterError(f'extension {name!r} is listed twice')
-        rival = [other for other in seen if group and EXTENSIONS[other].group == group]
+        rival = [other for other in seen
+                 if exclusive and group and EXTENSIONS[other].group == group]
         if rival:
             raise ParameterError(f'extensions {rival[0]!r} and {name!r} cannot be combined (both '
                                  f'are a {group}); keep one')
