@@ -343,7 +343,7 @@ def test_per_component_lags_act_on_their_component_only():
              'component_lags': (True, True), 'first_order_lag': (True, True)}
     for name, (v_lags, w_lags) in cases.items():
         ext = get_extension(name)
-        values = {p: 0.3 for p in ext.param_names}
+        values = dict.fromkeys(ext.param_names, 0.3)
         stream = StreamingIntegrator(augmented({name: values}))
         for i in range(12):  # up to 0.55 s: one sample after the step
             stream.step(int(t_ns[i]), float(wl[i]), float(wr[i]))

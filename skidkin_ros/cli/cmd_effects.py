@@ -24,9 +24,10 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         'effects', help='study: inject each simulated effect, diagnose blind, print the table',
         description='For effect-free data, for every effect the simulator can inject and for '
-        'drives with two effects at once (each at a seeded random strength): simulate two training and three evaluation drives of an '
-        'edd_symmetric robot with that effect and ICP-like ground truth, calibrate '
-        'edd_symmetric, diagnose without being told the effect, and print one Markdown row: '
+        'drives with two effects at once (each at a seeded random strength): simulate two '
+        'training and three evaluation drives of an edd_symmetric robot with those effects and '
+        'ICP-like ground truth, calibrate edd_symmetric, diagnose without being told the '
+        'effects, and print one Markdown row: '
         'what was found and the held-out median errors of the base model, the augmented one '
         'and the true model. The whole study takes a few minutes; rows appear as they finish.')
     parser.add_argument('--effects', nargs='+', choices=CASE_NAMES, default=list(CASE_NAMES),

@@ -147,6 +147,7 @@ def render_diagnosis_page(result: DiagnosisResult, images: dict[str, str]) -> st
     lines += ['', '## Findings', '']
     for line in result.summary_lines()[1:3]:
         lines.append('- ' + line.strip())
+    lines += [f'- **{line}**' for line in result.unexplained_lines()]
     for name in found:
         ext = get_extension(name)
         lines.append(f'- `{name}` ({ext.title}; {ext.formula}): ' + ', '.join(

@@ -239,7 +239,7 @@ class BoundAugmented:
         held, mean = x.copy(), x.copy()
         dt_s = np.asarray(dt_s, dtype=float)
         restart = np.asarray(restart, bool)
-        for tau in sorted(set(t for t in taus if t > 0.0)):
+        for tau in sorted({t for t in taus if t > 0.0}):
             columns = [c for c in range(3) if taus[c] == tau]
             held[..., columns], mean[..., columns] = lag_response(x[..., columns], dt_s,
                                                                   restart, tau)

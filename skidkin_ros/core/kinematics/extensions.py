@@ -166,8 +166,8 @@ class Extension:
         """Return this extension on plain floats, or None if it has no such form.
 
         The function takes ``(k, vx, vy, wz, omega_l, omega_r, t_s, rate)`` (``k`` and ``rate``
-        tuples of floats) and returns the new (vx, vy, wz): :meth:`apply`'s operations in its order, so the node's
-        per-sample path equals the batch form bit for bit. Stages other than the twist stage
+        tuples of floats) and returns the new (vx, vy, wz): :meth:`apply`'s operations in its
+        order, so the node's per-sample path equals the batch form bit for bit. Stages other than the twist stage
         return the twist unchanged.
         """
         if self.stage != 'twist':
@@ -512,8 +512,9 @@ def ordered(names: Sequence[str], exclusive: bool = True) -> tuple[str, ...]:
         rival = [other for other in seen
                  if exclusive and group and EXTENSIONS[other].group == group]
         if rival:
+            members = ', '.join(n for n, e in EXTENSIONS.items() if e.group == group)
             raise ParameterError(f'extensions {rival[0]!r} and {name!r} cannot be combined (both '
-                                 f'are a {group}); keep one')
+                                 f'are a {group}); keep one of: {members}')
         seen.append(name)
     return tuple(sorted(seen, key=lambda n: (_STAGE_ORDER[EXTENSIONS[n].stage],
                                              EXTENSION_NAMES.index(n))))
