@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import functools
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from scipy.signal import lfilter
@@ -50,11 +50,11 @@ Triple = tuple[float, float, float]
 _STILL: Triple = (0.0, 0.0, 0.0)
 
 
-@dataclass(frozen=True)
-class AugmentedState:
+class AugmentedState(NamedTuple):
     """Streaming state: first stamp (ns), twist-stage output x and body twist y (held).
 
     ``t_ns`` and ``b``: the last sample's stamp and base twist (for the rate of the next one).
+    A named tuple: the node builds one per sample, and a tuple is the cheapest to build.
     """
 
     t0_ns: int
@@ -192,11 +192,12 @@ class BoundAugmented:
                 p = state.b
                 rate = ((b[0] - p[0]) / step, (b[1] - p[1]) / step, (b[2] - p[2]) / step)
         x = self.scalar_memoryless(float(omega_l), float(omega_r), (t_ns - t0) * 1e-9, rate, b)
-        taus = self.taus
         if state is None or restart:
             y = x
         else:
-            y = tuple(x[c] if not taus[c] > 0.0 else state.y[c] for c in range(3))
+            t_v, t_y, t_w = self.taus
+            y = (state.y[0] if t_v > 0.0 else x[0], state.y[1] if t_y > 0.0 else x[1],
+                 state.y[2] if t_w > 0.0 else x[2])
         return AugmentedState(t0, x, y, t_ns, b), y
 
     def advance(self, state: AugmentedState, dt_s: float) -> tuple[AugmentedState, Triple]:
@@ -205,23 +206,23 @@ class BoundAugmented:
         :func:`lag_factors` and :func:`lag_response`'s sample loop on plain floats, per lagged
         component.
         """
-        taus = self.taus
-        if not max(taus) > 0.0:
+        t_v, t_y, t_w = self.taus
+        if not (t_v > 0.0 or t_y > 0.0 or t_w > 0.0):
             return state, state.x
-        held, mean = [], []
-        for x_c, y_c, tau in zip(state.x, state.y, taus):
-            if not tau > 0.0:
-                held.append(x_c)
-                mean.append(x_c)
-                continue
-            ratio = dt_s / tau
+        (x0, x1, x2), (y0, y1, y2) = state.x, state.y
+        if t_v == t_y == t_w:  # one lag on the whole twist: its factors once
+            ratio = dt_s / t_v
             d = float(np.exp(-ratio))
             g = -float(np.expm1(-ratio)) / ratio if dt_s > 0.0 else 1.0
-            diff = y_c - x_c
-            held.append(x_c + diff * d)
-            mean.append(x_c + diff * g)
-        return (AugmentedState(state.t0_ns, state.x, tuple(held), state.t_ns, state.b),
-                tuple(mean))
+            diff0, diff1, diff2 = y0 - x0, y1 - x1, y2 - x2
+            held = (x0 + diff0 * d, x1 + diff1 * d, x2 + diff2 * d)
+            mean = (x0 + diff0 * g, x1 + diff1 * g, x2 + diff2 * g)
+        else:
+            h0, m0 = _lag_step(x0, y0, t_v, dt_s)
+            h1, m1 = _lag_step(x1, y1, t_y, dt_s)
+            h2, m2 = _lag_step(x2, y2, t_w, dt_s)
+            held, mean = (h0, h1, h2), (m0, m1, m2)
+        return AugmentedState(state.t0_ns, state.x, held, state.t_ns, state.b), mean
 
     # ---------------------------------------------------------------- batch form
     def intervals(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
@@ -244,6 +245,17 @@ class BoundAugmented:
             held[..., columns], mean[..., columns] = lag_response(x[..., columns], dt_s,
                                                                   restart, tau)
         return held, mean
+
+
+def _lag_step(x: float, y: float, tau_s: float, dt_s: float) -> tuple[float, float]:
+    """Return (y after dt_s, mean of y over dt_s) for one component; (x, x) without a lag."""
+    if not tau_s > 0.0:
+        return x, x
+    ratio = dt_s / tau_s
+    d = float(np.exp(-ratio))
+    g = -float(np.expm1(-ratio)) / ratio if dt_s > 0.0 else 1.0
+    diff = y - x
+    return x + diff * d, x + diff * g
 
 
 def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
