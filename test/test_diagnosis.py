@@ -198,6 +198,7 @@ def test_effect_free_data_gets_no_extension(tmp_path):
     result = case.result
     assert result.extensions == ()
     assert all(not c.accepted for c in result.candidates)
+    assert result.unexplained == (), result.summary_lines()  # nothing left to report either
     flat = result.to_parameters({'model': 'edd_symmetric', 'models.edd_symmetric.alpha': 0.9})
     assert flat['model'] == 'edd_symmetric' and 'augmented.extensions' not in flat
 
