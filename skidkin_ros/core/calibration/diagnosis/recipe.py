@@ -140,9 +140,8 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
         'evaluate_drives': len(evaluate), 'train_segments': len(train_seg),
         'train_segments_trimmed': trimmed,
         'evaluate_segments': len(eval_seg), 'holdout': holdout,
-        'unexplained': [{'signal': lead.signal, 'component': lead.component,
-                         'share': round(lead.share, 4), 'r': round(lead.r, 4)}
-                        for lead in unexplained],
+        'unexplained': [f'{lead.signal} ({lead.component} residual): share {lead.share:.3f}, '
+                        f'r {lead.r:+.3f}' for lead in unexplained],
         'seconds': round(time.perf_counter() - tic, 2), 'options': options.as_dict(),
     }
     return DiagnosisResult(base_model_name, geometry, options, trace, tuple(scores),
