@@ -167,8 +167,8 @@ class Extension:
 
         The function takes ``(k, vx, vy, wz, omega_l, omega_r, t_s, rate)`` (``k`` and ``rate``
         tuples of floats) and returns the new (vx, vy, wz): :meth:`apply`'s operations in its
-        order, so the node's per-sample path equals the batch form bit for bit. Stages other than the twist stage
-        return the twist unchanged.
+        order, so the node's per-sample path equals the batch form bit for bit. Stages other
+        than the twist stage return the twist unchanged.
         """
         if self.stage != 'twist':
             return _scalar_identity
