@@ -10,10 +10,13 @@ from skidkin_ros.adapters.sources import load_sources
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.cli.common import (add_source_args, check_report_dir, print_notes, say,
                                     source_options)
-from skidkin_ros.cli.tables import error_table
+from skidkin_ros.cli.tables import error_table, imu_table
 from skidkin_ros.core.calibration.evaluation import evaluate_models
+from skidkin_ros.core.calibration.holdout import split_holdout
+from skidkin_ros.core.calibration.imu import evaluate_imu_mode
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.gyro import IMU_MODES
 from skidkin_ros.errors import DataError, OutputError, ParameterError
 from skidkin_ros.report.figures import error_distributions
 
@@ -26,6 +29,8 @@ def run(args: argparse.Namespace) -> int:
     sources = load_sources(args.sources, source_options(args))
     print_notes(sources)
     drives = [d for s in sources for d in s.drives]
+    if args.split_by:
+        drives = split_holdout(drives, 2, key=args.split_by)[1]
     segments = cut_segments(drives, SegmentOptions(horizon_m=args.h_e,
                                                    interval=config['interval']))
     if len(segments) == 0:
@@ -33,10 +38,17 @@ def run(args: argparse.Namespace) -> int:
                         f'({segments.counts.as_dict()})')
     models = _models_to_score(args.models, config, args.params)
     values = {m: config.model_values[m] for m in models}
-    evaluation = evaluate_models(values, config.geometry, segments)
     say(f'{len(segments)} segments of h_e = {args.h_e:g} m; parameters from {args.params} '
         f'(active model {config.model}, interval {config["interval"]})')
-    table = error_table(evaluation, best=config.model)
+    if args.imu_mode is None:
+        evaluation = evaluate_models(values, config.geometry, segments)
+        table = error_table(evaluation, best=config.model)
+    else:
+        modes = IMU_MODES if 'all' in args.imu_mode else tuple(dict.fromkeys(args.imu_mode))
+        scores = {f'{m} {mode}': evaluate_imu_mode(config, drives, segments, m, mode)
+                  for m in models for mode in modes}
+        evaluation = {name: score.evaluation for name, score in scores.items()}
+        table = imu_table(scores, config)
     say(table)
     if args.report is not None:
         try:
@@ -91,6 +103,13 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--models', nargs='+', help='models to score (default: all)')
     parser.add_argument('--h-e', type=float, default=2.0, metavar='M',
                         help='evaluation horizon')
+    parser.add_argument('--split-by', metavar='COLUMN',
+                        help='score only the drives with an odd value of COLUMN (the held-out '
+                        'half of calibrate --split-by COLUMN)')
+    parser.add_argument('--imu-mode', nargs='+', choices=IMU_MODES + ('all',),
+                        help="run the node's odometer in these imu modes (off, adapt, fuse, all) "
+                        "with the file's imu.* gyro calibration, the learned gain carried from "
+                        "drive to drive as in one node; adds the errors at each drive's end")
     parser.add_argument('--report', type=Path, help='folder for report.md and errors.png')
     parser.add_argument('--force', action='store_true', help='overwrite the report')
     add_source_args(parser)

@@ -12,8 +12,9 @@ from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
 from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.gyro import IMU_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
-from skidkin_ros.errors import ParameterError
+from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['add_parser']
 
@@ -32,16 +33,24 @@ def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
                                max_dt_s=config['max_dt'], wheel_signal=config['wheel_signal'])
 
 
+def _check_gyro(config: OdometryConfig, drives) -> None:
+    if config.imu.mode != 'off' and all(drive.imu is None for drive in drives):
+        raise DataError(f'imu mode {config.imu.mode} needs gyro samples and the recording has '
+                        'none: a table needs the imu_yaw_rate column, a bag a sensor_msgs/Imu '
+                        'topic (--imu-topic); or use --imu-mode off')
+
+
 def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
     loaded = load_source(args.source, _reading(args, config), need_truth=True)
     print_notes([loaded])
+    _check_gyro(config, loaded.drives)
     with args.source.open(newline='', encoding='utf-8-sig') as handle:
         rows = list(csv.reader(handle))
     header, body = rows[0], rows[1:]
     extra = [['', '', ''] for _ in body]
     odometer = Odometer.from_config(config)
     for drive in loaded.drives:
-        pred = odometer.predict(drive.wheels, start=drive.truth.poses[0])
+        pred = odometer.predict(drive.wheels, start=drive.truth.poses[0], imu=drive.imu)
         for row, pose in zip(drive.meta['row_index'], pred.poses):
             extra[row] = [f'{pose[0]:.6f}', f'{pose[1]:.6f}', f'{pose[2]:.6f}']
     out = io.StringIO()
@@ -55,8 +64,9 @@ def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[st
 def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
     loaded = load_source(args.source, _reading(args, config), need_truth=False)
     print_notes([loaded])
+    _check_gyro(config, loaded.drives)
     wheels = loaded.drives[0].wheels
-    pred = Odometer.from_config(config).predict(wheels)
+    pred = Odometer.from_config(config).predict(wheels, imu=loaded.drives[0].imu)
     out = io.StringIO()
     out.write('t,t_ns,x,y,yaw,vx,vy,wz,status\n')
     t0 = int(wheels.t_ns[0])
@@ -70,6 +80,10 @@ def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str,
 def run(args: argparse.Namespace) -> int:
     check_writable(args.out, args.force)
     config = OdometryConfig.from_file(args.params, args.model)
+    if args.imu_mode is not None:
+        config = dataclasses.replace(config, values={**config.values, 'imu.mode': args.imu_mode})
+    if config.imu.mode != 'off':
+        say(f'imu mode {config.imu.mode}: the gyro is used as the node uses it')
     text, rows = (_predict_table if is_table(args.source) else _predict_bag)(args, config)
     atomic_write_text(args.out, text, force=args.force)
     say(f'{config.model}: predicted {rows} samples -> {args.out}')
@@ -86,6 +100,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument('source', type=Path, help='bag or trajectory table')
     parser.add_argument('--params', type=Path, required=True, help='parameters file')
     parser.add_argument('--model', help="model to use (default: the file's model)")
+    parser.add_argument('--imu-mode', choices=IMU_MODES,
+                        help="use the gyro as odom_node's imu.mode does (default: the file's "
+                        'imu.mode); a bag needs --imu-topic (or one Imu topic), a table the '
+                        'imu_yaw_rate column')
     parser.add_argument('--out', type=Path, required=True, help='CSV to write')
     parser.add_argument('--force', action='store_true', help='overwrite an existing output')
     add_source_args(parser, ground_truth=False)

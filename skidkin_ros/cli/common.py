@@ -242,5 +242,11 @@ def print_calibration(result: CalibrationResult) -> None:
         say(f'  edd_symmetric b_hat / track_width = {ratio:.3f}: the '
             'wheel_separation_multiplier of diff_drive_controller that matches this data '
             f'(its alpha = {sym.values["alpha"]:.3f} would be wheel_radius_multiplier)')
+    gyro = result.gyro
+    if gyro is not None:
+        say(f'  gyro (imu.*): scale {gyro.scale:.4f} ±{gyro.scale_se:.2g}, bias '
+            f'{gyro.bias:+.5f} ±{gyro.bias_se:.2g} rad/s, time offset '
+            f'{gyro.time_offset * 1e3:+.0f} ms ({gyro.pairs} pose pairs, {gyro.trimmed} trimmed '
+            'as ground-truth glitches); imu.mode stays off: set it to fuse or adapt to use it')
     for warning in result.warnings:
         say(f'  warning: {warning}')

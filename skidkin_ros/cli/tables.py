@@ -7,10 +7,12 @@ from typing import Mapping
 
 from skidkin_ros.core.calibration.evaluation import ModelEvaluation, WindowEnd
 from skidkin_ros.core.calibration.fitting import FitResult
+from skidkin_ros.core.calibration.imu import ModeScore
 from skidkin_ros.core.calibration.noise_fit import NoiseFit
 from skidkin_ros.core.calibration.selection import Likelihood
+from skidkin_ros.core.odometry.config import OdometryConfig
 
-__all__ = ['error_table', 'parameter_lines']
+__all__ = ['error_table', 'imu_table', 'parameter_lines']
 
 
 def _f(value: float, digits: int = 3) -> str:
@@ -86,3 +88,22 @@ def parameter_lines(fits: Mapping[str, FitResult]) -> list[str]:
             parts.append(f'{param}={value:.4g}' + (f' ±{err:.2g}' if math.isfinite(err) else ''))
         lines.append(f'  {name:<15} ' + ', '.join(parts))
     return lines
+
+
+def imu_table(scores: Mapping[str, ModeScore], config: OdometryConfig) -> str:
+    """Return the errors per model and imu mode, with the errors at each drive's end."""
+    imu = config.imu
+    lines = [f'gyro: scale {imu.scale:.4f}, bias {imu.bias:+.5f} rad/s, time offset '
+             f'{imu.time_offset * 1e3:+.0f} ms (imu.* of the parameters file)',
+             f'{"model mode":<22} {"eps_t m/m median / p90":<24}'
+             f'{"eps_theta deg/m median / p90":<30}{"end pos m med / p90":<21}'
+             f'{"end yaw deg med / p90":<23}{"segs":>5}']
+    lines.append('-' * len(lines[-1]))
+    for name, score in scores.items():
+        t, th = score.evaluation.stats_t, score.evaluation.stats_theta
+        pos, yaw = score.end_position_m, score.end_yaw_deg
+        lines.append(f'{name:<22} ' + f'{_f(t.median)} / {_f(t.p90)}'.ljust(24)
+                     + f'{_f(th.median)} / {_f(th.p90)}'.ljust(30)
+                     + f'{_f(pos.median)} / {_f(pos.p90)}'.ljust(21)
+                     + f'{_f(yaw.median)} / {_f(yaw.p90)}'.ljust(23) + f'{t.count:>5}')
+    return '\n'.join(lines)

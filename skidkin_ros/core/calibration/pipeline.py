@@ -46,6 +46,7 @@ from skidkin_ros.core.calibration.evaluation import (evaluate_models, ModelEvalu
                                                      window_end_errors, WindowEnd)
 from skidkin_ros.core.calibration.fitting import FitOptions, FitResult
 from skidkin_ros.core.calibration.holdout import resolve_holdout
+from skidkin_ros.core.calibration.imu import fit_gyro, gyro_parameters, GyroFit
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
                                                    SegmentSet, usable_segments)
@@ -137,6 +138,7 @@ class CalibrationResult:
     selection_rule: str = 'paper'
     # Held-out median (eps_t m/m, eps_theta deg/m) of the best model under each convention tried.
     interval_errors: dict[str, tuple[float, float]] = field(default_factory=dict)
+    gyro: GyroFit | None = None
 
     @property
     def counts(self) -> dict[str, Any]:
@@ -251,6 +253,17 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
             rule = 'likelihood'
         except DataError as err:
             warnings.append(f'best model chosen on eps_t and eps_theta: {err}')
+    gyro = None
+    if any(drive.imu is not None for drive in train):
+        try:
+            gyro = fit_gyro(train)
+        except (DataError, FitError) as err:
+            warnings.append(f'gyro not calibrated (imu.* not written): {err}')
+        else:
+            if gyro.at_grid_edge:
+                warnings.append(f'gyro time offset {gyro.time_offset:+.3f} s is at the edge of '
+                                'the searched range: the gyro and wheel clocks may differ by '
+                                'more; check the stamps')
     provenance = {
         'tool': f'skidkin_ros {__version__}',
         'train_drives': len(train), 'evaluate_drives': len(evaluate),
@@ -261,7 +274,7 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     provenance['selection'] = rule
     return CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
                              tuple(warnings), train_seg, eval_seg, holdout, provenance,
-                             likelihood, window_end, rule)
+                             likelihood, window_end, rule, gyro=gyro)
 
 
 def _choose_by_likelihood(fits: Mapping[str, FitResult], geometry: Geometry,
@@ -304,6 +317,8 @@ def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | No
         raise FitError(f'no kinematic model could be calibrated from this data: {problems}')
     flat['model'] = result.best
     flat['interval'] = result.options.interval
+    if result.gyro is not None:
+        flat.update(gyro_parameters(result.gyro))
     return flat
 
 

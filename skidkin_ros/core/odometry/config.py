@@ -20,6 +20,7 @@ from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
+from skidkin_ros.core.odometry.gyro import IMU_MODES, IMU_SPECS, ImuParams
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
@@ -218,6 +219,18 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                 for spec in NODE_SPECS]
     entries += _model_entries(geometry)
     entries += _augmented_entries()
+    entries += _imu_entries()
+    return entries
+
+
+def _imu_entries() -> list[SchemaEntry]:
+    entries = [SchemaEntry('imu.mode', 'string', 'off',
+                           'gyro use: off (wheels only), adapt (model yaw rate x a gain learned '
+                           'from the gyro) or fuse (the gyro yaw rate replaces the model one)',
+                           choices=IMU_MODES)]
+    entries += [SchemaEntry(f'imu.{spec.name}', 'double', spec.default_for(None),
+                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
+                for spec in IMU_SPECS]
     return entries
 
 
@@ -330,6 +343,11 @@ class OdometryConfig:
         return IntegratorLimits(
             max_dt_s=self.values['max_dt'], max_wheel_speed_rad_s=self.values['max_wheel_speed'],
             max_wheel_acceleration_rad_s2=self.values['max_wheel_acceleration'])
+
+    @property
+    def imu(self) -> ImuParams:
+        """Return the gyro parameters (imu.*; mode off unless set)."""
+        return ImuParams.from_values(self.values)
 
     @property
     def active_noise(self) -> NoiseModel | None:

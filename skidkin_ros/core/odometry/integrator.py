@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import enum
 import math
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -349,6 +349,10 @@ class StreamingIntegrator:
         self.last_t_ns: int | None = None
         self.held_speeds: tuple[float, float] = (0.0, 0.0)
         self.state: Any = None
+        # Optional aid (an IMU's, see core/odometry/gyro.py): called with every interval about
+        # to be integrated, aid(t0_ns, t1_ns, dt_s, twist, speeds at t0, speeds at t1, yaw rate
+        # of speeds or None), it returns the twist to integrate instead.
+        self.aid: Callable[..., Triple] | None = None
 
     @property
     def source(self) -> TwistSource:
@@ -379,6 +383,11 @@ class StreamingIntegrator:
         self.held_speeds = (0.0, 0.0)
         self.state = None
         self._restart = False
+
+    def restart_pose(self, pose: Triple) -> None:
+        """Move the pose to ``pose``; the held speeds, the stamp and any state are kept."""
+        x, y, yaw = pose
+        self._pose = (float(x), float(y), float(yaw))
 
     def set_source(self, source: TwistSource, interval: str | None = None) -> None:
         """Switch model (parameters changed at runtime); the held twist is recomputed.
@@ -484,6 +493,9 @@ class StreamingIntegrator:
             return self._result(SampleStatus.DUPLICATE_STAMP,
                                 detail='duplicate stamp (dt = 0)')
         step_twist, new_state = self._interval_twist(omega_l, omega_r, dt_s)
+        if self.aid is not None:
+            step_twist = self.aid(self.last_t_ns, t_ns, dt_s, step_twist, self.held_speeds,
+                                  (omega_l, omega_r), None if self._stateful else self._yaw_rate)
         vx, vy, w = step_twist
         start = self._pose
         x, y, theta = start
@@ -503,6 +515,9 @@ class StreamingIntegrator:
             step_twist if self.interval == 'ending' and not self._stateful else None))
         return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
                           step_twist)
+
+    def _yaw_rate(self, omega_l: float, omega_r: float) -> float:
+        return _scalar_twist(self._source, omega_l, omega_r)[2]
 
     def _jump(self, omega_l: float, omega_r: float, dt_s: float) -> StepResult:
         sides = jumped_sides(self.held_speeds, omega_l, omega_r, dt_s,

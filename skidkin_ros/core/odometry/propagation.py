@@ -271,14 +271,19 @@ class PoseCovariancePropagator:
     def reset(self) -> None:
         self._upper = _INITIAL_UPPER
 
-    def step(self, pose_before: Sequence[float], twist: Sequence[float], dt_s: float) -> None:
-        """Propagate over one held step from ``pose_before`` (x, y, yaw) with ``twist``."""
+    def step(self, pose_before: Sequence[float], twist: Sequence[float], dt_s: float,
+             extra: Sequence[float] | None = None) -> None:
+        """Propagate over one held step from ``pose_before`` (x, y, yaw) with ``twist``.
+
+        ``extra``: step noise added to the model's, upper triangle (x, y, yaw; body frame).
+        """
         if self.noise is None:
             return
         x, y, yaw = pose_before
         vx, vy, w = twist
         *_, self._upper = propagate_scalar(float(x), float(y), float(yaw), float(vx),
-                                           float(vy), float(w), dt_s, self._upper, self.noise)
+                                           float(vy), float(w), dt_s, self._upper, self.noise,
+                                           extra)
 
     def pose_covariance_flat(self) -> list[float]:
         if self.noise is None:

@@ -23,7 +23,8 @@ from skidkin_ros.core.calibration.diagnosis.residuals import pose_residuals, pos
 from skidkin_ros.core.calibration.diagnosis.results import DiagnosisResult, ModelStep
 from skidkin_ros.core.calibration.diagnosis.selection import Progress, select
 from skidkin_ros.core.calibration.diagnosis.state import fit_state, ModelState
-from skidkin_ros.core.calibration.diagnosis.tracing import correlations, lag_scan, Trace
+from skidkin_ros.core.calibration.diagnosis.tracing import (correlations, lag_scan,
+                                                            residual_leads, Trace)
 from skidkin_ros.core.calibration.engine import trim_mask
 from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_errors
 from skidkin_ros.core.calibration.holdout import resolve_holdout
@@ -136,6 +137,7 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                                options))
     after, after_valid = pose_residuals(train, samples, final.bind(base_model_name, geometry),
                                         options)
+    unexplained = residual_leads(after, after_valid, samples.signals, geometry)
     warnings = []
     if accepted and steps[-1].stats_t.median > steps[1].stats_t.median * 1.05:
         warnings.append('the augmented model is worse than the refitted base model on the '
@@ -147,8 +149,10 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
         'evaluate_drives': len(evaluate), 'train_segments': len(train_seg),
         'train_segments_trimmed': trimmed,
         'evaluate_segments': len(eval_seg), 'holdout': holdout,
+        'unexplained': [f'{lead.signal} ({lead.component} residual): share {lead.share:.3f}, '
+                        f'r {lead.r:+.3f}' for lead in unexplained],
         'seconds': round(time.perf_counter() - tic, 2), 'options': options.as_dict(),
     }
     return DiagnosisResult(base_model_name, geometry, options, trace, tuple(scores),
                            tuple(steps), final, after, valid, after_valid, holdout,
-                           tuple(warnings), provenance)
+                           tuple(warnings), provenance, unexplained)

@@ -15,7 +15,7 @@ import numpy as np
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.selection import CandidateScore
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
-from skidkin_ros.core.calibration.diagnosis.tracing import Trace
+from skidkin_ros.core.calibration.diagnosis.tracing import ResidualLead, Trace
 from skidkin_ros.core.calibration.engine import TwistSource
 from skidkin_ros.core.calibration.evaluation import ErrorStats
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
@@ -54,6 +54,7 @@ class DiagnosisResult:
     holdout: str = 'given'
     warnings: tuple[str, ...] = ()
     provenance: dict[str, Any] = field(default_factory=dict)
+    unexplained: tuple[ResidualLead, ...] = ()
 
     @property
     def extensions(self) -> tuple[str, ...]:
@@ -85,6 +86,7 @@ class DiagnosisResult:
             lines.append('  no extension added: no candidate passed the parsimony rule '
                          f'(held-out gain > {self.options.min_relative_gain:.0%} and p < '
                          f'{self.options.significance:g})')
+        lines += [f'  {line}' for line in self.unexplained_lines()]
         for name in self.final.found:
             ext = get_extension(name)
             units = {spec.name: spec.unit for spec in ext.params}
@@ -107,6 +109,12 @@ class DiagnosisResult:
                          f'{th.p90:.3f} | {t.count}')
         lines += [f'  warning: {w}' for w in self.warnings]
         return lines
+
+    def unexplained_lines(self) -> list[str]:
+        """Return one line per signal the final model's residual still follows."""
+        return [f'unexplained residual: signal {lead.signal}, share {lead.share:.0%} of the '
+                f'velocity error left (residual {lead.component} of the final model follows it, '
+                f'r = {lead.r:+.2f}; no candidate explained it)' for lead in self.unexplained]
 
     def table_rows(self) -> list[list[str]]:
         """Return the before/after table rows (model, eps_t median/q25/q75/p90, eps_theta ...)."""
