@@ -360,7 +360,7 @@ def test_per_component_lags_act_on_their_component_only():
     for name, (v_lags, w_lags) in cases.items():
         ext = get_extension(name)
         values = dict.fromkeys(ext.param_names, 0.3)
-        stream = StreamingIntegrator(augmented({name: values}))
+        stream = StreamingIntegrator(augmented({name: values}), interval='starting')
         for i in range(12):  # up to 0.55 s: one sample after the step
             stream.step(int(t_ns[i]), float(wl[i]), float(wr[i]))
         vx, _, wz = stream.held_twist
@@ -394,7 +394,7 @@ def test_acceleration_slip_takes_speed_only_while_speeding_up():
 def test_the_rate_is_the_backward_difference_of_the_base_twist():
     # A ramp of both wheels: the base forward speed grows by 0.9 r 1 rad/s per 0.1 s.
     model = augmented({'acceleration_slip': {'tau_s': 0.1}})
-    stream = StreamingIntegrator(model)
+    stream = StreamingIntegrator(model, interval='starting')
     accel = 0.9 * GEOM.wheel_radius * 10.0  # m/s^2 of forward speed
     for i in range(6):
         stream.step(i * 100_000_000, float(i), float(i))

@@ -19,7 +19,7 @@ PARAMS = {
     'wheel_radius': 0.1651, 'track_width': 0.555, 'robot': 'sim_husky',
     'model': 'edd_symmetric', 'models.edd_symmetric.alpha': 0.9,
     'models.edd_symmetric.b_hat': 0.85, 'models.edd_symmetric.noise.calibrated': True,
-    'imu.max_wait': 0.5, 'imu.bias': 0.002,
+    'imu.max_wait': 0.5, 'imu.bias': 0.002, 'interval': 'ending',
 }
 
 
