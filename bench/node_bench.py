@@ -67,15 +67,20 @@ AUGMENTED_VALUES = {
     'augmented.speed_slip.k': '0.05', 'augmented.direction_asymmetry.k': '0.1',
     'augmented.lateral_skid.k': '0.03', 'augmented.icr_offset.x_m': '0.05',
     'augmented.ratio_yaw_slip.k': '0.2', 'augmented.terrain_regime.k': '0.1',
-    'augmented.terrain_regime.switch_s': '30.0',
+    'augmented.terrain_regime.switch_s': '30.0', 'augmented.acceleration_slip.tau_s': '0.1',
 }
 
 
 def augmented_params() -> tuple[str, dict[str, str]]:
     """Return the label and node parameters of the heaviest augmented model."""
     from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
-    from skidkin_ros.core.kinematics.extensions import EXTENSION_NAMES
-    extensions = [name for name in EXTENSION_NAMES if name != 'sparse_correction']
+    from skidkin_ros.core.kinematics.extensions import EXTENSIONS
+    # One extension of each group (a model holds one lag: the whole-twist one, the costliest).
+    extensions, groups = [], set()
+    for name, ext in EXTENSIONS.items():
+        if name != 'sparse_correction' and not (ext.group and ext.group in groups):
+            extensions.append(name)
+            groups.add(ext.group)
     label = f'{AUGMENTED_NAME}: edd_symmetric + {len(extensions)} extensions'
     params = {'model': AUGMENTED_NAME, 'augmented.base': 'edd_symmetric',
               'augmented.extensions': ','.join(extensions)}

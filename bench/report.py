@@ -224,6 +224,33 @@ def _diag_section(diag: Mapping[str, Any]) -> list[str]:
     return lines + ['']
 
 
+def _heading_section(heading: Mapping[str, Any]) -> list[str]:
+    lines = ['## Heading at window ends: calibrated against a plain window-end fit (Husky)', '']
+    if not heading.get('available'):
+        return lines + [f'Not run: {heading.get("reason", "unknown")}.', '']
+    lines += [f'DRIVE Husky table, even `calib_step` trains, odd evaluates; '
+              f'{heading["train_windows"]} training and {heading["eval_windows"]} held-out '
+              'windows of 2 s. Calibrated: `calibrate()` defaults (weighting '
+              f'{heading["weighting"]}, selection {heading["selection"]}). Plain window-end '
+              'fit: the same model on the same training windows, window-end x, y, yaw '
+              'residuals, unit weights, no trimming. Medians at the held-out window ends.', '',
+              '| model | calibrated yaw rad | plain window-end fit yaw rad | calibrated '
+              'position m | plain window-end fit position m |', '|---|---|---|---|---|']
+    for r in heading['rows']:
+        tag = ' (best)' if r['best'] else ''
+        lines.append(f'| {r["model"]}{tag} | {r["calibrated_yaw_rad"]:.4f} | '
+                     f'{r["plain_yaw_rad"]:.4f} | {r["calibrated_position_m"]:.4f} | '
+                     f'{r["plain_position_m"]:.4f} |')
+    verdict = heading.get('verdict') or {}
+    if verdict:
+        worse = 'not worse' if verdict['heading_not_worse'] else 'WORSE'
+        within = 'within' if verdict['translation_within'] else 'NOT within'
+        lines += ['', f'Check on the best model ({verdict["model"]}): heading at window ends '
+                  f'{worse} than the plain window-end fit; position error '
+                  f'{verdict["translation_ratio"]:.3f} x the reference ({within} 5 %).']
+    return lines + ['']
+
+
 def write_markdown(results: Mapping[str, Any], path: Path) -> None:
     """Write results.md: the command, the machine and one table per benchmark."""
     machine = results['machine']
@@ -241,6 +268,7 @@ def write_markdown(results: Mapping[str, Any], path: Path) -> None:
     lines += _lidar_section(results['lidar'])
     lines += _gt_section(results.get('groundtruth', {'available': False}))
     lines += _diag_section(results['diagnosis'])
+    lines += _heading_section(results.get('heading', {}))
     atomic_write_text(path, '\n'.join(lines), force=True)
 
 

@@ -5,14 +5,15 @@ Examples::
     python bench/run.py --out bench/results            # full run (make bench), a few minutes
     python bench/run.py --smoke --out /tmp/bench       # tiny sizes, seconds (CI, make bench-smoke)
     python bench/run.py --out /tmp/bench --only node   # one part (node, calibration, lidar,
-                                                       # groundtruth, diagnosis); the others are
-                                                       # left empty
+                                                       # groundtruth, diagnosis, heading); the
+                                                       # others are left empty
 
 Parts: the odometry node against a bare relay (bench/node_bench.py), calibration time against
 distance (calib_bench.py), the lidar pipeline (lidar_bench.py), the ground truth on the outdoor
 scene against kiss_icp_pipeline and the kiss-icp settings table (gt_bench.py, icp_settings.py),
-and the diagnosis (diag_bench.py). Absolute numbers depend on the machine and its load; ratios
-measured in the same run are what to compare.
+the diagnosis (diag_bench.py) and heading at window ends on the Husky against a plain window-end
+fit (heading_bench.py). Absolute numbers depend on the machine and its load; ratios measured in
+the same run are what to compare.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from typing import Any, Mapping, Sequence
 import calib_bench
 import diag_bench
 import gt_bench
+import heading_bench
 import icp_settings
 import lidar_bench
 import node_bench
@@ -42,7 +44,7 @@ import report
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.models import MODEL_NAMES
 
-PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis')
+PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis', 'heading')
 
 
 @dataclass(frozen=True)
@@ -193,7 +195,7 @@ def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
 def _empty(part: str) -> dict[str, Any]:
     if part == 'node':
         return {'suts': [], 'not_run': {}, 'ladder_hz': [], 'plan': []}
-    if part == 'diagnosis':
+    if part in ('diagnosis', 'heading'):
         return {'available': False, 'reason': 'not run (--only)', 'rows': []}
     if part == 'lidar':
         return {'rows': [], 'azimuth_resolution_deg': math.nan, 'horizon_m': math.nan}
@@ -238,6 +240,9 @@ def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
         else:
             results['diagnosis'] = {'available': False, 'rows': [],
                                     'reason': 'not run in the smoke run (too slow for CI)'}
+    if 'heading' in parts:
+        print('heading benchmark (Husky, plain window-end reference)', flush=True)
+        results['heading'] = heading_bench.run()
     results['elapsed_s'] = time.perf_counter() - tic
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / 'results.json', json.dumps(results, indent=1, default=str),

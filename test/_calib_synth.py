@@ -8,6 +8,7 @@ from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.integrator import rollout
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, held_speeds
 
 GEOMETRY = Geometry(0.1651, 0.555)
 
@@ -53,15 +54,19 @@ def make_drive(model: str = 'edd_symmetric', values: dict | None = None, kind: s
                duration_s: float = 120.0, rate_hz: float = 50.0, truth_every: int = 5,
                wheel_noise: float = 0.0, truth_noise_m: float = 0.0,
                truth_noise_rad: float = 0.0, seed: int = 0, name: str = 'synth',
-               geometry: Geometry = GEOMETRY) -> Drive:
-    """Drive the true model with random commands; truth is sub-sampled (and noisy if asked)."""
+               geometry: Geometry = GEOMETRY, interval: str = DEFAULT_INTERVAL) -> Drive:
+    """Drive the true model with random commands; truth is sub-sampled (and noisy if asked).
+
+    The truth moves as the odometry does under ``interval`` (the default convention: sample k's
+    speeds over [t_k-1, t_k]), so the true model predicts it exactly.
+    """
     rng = np.random.default_rng(seed)
     n = int(duration_s * rate_hz) + 1
     t_ns = np.arange(n, dtype=np.int64) * int(round(1e9 / rate_hz))
     omega_l, omega_r = wheel_commands(kind, n, rate_hz, rng)
     values = TRUE_VALUES.get(model, {}) if values is None else values
     bound = get_model(model).bind(values, geometry)
-    twist = bound.twist(omega_l[:-1], omega_r[:-1])
+    twist = bound.twist(held_speeds(omega_l, interval)[:-1], held_speeds(omega_r, interval)[:-1])
     poses = rollout(twist, np.diff(t_ns) * 1e-9)
     pick = np.arange(0, n, truth_every)
     noisy = poses[pick] + rng.normal(0.0, 1.0, (pick.size, 3)) * [

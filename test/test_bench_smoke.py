@@ -91,6 +91,18 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
     for key in ('serial_s', 'diagnose_s', 'speedup', 's_per_km'):
         assert _finite(row[key]) and row[key] > 0, key
 
+    # Heading: the calibrated models and the plain window-end reference, measured in this run.
+    heading = results['heading']
+    if heading['available']:
+        assert {row['model'] for row in heading['rows']} >= {'edd_symmetric', 'full_linear'}
+        for row in heading['rows']:
+            for key in ('calibrated_yaw_rad', 'plain_yaw_rad', 'calibrated_position_m',
+                        'plain_position_m'):
+                assert _finite(row[key]) and row[key] > 0, key
+        assert '| plain window-end fit' in (out / 'results.md').read_text()
+    else:
+        assert 'not found' in heading['reason']
+
     # The Markdown table names the command and has the expected rows; the plot is a PNG.
     text = (out / 'results.md').read_text()
     assert 'python bench/run.py --smoke' in text

@@ -176,3 +176,40 @@ def test_params_file_that_is_not_a_regular_small_file_is_refused(tmp_path):
     deep.write_text('/**:\n  ros__parameters:\n    robot: ' + '[' * 100000 + ']' * 100000 + '\n')
     with pytest.raises(ConfigError, match='nests too deeply|not valid YAML'):
         read_params_file(deep)
+
+
+def test_interval_defaults_to_ending_and_an_old_calibrated_file_keeps_starting(tmp_path):
+    assert OdometryConfig.from_flat({})['interval'] == 'ending'
+    assert OdometryConfig.from_flat({'interval': 'midpoint'})['interval'] == 'midpoint'
+    # written by calibrate before the convention existed: provenance, no interval
+    old = write_params_file(tmp_path / 'old.yaml', {'model': 'ideal_dd'}, {'tool': 'x'})
+    assert OdometryConfig.from_file(old)['interval'] == 'starting'
+    # a hand-written file without provenance takes the default
+    hand = tmp_path / 'hand.yaml'
+    hand.write_text('/**:\n  ros__parameters:\n    model: ideal_dd\n')
+    assert OdometryConfig.from_file(hand)['interval'] == 'ending'
+    new = write_params_file(tmp_path / 'new.yaml', {'interval': 'ending'}, {'tool': 'x'})
+    assert OdometryConfig.from_file(new)['interval'] == 'ending'
+    with pytest.raises(ParameterError, match="'interval'.*ending, starting, midpoint"):
+        OdometryConfig.from_flat({'interval': 'end'})
+
+
+def test_c55_two_lags_in_a_parameters_file_are_refused(tmp_path):
+    # One lag per model: writing two is refused, and a file edited by hand to name two is a
+    # config error naming both and the lags to choose from.
+    flat = {'wheel_radius': 0.1651, 'track_width': 0.555, 'model': 'augmented',
+            'augmented.base': 'edd_symmetric', 'augmented.extensions': 'forward_lag, yaw_lag',
+            'augmented.forward_lag.tau_s': 0.2, 'augmented.yaw_lag.tau_s': 0.1}
+    match = "'forward_lag' and 'yaw_lag' cannot be combined"
+    with pytest.raises(ParameterError, match=match):
+        write_params_file(tmp_path / 'two_lags.yaml', flat, {'source': 'test'})
+    path = write_params_file(tmp_path / 'one_lag.yaml',
+                             dict(flat, **{'augmented.extensions': 'forward_lag'}),
+                             {'source': 'test'})
+    text = path.read_text()
+    assert 'extensions: forward_lag\n' in text
+    path.write_text(text.replace('extensions: forward_lag\n',
+                                 'extensions: forward_lag, yaw_lag\n'))
+    with pytest.raises(ParameterError, match=match) as err:
+        OdometryConfig.from_file(path)
+    assert err.value.exit_code == 2 and 'component_lags' in str(err.value)

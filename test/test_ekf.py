@@ -7,6 +7,7 @@ from skidkin_ros.core.drive import WheelSamples
 from skidkin_ros.core.estimation.ekf import PlanarEkf, PoseFix
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.interval import held_wheels
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.odometer import predict_wheels
 from skidkin_ros.core.odometry.propagation import predict
@@ -39,12 +40,20 @@ def test_without_fixes_the_ekf_is_the_integrator_and_the_prediction_api():
     for t, wl, wr in zip(wheels.t_ns, wheels.omega_l, wheels.omega_r):
         ekf.predict(int(t), wl, wr)
         poses.append(ekf.pose.copy())
-    stream = predict_wheels(wheels, source, start=start)
+    # the filter holds each sample from its stamp: the starting convention
+    stream = predict_wheels(wheels, source, start=start, interval='starting')
     np.testing.assert_allclose(np.array(poses), stream.poses, rtol=0, atol=1e-12)
     _, cov = predict(start, np.zeros((3, 3)), wheels.t_ns, wheels.omega_l, wheels.omega_r,
-                     source, NOISE)
+                     source, NOISE, interval='starting')
     np.testing.assert_allclose(ekf.cov, cov, rtol=1e-12, atol=1e-15)
     assert np.all(np.linalg.eigvalsh(ekf.cov) > 0)
+    # fed the held speeds of another convention, it follows the odometry under that one
+    ending = PlanarEkf(source, NOISE, start, np.zeros((3, 3)))
+    held = held_wheels(wheels, 'ending')
+    for t, wl, wr in zip(held.t_ns, held.omega_l, held.omega_r):
+        ending.predict(int(t), wl, wr)
+    np.testing.assert_allclose(ending.pose, predict_wheels(wheels, source, start=start).poses[-1],
+                               rtol=0, atol=1e-12)
 
 
 def test_straight_line_with_fixes_converges_and_a_fix_shrinks_the_covariance():

@@ -10,7 +10,8 @@ from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.augmented import AugmentedModel, lag_factors
 from skidkin_ros.core.kinematics.extensions import (EXTENSION_NAMES, EXTENSIONS, FitHints,
-                                                    get_extension, LIBRARY, SPARSE_FEATURES)
+                                                    get_extension, LIBRARY, SPARSE_FEATURES,
+                                                    sparse_features)
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig, parameter_schema, parse_extensions
@@ -83,6 +84,8 @@ def test_scalar_forms_equal_the_array_forms_bit_for_bit():
     wl = np.concatenate([rng.uniform(-6, 6, 400), [0.0, 2.0, -2.0, 3.0, 0.0]])
     wr = np.concatenate([rng.uniform(-6, 6, 400), [0.0, 2.0, 2.0, 0.0, 1.0]])
     t_s = rng.uniform(0, 60, wl.size)
+    rate = rng.normal(0.0, 2.0, (wl.size, 3))
+    rate[::5] = 0.0
     with_scalar = [n for n in EXTENSION_NAMES if get_extension(n).scalar_apply() is not None]
     assert set(EXTENSION_NAMES) - set(with_scalar) == {'sparse_correction'}
     for name in with_scalar:
@@ -90,16 +93,18 @@ def test_scalar_forms_equal_the_array_forms_bit_for_bit():
         k = np.array([rng.uniform(spec.lower if math.isfinite(spec.lower) else -1, min(
             spec.upper, 2.0)) for spec in ext.params]) if ext.params else np.zeros(0)
         k = np.where(k == 0.0, 0.1, k)
-        array_form = ext.apply(k, BASE.twist(wl, wr), wl, wr, t_s)
+        array_form = ext.apply(k, BASE.twist(wl, wr), wl, wr, t_s, rate)
         scalar = ext.scalar_apply()
         for i in range(wl.size):
             vx, vy, w = BASE.scalar_twist(float(wl[i]), float(wr[i]))
-            got = scalar(tuple(k.tolist()), vx, vy, w, float(wl[i]), float(wr[i]), float(t_s[i]))
+            got = scalar(tuple(k.tolist()), vx, vy, w, float(wl[i]), float(wr[i]), float(t_s[i]),
+                         tuple(rate[i].tolist()))
             assert got == tuple(array_form[i].tolist()), (name, i)
     model = augmented({n: ALL_VALUES[n] for n in ALL_VALUES if n != 'sparse_correction'})
     for i in range(0, wl.size, 7):
-        assert model.scalar_memoryless(float(wl[i]), float(wr[i]), float(t_s[i])) == tuple(
-            model.memoryless(wl[i], wr[i], t_s[i]).tolist())
+        assert model.scalar_memoryless(float(wl[i]), float(wr[i]), float(t_s[i]),
+                                       tuple(rate[i].tolist())) == tuple(
+            model.memoryless(wl[i], wr[i], t_s[i], rate[i]).tolist())
 
 
 @pytest.mark.parametrize('name,values,check', [
@@ -139,15 +144,20 @@ def test_sparse_correction_adds_the_library_terms():
     assert out[2] == pytest.approx(base[2] * 1.05)
 
 
-def test_lag_is_the_exact_response_to_a_held_input():
+@pytest.mark.parametrize('interval, step_ns', [('starting', 500_000_000),
+                                               ('ending', 450_000_000)])
+def test_lag_is_the_exact_response_to_a_held_input(interval, step_ns):
     model = augmented({'first_order_lag': {'tau_s': 0.3}})
     t_ns = np.arange(0, 41) * 50_000_000
     wl = np.where(t_ns >= 500_000_000, 4.0, 0.0)
-    poses = rollout_stream(model, t_ns, wl, wl)
+    # under ending, the sample at 0.5 s describes [0.45, 0.5]: the input steps at 0.45 s
+    poses = rollout_stream(model, t_ns, wl, wl, interval=interval)
+    streamed = predict_wheels(WheelSamples(t_ns, wl, wl), model, interval=interval)
     v_ss = BASE.twist(4.0, 4.0)[0]
-    # step at t0 = 0.5 s: x(t) = v (T - tau (1 - exp(-T / tau))), T = t - t0
+    # step at t0: x(t) = v (T - tau (1 - exp(-T / tau))), T = t - t0
     for i in (20, 30, 40):
-        elapsed = (t_ns[i] - 500_000_000) * 1e-9
+        elapsed = (t_ns[i] - step_ns) * 1e-9
+        assert streamed.poses[i, 0] == pytest.approx(poses[i, 0], rel=1e-12, abs=1e-12)
         expected = v_ss * (elapsed - 0.3 * (1 - math.exp(-elapsed / 0.3)))
         assert poses[i, 0] == pytest.approx(expected, rel=1e-12, abs=1e-12)
     d, g = lag_factors(np.array([0.0, 0.05]), 0.3)
@@ -171,10 +181,19 @@ ALL_VALUES = {'time_offset': {'offset_s': 0.07}, 'first_order_lag': {'tau_s': 0.
               'sparse_correction': {'vx_v_abs_v': -0.05}}
 
 
+# Per-component lags exclude first_order_lag (one lag per model): their own combinations.
+PER_COMPONENT = {'forward_lag': {'tau_s': 0.25}, 'yaw_lag': {'tau_s': 0.15},
+                 'component_lags': {'tau_v_s': 0.25, 'tau_w_s': 0.1},
+                 'acceleration_slip': {'tau_s': 0.12}, 'lateral_skid': {'k': 0.05},
+                 'sparse_correction': {'vx_dv_up': -0.1, 'wz_dw': 0.02}}
+
+
 @pytest.mark.parametrize('names', [('first_order_lag',), ('terrain_regime', 'lateral_skid'),
-                                   tuple(ALL_VALUES)])
+                                   tuple(ALL_VALUES), ('forward_lag', 'acceleration_slip'),
+                                   ('yaw_lag', 'lateral_skid'),
+                                   ('component_lags', 'acceleration_slip', 'sparse_correction')])
 def test_streaming_and_batch_agree_sample_for_sample_with_state(names):
-    model = augmented({n: ALL_VALUES[n] for n in names})
+    model = augmented({n: {**ALL_VALUES, **PER_COMPONENT}[n] for n in names})
     t_ns, wl, wr = _random_drive(3)
     limits = IntegratorLimits(max_dt_s=0.5)
     streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model, limits)
@@ -199,10 +218,16 @@ def test_time_offset_shifts_published_stamps_only():
 
 def test_base_model_speed_is_unchanged_and_reset_clears_the_state():
     model = augmented({'first_order_lag': {'tau_s': 0.5}})
-    stream = StreamingIntegrator(model)
+    stream = StreamingIntegrator(model, interval='starting')
     stream.step(0, 0.0, 0.0)
     stream.step(100_000_000, 5.0, 5.0)
     assert stream.state is not None and stream.held_twist[0] == 0.0  # lags behind the input
+    # ending: the first interval starts the response at its own input, later ones lag
+    ending = StreamingIntegrator(model, interval='ending')
+    for t_ns, speed in ((0, 0.0), (100_000_000, 0.0), (200_000_000, 5.0)):
+        ending.step(t_ns, speed, speed)
+    # the speed of 5 rad/s over [0.1, 0.2] s has moved the response 1 - exp(-0.1 / 0.5) of the way
+    assert ending.held_twist[0] == pytest.approx(BASE.twist(5.0, 5.0)[0] * (1 - math.exp(-0.2)))
     stream.reset()
     assert stream.state is None
     stream.step(0, 5.0, 5.0)
@@ -217,7 +242,7 @@ def _drive_with_truth(seed):
     t_ns[300 * 5 // 8:] -= 2_000_000_000  # no gap here
     t_ns = np.unique(t_ns)
     wl, wr = wl[:t_ns.size], wr[:t_ns.size]
-    truth = rollout(BASE.twist(wl[:-1], wr[:-1]), np.diff(t_ns) * 1e-9)
+    truth = rollout(BASE.twist(wl[1:], wr[1:]), np.diff(t_ns) * 1e-9)  # interval: ending
     keep = np.arange(0, t_ns.size, 2)
     return Drive(f'd{seed}', WheelSamples(t_ns, wl, wr),
                  PoseTrack(t_ns[keep], *truth[keep].T))
@@ -310,10 +335,73 @@ def test_constant_rate_lag_uses_the_filter_path_and_still_matches_streaming():
     t_ns = np.arange(600, dtype=np.int64) * 50_000_000
     wl = np.repeat(rng.uniform(-5, 5, 30), 20)
     wr = np.repeat(rng.uniform(-5, 5, 30), 20)
-    streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model)
-    batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5)
+    for interval in ('ending', 'midpoint'):
+        streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model, interval=interval)
+        batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5, interval=interval)
+        np.testing.assert_allclose(batch, streamed.poses, rtol=0, atol=1e-9)
+    # the published twists are the held samples' under starting
+    streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model, interval='starting')
+    batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5, interval='starting')
     np.testing.assert_allclose(batch, streamed.poses, rtol=0, atol=1e-9)
     held, _ = model.intervals(t_ns[None], wl[None], wr[None],
                               np.append(np.diff(t_ns) * 1e-9, 0.0)[None],
                               np.zeros((1, t_ns.size), bool))
     np.testing.assert_allclose(held[0], streamed.twists, rtol=0, atol=1e-12)
+
+
+def test_per_component_lags_act_on_their_component_only():
+    # A step of both wheels into a turn at 0.5 s: forward speed and yaw rate both jump.
+    t_ns = np.arange(0, 41) * 50_000_000
+    wl = np.where(t_ns >= 500_000_000, 2.0, 0.0)
+    wr = np.where(t_ns >= 500_000_000, 4.0, 0.0)
+    plain = BASE.twist(2.0, 4.0)
+    cases = {'forward_lag': (True, False), 'yaw_lag': (False, True),
+             'component_lags': (True, True), 'first_order_lag': (True, True)}
+    for name, (v_lags, w_lags) in cases.items():
+        ext = get_extension(name)
+        values = dict.fromkeys(ext.param_names, 0.3)
+        stream = StreamingIntegrator(augmented({name: values}), interval='starting')
+        for i in range(12):  # up to 0.55 s: one sample after the step
+            stream.step(int(t_ns[i]), float(wl[i]), float(wr[i]))
+        vx, _, wz = stream.held_twist
+        # exact held-input response one 50 ms step after the jump: 1 - exp(-0.05 / 0.3)
+        frac = 1.0 - math.exp(-0.05 / 0.3)
+        assert vx == pytest.approx(plain[0] * (frac if v_lags else 1.0), rel=1e-12), name
+        assert wz == pytest.approx(plain[2] * (frac if w_lags else 1.0), rel=1e-12), name
+
+
+def test_two_lags_cannot_be_combined():
+    with pytest.raises(ParameterError, match='cannot be combined'):
+        AugmentedModel('edd_symmetric', ['forward_lag', 'yaw_lag'])
+    assert get_extension('component_lags').complexity() == (2, 1)
+    assert get_extension('forward_lag').complexity() == (1, 1)
+
+
+def test_acceleration_slip_takes_speed_only_while_speeding_up():
+    ext = get_extension('acceleration_slip')
+    k = ext.vector({'tau_s': 0.1})
+    base = BASE.twist(4.0, 4.0)  # straight ahead
+    v = base[0]
+    for dv, expected in ((2.0, v - 0.2), (-2.0, v), (0.0, v), (1e3, 0.0)):
+        out = ext.apply(k, base, 4.0, 4.0, 0.0, np.array([dv, 0.0, 0.0]))
+        assert out[0] == pytest.approx(expected, abs=1e-12)
+        assert out[2] == base[2]
+    backward = BASE.twist(-4.0, -4.0)
+    out = ext.apply(k, backward, -4.0, -4.0, 0.0, np.array([-2.0, 0.0, 0.0]))
+    assert out[0] == pytest.approx(backward[0] + 0.2)  # speeding up backward: less backward
+
+
+def test_the_rate_is_the_backward_difference_of_the_base_twist():
+    # A ramp of both wheels: the base forward speed grows by 0.9 r 1 rad/s per 0.1 s.
+    model = augmented({'acceleration_slip': {'tau_s': 0.1}})
+    stream = StreamingIntegrator(model, interval='starting')
+    accel = 0.9 * GEOM.wheel_radius * 10.0  # m/s^2 of forward speed
+    for i in range(6):
+        stream.step(i * 100_000_000, float(i), float(i))
+    v_now = BASE.twist(5.0, 5.0)[0]
+    assert stream.held_twist[0] == pytest.approx(v_now - 0.1 * accel, rel=1e-9)
+    # the library's derivative terms see the same rate
+    features = dict(zip((t.name for t in LIBRARY), sparse_features(
+        BASE.twist(5.0, 5.0), np.array([accel, 0.0, 0.0]))))
+    assert features['dv'] == features['dv_up'] == pytest.approx(accel)
+    assert features['dw'] == 0.0

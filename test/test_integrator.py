@@ -8,7 +8,8 @@ from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.integrator import (body_increment, IntegratorLimits, rollout,
                                                   rollout_segments, SampleStatus, SMALL_ANGLE_RAD,
-                                                  StreamingIntegrator)
+                                                  stream_twists, StreamingIntegrator)
+from skidkin_ros.errors import ParameterError
 
 GEOM = Geometry(0.3, 1.2)
 
@@ -47,18 +48,38 @@ def test_small_rotation_branch_is_continuous(omega):
     assert dth == omega
 
 
-def test_batch_and_streaming_agree_bit_for_bit():
+@pytest.mark.parametrize('interval, pick', [
+    ('starting', lambda w: w[:-1]),
+    ('ending', lambda w: w[1:]),
+    ('midpoint', lambda w: (w[:-1] + w[1:]) * 0.5)])
+def test_batch_and_streaming_agree_bit_for_bit(interval, pick):
     rng = np.random.default_rng(1)
     n = 400
     t_ns = np.cumsum(rng.integers(20_000_000, 80_000_000, n)).astype(np.int64)
     wl, wr = rng.uniform(-5, 5, (2, n))
     bound = get_model('edd_asymmetric').bind(
         {'alpha_l': 0.9, 'alpha_r': 0.8, 'x_v': -0.2, 'y_l': 0.8, 'y_r': -0.7}, GEOM)
-    stream = StreamingIntegrator(bound, IntegratorLimits(max_dt_s=1.0))
+    stream = StreamingIntegrator(bound, IntegratorLimits(max_dt_s=1.0), interval)
     streamed = np.array([stream.step(int(t), a, b).pose for t, a, b in zip(t_ns, wl, wr)])
-    twist = bound.twist(wl[:-1], wr[:-1])
+    # Each convention integrates its own speeds over [t_k-1, t_k] (written out here, not taken
+    # from the interval module), and the batch rollout of held_speeds is the same.
+    twist = bound.twist(pick(wl), pick(wr))
     batch = rollout(twist, np.diff(t_ns) * 1e-9, (0.0, 0.0, 0.0))
     assert np.array_equal(streamed, batch)
+    held = stream_twists(bound, t_ns, wl, wr, interval=interval)[1][0]
+    assert np.array_equal(rollout(held[:-1], np.diff(t_ns) * 1e-9), batch)
+    # The published twist is always the newest sample's.
+    assert stream.held_twist.tolist() == list(bound.twist(wl[-1], wr[-1]))
+
+
+def test_the_default_interval_is_ending_and_a_bad_one_is_refused():
+    bound = get_model('ideal_dd').bind({}, GEOM)
+    stream = StreamingIntegrator(bound)
+    stream.step(0, 0.0, 0.0)
+    # ending: the new sample's speeds drive the robot up to its stamp (starting would not move)
+    assert stream.step(100_000_000, 2.0, 2.0).pose[0] == pytest.approx(2.0 * 0.3 * 0.1)
+    with pytest.raises(ParameterError, match='ending, starting, midpoint'):
+        StreamingIntegrator(bound, interval='end')
 
 
 def test_rollout_segments_padding_with_zero_dt_keeps_the_end_pose():
@@ -72,11 +93,15 @@ def _stream(limits=IntegratorLimits(max_dt_s=0.5, max_wheel_speed_rad_s=50.0)):
     return StreamingIntegrator(get_model('ideal_dd').bind({}, GEOM), limits)
 
 
-def test_zero_order_hold_uses_the_previous_sample_speeds():
-    s = _stream()
+@pytest.mark.parametrize('interval, metres', [('starting', 0.03), ('ending', 0.15),
+                                              ('midpoint', 0.09)])
+def test_each_interval_integrates_its_speeds(interval, metres):
+    s = StreamingIntegrator(get_model('ideal_dd').bind({}, Geometry(0.3, 0.5)),
+                            IntegratorLimits(max_dt_s=0.5, max_wheel_speed_rad_s=50.0), interval)
     s.step(0, 1.0, 1.0)
-    s.step(100_000_000, 5.0, 5.0)  # integrates 1 rad/s for 0.1 s: 0.03 m
-    np.testing.assert_allclose(s.pose, [0.03, 0.0, 0.0])
+    # 0.1 s at 1 rad/s (starting), 5 rad/s (ending) or 3 rad/s (midpoint), r = 0.3 m
+    s.step(100_000_000, 5.0, 5.0)
+    np.testing.assert_allclose(s.pose, [metres, 0.0, 0.0])
 
 
 @pytest.mark.parametrize('bad,status', [

@@ -298,7 +298,8 @@ def test_replay_harness_matches_core_rollout():
     result = replay_through_node(samples, overrides={
         'model': 'roc', 'models.roc.alpha': 0.95, 'models.roc.beta_1': 0.4,
         'models.roc.beta_2': 0.1}, left_joints=['l'], right_joints=['r1', 'r2'])
-    expected = rollout(model.twist(omega_l[:-1], omega_r[:-1]), np.diff(t_ns) * 1e-9)
+    # interval ending (the default): sample k's speeds over [t_k-1, t_k]
+    expected = rollout(model.twist(omega_l[1:], omega_r[1:]), np.diff(t_ns) * 1e-9)
     assert len(result) == n
     assert np.array_equal(result.t_ns, t_ns)
     np.testing.assert_allclose(result.poses, expected, atol=1e-9)

@@ -205,3 +205,21 @@ def test_a_wheel_speed_that_jumps_is_rejected_naming_the_side():
     odo.joint_sample(NOW, 0.0, 0.0, NOW)
     assert odo.joint_sample(NOW + DT, 5.0, 5.0, NOW + DT) is None       # 250 rad/s^2
     assert odo.joint_sample(NOW + 3 * DT, 5.0, 5.0, NOW + 3 * DT) is not None  # 83 rad/s^2
+
+
+def test_auto_wheel_signal_says_which_signal_it_integrates_and_counts_bad_positions():
+    heard, warned = [], []
+    config = OdometryConfig.from_flat({'wheel_signal': 'auto', 'max_wheel_speed': 20.0})
+    odometer = Odometer.from_config(config, note=heard.append,
+                                    warn=lambda cause, message, error=False: warned.append(cause))
+    now = 10 ** 12
+    for i in range(3):  # positions that never change: the velocities are integrated
+        odometer.joint_sample(now + i * 50_000_000, 1.0, 1.0, now + 10 ** 9, ((0.0,), (0.0,)))
+    assert heard == [] and odometer.signal.in_use == 'velocity'
+    odometer.joint_sample(now + 150_000_000, 1.0, 1.0, now + 10 ** 9, ((0.1,), (0.1,)))
+    assert heard == ['wheel signal: integrating the wheel positions (wheel_signal auto)']
+    # a counter that steps back 5 rad in 50 ms: rejected and counted like a bad speed
+    odometer.joint_sample(now + 200_000_000, 1.0, 1.0, now + 10 ** 9, ((-4.9,), (0.15,)))
+    assert odometer.counters['implausible'] == 1 and warned == ['implausible']
+    odometer.joint_sample(now + 250_000_000, 1.0, 1.0, now + 10 ** 9, None)
+    assert heard[-1] == 'wheel signal: integrating the wheel velocities (wheel_signal auto)'

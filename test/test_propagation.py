@@ -22,7 +22,8 @@ def test_mean_is_the_integrator_pose():
     t_ns, wl, wr = _drive()
     model = get_model('edd_symmetric').bind({'alpha': 0.9, 'b_hat': 1.5}, GEOM)
     pose, _ = predict([0, 0, 0], np.zeros((3, 3)), t_ns, wl, wr, model, NOISE)
-    expected = rollout(model.twist(wl[:-1], wr[:-1]), np.diff(t_ns) * 1e-9)[-1]
+    # the default interval, ending: sample k's speeds over [t_k-1, t_k]
+    expected = rollout(model.twist(wl[1:], wr[1:]), np.diff(t_ns) * 1e-9)[-1]
     np.testing.assert_allclose(pose, expected, atol=1e-12)
 
 
@@ -37,7 +38,7 @@ def test_propagated_covariance_matches_monte_carlo():
     th = np.zeros(samples)
     for i in range(len(t_ns) - 1):
         dt = (t_ns[i + 1] - t_ns[i]) * 1e-9
-        dx, dy, dth = body_increment(*model.twist(wl[i], wr[i]), dt)
+        dx, dy, dth = body_increment(*model.twist(wl[i + 1], wr[i + 1]), dt)
         step = NOISE.step_covariance(np.hypot(dx, dy), dth)
         noise = rng.normal(size=(samples, 3)) * np.sqrt(np.diag(step))
         x, y, th = compose(x, y, th, dx + noise[:, 0], dy + noise[:, 1], dth + noise[:, 2])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 import time
 
@@ -16,6 +17,7 @@ from skidkin_ros.core.odometry.integrator import rollout
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim import (EFFECT_NAMES, EFFECTS, LidarConfig, make_effect, random_effect,
                              SimConfig, simulate)
+from skidkin_ros.sim.effects import EffectInput
 from skidkin_ros.sim.robot import COMMAND_KINDS
 from skidkin_ros.sim.scene import (Box, Cylinder, default_scene, Field, outdoor_scene,
                                    Room, Scene)
@@ -355,3 +357,38 @@ def test_write_bag_point_time_conventions(tmp_path, small_sim):
     assert absolute.max() == pytest.approx(stamp_ns * 1e-9, abs=1e-5)
     with pytest.raises(ParameterError, match='uint32'):
         write_bag(small_sim, tmp_path / 'bad', point_time='rel_ns_u32', stamp_at='end')
+
+
+def _fine_step(effect, target, t_s):
+    """Run one dynamics effect on a given twist on a fine grid (v_x, v_y, omega columns)."""
+    data = EffectInput(t_s, np.zeros(t_s.size), np.zeros(t_s.size), target, None, t_s[-1])
+    return effect.apply_twist(data)
+
+
+def test_per_component_lags_act_on_one_component_as_continuous_responses():
+    t_s = np.arange(0.0, 2.0, 0.001)
+    step = np.where(t_s >= 0.5, 1.0, 0.0)
+    target = np.stack([step, 0.3 * step, 0.5 * step], axis=-1)
+    for name, lagged in (('forward_lag', 0), ('yaw_lag', 2)):
+        out = _fine_step(make_effect(name, 0.2), target, t_s)
+        after = np.searchsorted(t_s, 0.7)  # 0.2 s after the step: 1 - 1/e of the way
+        assert out[after, lagged] == pytest.approx(target[after, lagged] * (1 - math.exp(-1)),
+                                                   rel=0.02), name
+        others = [c for c in range(3) if c != lagged]
+        assert np.array_equal(out[:, others], target[:, others]), name
+
+
+def test_acceleration_slip_lags_only_while_the_wheels_speed_up():
+    t_s = np.arange(0.0, 3.0, 0.001)
+    # speed up to 1 m/s at 0.5 s, down to 0.2 m/s at 2 s
+    v = np.where(t_s >= 0.5, 1.0, 0.0) - np.where(t_s >= 2.0, 0.8, 0.0)
+    target = np.stack([v, np.zeros_like(v), 0.4 * v], axis=-1)
+    out = _fine_step(make_effect('acceleration_slip', 0.15), target, t_s)
+    rising = np.searchsorted(t_s, 0.65)
+    assert out[rising, 0] == pytest.approx(1 - math.exp(-1), rel=0.02)  # lags speeding up
+    falling = np.searchsorted(t_s, 2.002)
+    assert out[falling, 0] == pytest.approx(0.2)  # follows at once slowing down
+    assert np.array_equal(out[:, 2], target[:, 2])  # the yaw rate is untouched
+    # backward too: speeding up backward lags
+    back = _fine_step(make_effect('acceleration_slip', 0.15), -target, t_s)
+    assert back[rising, 0] == pytest.approx(-(1 - math.exp(-1)), rel=0.02)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.bag_writer import BagWriter
-from skidkin_ros.core.odometry.wheels import (check_velocity_count, DuplicateJointError,
-                                              joint_indices, MalformedMessageError,
-                                              MissingJointError, pair_wheel_streams, Pairing,
-                                              repeated_names, side_speed, speeds_at,
-                                              WheelPairer)
+from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
+                                              DuplicateJointError, joint_indices,
+                                              MalformedMessageError, MissingJointError,
+                                              pair_wheel_streams, Pairing, repeated_names,
+                                              side_speed, speeds_at, WheelPairer, WheelSignal)
 
 T0_NS = 1_700_000_000_000_000_000
 MS = 1_000_000
@@ -127,3 +127,83 @@ def test_bag_reader_takes_a_side_speed_as_the_node_does(tmp_path):
     with open_recording(tmp_path / 'bag') as bag:
         wheels = bag.read_wheels(left_joints=['l1', 'l2', 'l3'], right_joints=['r1'])
     assert wheels.omega_l.tolist() == [side_speed([0.1, 0.2, 0.3])] * 3
+
+
+# ------------------------------------------------------------------ wheel_signal (issue 11 item 5)
+def _take(signal, t_s, left, right, velocity=(9.0, 9.0)):
+    positions = None if left is None else (left, right)
+    return signal.take(int(round(t_s * 1e9)), *velocity, positions)
+
+
+def test_position_signal_integrates_the_travel_between_positions():
+    signal = WheelSignal('position', 50.0)
+    first = _take(signal, 0.0, (1.0, 1.2), (2.0, 2.0))
+    assert first.speeds == (9.0, 9.0) and signal.in_use == 'position'  # nothing to difference
+    # left joints travel 0.1 and 0.3 rad in 0.1 s: mean 2 rad/s; right -0.05 rad: -0.5 rad/s
+    taken = _take(signal, 0.1, (1.1, 1.5), (1.95, 1.95))
+    assert taken.speeds == pytest.approx((2.0, -0.5)) and not taken.switched
+    assert signal.in_use == 'position'
+
+
+@pytest.mark.parametrize('before, after, travel', [
+    (3.0, -3.0, 2 * math.pi - 6.0),          # [-pi, pi) driver, forward through +pi
+    (-3.0, 3.0, 6.0 - 2 * math.pi),          # backward through -pi
+    (6.2, 0.1, 0.1 + 2 * math.pi - 6.2),     # [0, 2 pi) driver
+    (100.0, 100.5, 0.5),                     # an unwrapped angle far from zero
+])
+def test_a_wrapped_continuous_joint_is_taken_the_short_way_round(before, after, travel):
+    signal = WheelSignal('position', 50.0)
+    _take(signal, 0.0, (before,), (before,))
+    taken = _take(signal, 0.05, (after,), (after,))
+    assert taken.speeds == pytest.approx((travel / 0.05, travel / 0.05))
+
+
+def test_hostile_positions_are_rejected_and_counted_like_bad_speeds():
+    signal = WheelSignal('position', 20.0)
+    _take(signal, 0.0, (10.0,), (10.0,))
+    for bad in (math.nan, math.inf, -math.inf):
+        taken = _take(signal, 0.05, (bad,), (10.0,))
+        assert taken.speeds is None and taken.cause == 'non_finite'
+    # the last finite positions are kept: the next travel is measured from them
+    assert _take(signal, 0.1, (10.2,), (10.2,)).speeds == pytest.approx((2.0, 2.0))
+    # a counter reset (a huge step backwards) exceeds max_wheel_speed * dt: rejected ...
+    reset = _take(signal, 0.15, (0.0,), (10.3,))
+    assert reset.speeds is None and reset.cause == 'implausible'
+    assert 'left wheel position jumped' in reset.detail and 'max_wheel_speed 20' in reset.detail
+    # ... and the positions are differenced from the new ones on, not refused forever
+    assert _take(signal, 0.2, (0.1,), (10.4,)).speeds == pytest.approx((2.0, 2.0))
+    # a message without positions is refused when positions are required
+    missing = _take(signal, 0.25, None, None)
+    assert missing.speeds is None and missing.cause == 'no_position'
+
+
+def test_auto_uses_positions_that_change_and_velocities_otherwise():
+    signal = WheelSignal('auto', 50.0)
+    assert signal.in_use == 'velocity'
+    # a driver whose positions never change: the velocities are integrated
+    for i in range(3):
+        taken = _take(signal, 0.1 * i, (0.0,), (0.0,), velocity=(1.0, 2.0))
+        assert taken.speeds == (1.0, 2.0) and not taken.switched
+    # positions that change: used from the first interval they measure, and said so once
+    taken = _take(signal, 0.3, (0.5,), (0.2,), velocity=(1.0, 2.0))
+    assert taken.speeds == pytest.approx((5.0, 2.0)) and taken.switched == 'position'
+    assert not _take(signal, 0.4, (1.0,), (0.4,)).switched
+    # mixed: a message without positions (or with non-finite ones) uses its velocities, and
+    # the next positions are differenced from a new reference, never across that interval
+    taken = _take(signal, 0.5, None, None, velocity=(3.0, 3.0))
+    assert taken.speeds == (3.0, 3.0) and taken.switched == 'velocity'
+    assert _take(signal, 0.6, (math.nan,), (0.6,), velocity=(4.0, 4.0)).speeds == (4.0, 4.0)
+    assert _take(signal, 0.7, (2.0,), (0.7,), velocity=(4.0, 4.0)).speeds == (4.0, 4.0)
+    taken = _take(signal, 0.8, (2.3,), (0.8,))
+    assert taken.speeds == pytest.approx((3.0, 1.0)) and taken.switched == 'position'
+
+
+def test_velocity_signal_ignores_positions_and_counts_are_checked():
+    signal = WheelSignal('velocity', 50.0)
+    assert _take(signal, 0.0, (1.0,), (1.0,)).speeds == (9.0, 9.0)
+    assert _take(signal, 0.1, (99.0,), (math.nan,)).speeds == (9.0, 9.0)
+    assert check_position_count(4, 0) is False and check_position_count(4, 4) is True
+    with pytest.raises(MalformedMessageError, match='4 names but 3 positions'):
+        check_position_count(4, 3)
+    with pytest.raises(ValueError, match='velocity, position, auto'):
+        WheelSignal('encoder')

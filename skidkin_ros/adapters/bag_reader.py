@@ -67,10 +67,11 @@ from scipy.spatial.transform import Rotation
 from skidkin_ros.adapters.pointcloud import interpret_point_times, read_xyz_and_times
 from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.odometry.config import node_default
-from skidkin_ros.core.odometry.wheels import (check_velocity_count, drop_jumps,
-                                              DuplicateJointError, joint_indices,
+from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
+                                              drop_jumps, DuplicateJointError, joint_indices,
                                               MalformedMessageError, MissingJointError,
-                                              pair_wheel_streams, speeds_at)
+                                              pair_wheel_streams, positions_at, speeds_at,
+                                              WheelSignal)
 from skidkin_ros.core.rotation import quaternion_to_yaw
 from skidkin_ros.errors import DataError, RecordingError
 
@@ -559,13 +560,16 @@ class BagRecording:
                     max_wheel_speed_rad_s: float = DEFAULT_MAX_WHEEL_SPEED_RAD_S,
                     pair_tolerance_s: float = DEFAULT_PAIR_TOLERANCE_S,
                     max_wheel_acceleration: float = DEFAULT_MAX_WHEEL_ACCELERATION,
-                    max_dt_s: float = DEFAULT_MAX_DT_S) -> WheelSamples:
+                    max_dt_s: float = DEFAULT_MAX_DT_S,
+                    wheel_signal: str = 'velocity') -> WheelSamples:
         """Return wheel speeds (rad/s) from a JointState topic or two Float64 topics.
 
         JointState: stamps from header.stamp (a bag whose stamps are all zero uses receive
         time, noted); a side's speed is the mean of its joints' velocities, as the node takes it
-        (:mod:`skidkin_ros.core.odometry.wheels`); joints default to those whose names contain
-        'left' / 'right'. Float64 pairs: see :meth:`_read_float_pair`. Either way, samples whose
+        (:mod:`skidkin_ros.core.odometry.wheels`), or with ``wheel_signal`` position / auto the
+        travel between joint positions, by the node's rule (:class:`WheelSignal`); joints default
+        to those whose names contain 'left' / 'right'. Float64 pairs: see
+        :meth:`_read_float_pair`. Either way, samples whose
         speed jumps faster than ``max_wheel_acceleration`` (rad/s^2) are dropped and noted
         (:meth:`_drop_jumps`).
         """
@@ -581,7 +585,7 @@ class BagRecording:
             else:
                 chosen = self.select(JOINT_STATE, topic, 'wheel speeds')
                 wheels = self._read_joint_states(chosen, left_joints, right_joints,
-                                                 max_wheel_speed_rad_s)
+                                                 max_wheel_speed_rad_s, wheel_signal)
         return self._drop_jumps(wheels, max_wheel_acceleration, max_dt_s)
 
     def _drop_jumps(self, wheels: WheelSamples, max_acceleration: float,
@@ -616,13 +620,15 @@ class BagRecording:
         return left, right
 
     def _read_joint_states(self, topic: str, left_joints: Sequence[str] | None,
-                           right_joints: Sequence[str] | None, max_speed: float) -> WheelSamples:
+                           right_joints: Sequence[str] | None, max_speed: float,
+                           wheel_signal: str = 'velocity') -> WheelSamples:
         left = list(left_joints) if left_joints else None
         right = list(right_joints) if right_joints else None
         stamps: list[int] = []
         receive: list[int] = []
         omega_l: list[float] = []
         omega_r: list[float] = []
+        positions: list[tuple[tuple[float, ...], tuple[float, ...]] | None] = []
         index_cache: tuple[list[str], tuple[int, ...], tuple[int, ...]] | None = None
         seen_names: set[str] = set()
         read = 0
@@ -647,22 +653,34 @@ class BagRecording:
                     self._drop(topic, 'with a wheel joint listed twice')
                     continue
             velocity = msg.velocity
-            try:
-                check_velocity_count(len(names), len(velocity))
-            except MalformedMessageError:
-                self._drop(topic, 'without velocities')
-                continue
-            wl, wr = speeds_at(velocity, index_cache[1], index_cache[2])
-            if not (math.isfinite(wl) and math.isfinite(wr)):
-                self._drop(topic, 'non-finite speed')
-                continue
-            if abs(wl) > max_speed or abs(wr) > max_speed:
-                self._drop(topic, f'speed beyond {max_speed:g} rad/s')
-                continue
+            position = None
+            if wheel_signal != 'velocity':
+                try:
+                    if check_position_count(len(names), len(msg.position)):
+                        position = positions_at(msg.position, index_cache[1], index_cache[2])
+                except MalformedMessageError:
+                    self._drop(topic, 'with a position count other than the names')
+                    continue
+            if position is not None and wheel_signal == 'position' and not len(velocity):
+                wl = wr = math.nan  # positions alone are enough
+            else:
+                try:
+                    check_velocity_count(len(names), len(velocity))
+                except MalformedMessageError:
+                    self._drop(topic, 'without velocities')
+                    continue
+                wl, wr = speeds_at(velocity, index_cache[1], index_cache[2])
+                if wheel_signal == 'velocity' and not (math.isfinite(wl) and math.isfinite(wr)):
+                    self._drop(topic, 'non-finite speed')
+                    continue
+                if abs(wl) > max_speed or abs(wr) > max_speed:
+                    self._drop(topic, f'speed beyond {max_speed:g} rad/s')
+                    continue
             stamps.append(_stamp_ns(msg.header))
             receive.append(t_ns)
             omega_l.append(wl)
             omega_r.append(wr)
+            positions.append(position)
         if not read:
             raise RecordingError(
                 f'wheel speeds: no message on {topic} could be read, though the recording lists '
@@ -680,8 +698,39 @@ class BagRecording:
         t = self._header_or_receive(topic, np.array(stamps, np.int64), np.array(receive, np.int64))
         keep = self._keep_in_order(topic, t)
         self.wheel_input = {'input': 'joint_state', 'topic': topic,
-                            'left_wheel_joints': list(left), 'right_wheel_joints': list(right)}
-        return WheelSamples(t[keep], np.array(omega_l)[keep], np.array(omega_r)[keep])
+                            'left_wheel_joints': list(left), 'right_wheel_joints': list(right),
+                            'wheel_signal': wheel_signal}
+        wheels = WheelSamples(t[keep], np.array(omega_l)[keep], np.array(omega_r)[keep])
+        if wheel_signal == 'velocity':
+            return wheels
+        kept = [positions[i] for i in np.flatnonzero(keep)]
+        return self._signal_speeds(topic, wheels, kept, wheel_signal, max_speed)
+
+    def _signal_speeds(self, topic: str, wheels: WheelSamples,
+                       positions: Sequence[tuple[tuple[float, ...], tuple[float, ...]] | None],
+                       wheel_signal: str, max_speed: float) -> WheelSamples:
+        """Return the speeds the node integrates under ``wheel_signal`` (WheelSignal's rule)."""
+        signal = WheelSignal(wheel_signal, max_speed)
+        keep = np.zeros(len(wheels), dtype=bool)
+        omega_l = np.asarray(wheels.omega_l, dtype=float).copy()
+        omega_r = np.asarray(wheels.omega_r, dtype=float).copy()
+        used: Counter[str] = Counter()
+        for i, t_ns in enumerate(wheels.t_ns.tolist()):
+            taken = signal.take(t_ns, omega_l[i], omega_r[i], positions[i])
+            if taken.speeds is None:
+                self._drop(topic, {'no_position': 'without positions',
+                                   'non_finite': 'non-finite position',
+                                   'implausible': 'position jump beyond max_wheel_speed'
+                                   }[taken.cause])
+                continue
+            omega_l[i], omega_r[i] = taken.speeds
+            keep[i] = math.isfinite(omega_l[i]) and math.isfinite(omega_r[i])
+            used[signal.in_use] += 1
+        self.notes.append(f'wheel speeds: {topic} read with wheel_signal {wheel_signal}: '
+                          + ', '.join(f'{n} intervals from the joint {kind}s'
+                                      for kind, n in sorted(used.items())))
+        self.wheel_input['wheel_signal_used'] = dict(used)
+        return WheelSamples(wheels.t_ns[keep], omega_l[keep], omega_r[keep])
 
     def _reasons(self, topic: str) -> str:
         parts = [f'{n} {reason}' for (t, reason), n in self.counts.items() if t == topic]

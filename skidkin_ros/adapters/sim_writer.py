@@ -15,6 +15,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Mapping
 
@@ -79,7 +80,7 @@ def write_bag(sim: Simulation, path: Path, storage: str = 'sqlite3', overwrite: 
               point_time: str = 'rel_s_f32', stamp_at: str = 'start',
               lidar_latency_s: float = 0.01, truth_csv: Path | None = None,
               truth_topic: str | None = None, topics: Mapping[str, str] | None = None,
-              ) -> tuple[Path, Path]:
+              wrap_positions: bool = False) -> tuple[Path, Path]:
     """Stream the simulation into a rosbag2 and the truth into a CSV; return both paths.
 
     Topics (override with ``topics``): /joint_states (4 wheel joints, measured speeds, joint
@@ -89,6 +90,8 @@ def write_bag(sim: Simulation, path: Path, storage: str = 'sqlite3', overwrite: 
     (base_link -> lidar), and, with ``truth_topic``, the truth as nav_msgs/Odometry. Clouds are
     received ``lidar_latency_s`` after the sweep ends; messages are written in receive-time
     order, one sweep at a time. The CSV defaults to ``<bag>_truth.csv`` beside the bag.
+    ``wrap_positions``: write the joint angles wrapped into [-pi, pi), as some drivers of
+    continuous joints do (default: the integrated angle).
     """
     if point_time not in POINT_TIME_CONVENTIONS:
         raise ParameterError(f'point_time must be one of {sorted(POINT_TIME_CONVENTIONS)}, '
@@ -114,7 +117,7 @@ def write_bag(sim: Simulation, path: Path, storage: str = 'sqlite3', overwrite: 
         for scan in sim.scans():
             receive_ns = scan.end_ns + latency_ns
             while cursor < len(small) and small[cursor][0] <= receive_ns:
-                _write_small(writer, sim, small[cursor])
+                _write_small(writer, sim, small[cursor], wrap_positions)
                 cursor += 1
             values, stamp_ns = _point_times(scan, point_time, stamp_at)
             writer.write_pointcloud(names['points'], receive_ns, scan.frame_id, scan.xyz,
@@ -122,7 +125,7 @@ def write_bag(sim: Simulation, path: Path, storage: str = 'sqlite3', overwrite: 
                                     time_dtype=dtype or 'float32', stamp_ns=stamp_ns,
                                     extra_fields={'ring': scan.ring})
         for item in small[cursor:]:
-            _write_small(writer, sim, item)
+            _write_small(writer, sim, item, wrap_positions)
     write_truth_csv(sim, csv_path, overwrite=overwrite)
     return path, csv_path
 
@@ -139,11 +142,14 @@ def _small_messages(sim: Simulation, names: Mapping[str, str],
     return items
 
 
-def _write_small(writer: BagWriter, sim: Simulation, item: tuple[int, str, int, str]) -> None:
+def _write_small(writer: BagWriter, sim: Simulation, item: tuple[int, str, int, str],
+                 wrap_positions: bool = False) -> None:
     t_ns, kind, i, topic = item
     if kind == 'joint_states':
         left, right = float(sim.wheels.omega_l[i]), float(sim.wheels.omega_r[i])
         pos_l, pos_r = float(sim.wheel_pos_l[i]), float(sim.wheel_pos_r[i])
+        if wrap_positions:
+            pos_l, pos_r = ((pos + math.pi) % (2 * math.pi) - math.pi for pos in (pos_l, pos_r))
         writer.write_joint_state(topic, t_ns, JOINT_NAMES, [left, left, right, right],
                                  positions=[pos_l, pos_l, pos_r, pos_r])
     elif kind == 'imu':

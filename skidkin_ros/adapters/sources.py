@@ -77,6 +77,7 @@ class SourceOptions:
     pair_tolerance_s: float = node_default('pair_tolerance')
     max_wheel_acceleration: float = node_default('max_wheel_acceleration')
     max_dt_s: float = node_default('max_dt')
+    wheel_signal: str = 'velocity'
     min_overlap_s: float = 10.0
 
 
@@ -103,8 +104,11 @@ def load_source(path: str | Path, options: SourceOptions,
     if is_table(source):
         drives = read_table(source)
         rows = sum(len(d.wheels) for d in drives)
-        return LoadedSource(source, 'table', drives,
-                            [f'{source}: trajectory table, {len(drives)} segment(s), {rows} rows'])
+        notes = [f'{source}: trajectory table, {len(drives)} segment(s), {rows} rows']
+        if options.wheel_signal != 'velocity':
+            notes.append(f'{source}: a table holds wheel speeds only; wheel_signal '
+                         f'{options.wheel_signal} does not apply to it, its speeds are used')
+        return LoadedSource(source, 'table', drives, notes)
     return _load_bag(source, options, need_truth)
 
 
@@ -116,7 +120,8 @@ def _load_bag(path: Path, options: SourceOptions, need_truth: bool) -> LoadedSou
                                  max_wheel_speed_rad_s=options.max_wheel_speed_rad_s,
                                  pair_tolerance_s=options.pair_tolerance_s,
                                  max_wheel_acceleration=options.max_wheel_acceleration,
-                                 max_dt_s=options.max_dt_s)
+                                 max_dt_s=options.max_dt_s,
+                                 wheel_signal=options.wheel_signal)
         if len(wheels) < 2:
             raise DataError(f'{path}: fewer than 2 wheel samples; nothing to integrate')
         imu = None

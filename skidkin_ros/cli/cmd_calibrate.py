@@ -10,10 +10,13 @@ from skidkin_ros.atomic import check_writable
 from skidkin_ros.cli.common import (add_geometry_args, add_source_args, calibration_provenance,
                                     check_report_dir, geometry_from_args, input_parameters,
                                     print_calibration, print_notes, say, source_options)
-from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions, horizon_study,
-                                                   result_to_parameters)
+from skidkin_ros.core.calibration.pipeline import (calibrate_interval, CalibrationOptions,
+                                                   horizon_study, result_to_parameters,
+                                                   SELECTIONS)
+from skidkin_ros.core.calibration.weighting import WEIGHTINGS
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.odometry.config import write_params_file
+from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.errors import FitError
 from skidkin_ros.report.page import write_report
 
@@ -25,7 +28,20 @@ def _options(args: argparse.Namespace) -> CalibrationOptions:
         h_t=args.h_t, h_e=args.h_e, loss=args.loss, f_scale=args.f_scale,
         n_starts=args.starts, seed=args.seed, models=tuple(args.models),
         sigma_diag=tuple(args.sigma), holdout_every=2 if args.split_by else args.holdout_every,
-        holdout_key=args.split_by)
+        holdout_key=args.split_by, weighting=args.weighting, selection=args.selection)
+
+
+def _print_interval(result) -> None:
+    """Say which sample-interval convention was used, and how the others did."""
+    chosen = result.options.interval
+    if not result.interval_errors:
+        say(f'\nsample interval: {chosen} (given)')
+        return
+    say(f'\nsample interval: {chosen} (chosen on the evaluation segments; {result.best}, '
+        'median eps_t [m/m] / eps_theta [deg/m]):')
+    for interval, (eps_t, eps_th) in result.interval_errors.items():
+        mark = '  <- written' if interval == chosen else ''
+        say(f'  {interval:<9} {eps_t:.4f} / {eps_th:.3f}{mark}')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,9 +56,12 @@ def run(args: argparse.Namespace) -> int:
     train = load_sources(args.train, src_opts)
     evaluate = load_sources(args.eval, src_opts) if args.eval else []
     print_notes(train + evaluate)
-    result = calibrate([d for s in train for d in s.drives],
-                       [d for s in evaluate for d in s.drives] or None, geometry, options)
+    intervals = INTERVALS if args.interval == 'auto' else (args.interval,)
+    result = calibrate_interval([d for s in train for d in s.drives],
+                                [d for s in evaluate for d in s.drives] or None, geometry,
+                                options, intervals)
     print_calibration(result)
+    _print_interval(result)
     base = {'robot': args.robot, **input_parameters(train)}
     flat = result_to_parameters(result, base, allow_invalid=False)
     prov = calibration_provenance(result, train, evaluate, 'skidkin calibrate')
@@ -59,10 +78,14 @@ def run(args: argparse.Namespace) -> int:
         page = write_report(result, args.report, force=args.force, study=study)
         say(f'report: {page}')
     invalid = [m for m, f in result.fits.items() if not f.valid and get_model(m).params]
-    if invalid and not args.accept_invalid:
+    if invalid and args.strict and not args.accept_invalid:
         raise FitError(f'fit(s) of {", ".join(invalid)} are invalid (not converged, on a bound '
                        'or not observable; see the warnings) and were not written; the other '
-                       'models were. Pass --accept-invalid to exit 0 anyway.')
+                       'models were. Without --strict this is a warning.')
+    if invalid:
+        say(f'warning: fit(s) of {", ".join(invalid)} are invalid (not converged, on a bound or '
+            f'not observable; see the warnings above) and were not written; the written model '
+            f'{result.best} is valid (--strict makes this exit 4)')
     return 0
 
 
@@ -81,6 +104,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--force', action='store_true', help='overwrite existing outputs')
     parser.add_argument('--models', nargs='+', choices=MODEL_NAMES, default=list(MODEL_NAMES))
     parser.add_argument('--robot', default='', help='robot name recorded in the file')
+    parser.add_argument('--interval', choices=('auto',) + INTERVALS, default='auto',
+                        help='which interval a wheel sample describes: auto (chosen on the '
+                        'evaluation data, default), ending, starting or midpoint')
     parser.add_argument('--split-by', metavar='COLUMN',
                         help='tables without --eval: even values of COLUMN train, odd evaluate '
                         '(e.g. calib_step)')
@@ -98,8 +124,19 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--horizon-study', action='store_true',
                         help='add the h_t x h_e study figure to the report')
+    parser.add_argument('--strict', action='store_true',
+                        help='exit 4 when any fit is invalid, even one that was not selected '
+                        '(default: a warning; the written model is always a valid fit)')
     parser.add_argument('--accept-invalid', action='store_true',
-                        help='exit 0 even when a fit is invalid (it is still not written)')
+                        help='exit 0 even with --strict when a fit is invalid (it is still not '
+                        'written)')
+    parser.add_argument('--weighting', choices=WEIGHTINGS, default='iterated',
+                        help='loss weights: iterated (each segment by the covariance the noise '
+                        'model predicts for it, refitted until the parameters settle) or fixed '
+                        '(--sigma for every segment)')
+    parser.add_argument('--selection', choices=SELECTIONS, default='likelihood',
+                        help='best-model rule: held-out likelihood (counts heading) or the '
+                        "paper's eps_t + eps_theta")
     add_geometry_args(parser)
     add_source_args(parser)
     parser.set_defaults(run=run)

@@ -25,8 +25,8 @@ from skidkin_ros.cli.common import (calibration_provenance, default_cache_dir,
                                     input_parameters, print_calibration, say)
 from skidkin_ros.cli.progress import Progress
 from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_pose_errors
-from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
-                                                   result_to_parameters)
+from skidkin_ros.core.calibration.pipeline import (calibrate, calibrate_interval,
+                                                   CalibrationOptions, result_to_parameters)
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.errors import OutputError
@@ -100,8 +100,9 @@ def pipeline(args: argparse.Namespace) -> dict:
         say(f'      {src.path.name}: {src.truth_info.get("ground_truth")}, frames '
             f'{src.truth_info.get("frames")}')
     options = CalibrationOptions(seed=0)
-    result = calibrate(train_src.drives, eval_src.drives, geometry, options)
+    result = calibrate_interval(train_src.drives, eval_src.drives, geometry, options)
     print_calibration(result)
+    say(f'      sample interval: {result.options.interval} (chosen on the evaluation drive)')
     params = out / 'params.yaml'
     flat = result_to_parameters(result, {'robot': 'demo_sim_husky',
                                          **input_parameters([train_src])})
@@ -112,7 +113,7 @@ def pipeline(args: argparse.Namespace) -> dict:
 
     say('[3/4] reference: the same models fitted on the exact simulated trajectory')
     exact = calibrate([train_sim.drive('train_exact')], [eval_sim.drive('eval_exact')],
-                      geometry, options)
+                      geometry, result.options)
     truth_params = dict(train_cfg.true_params)
     listed = ', '.join(f'{k}={v:g}' for k, v in truth_params.items())
     say(f'      true {train_cfg.true_model}: {listed}')

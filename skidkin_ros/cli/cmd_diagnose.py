@@ -12,6 +12,7 @@ from skidkin_ros.cli.common import (add_source_args, check_report_dir, jobs_arg,
 from skidkin_ros.core.calibration.diagnosis import diagnose, DiagnosisOptions
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS
 from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
+from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.core.parallel import usable_cpus
 from skidkin_ros.report.diagnosis import write_diagnosis_report
 
@@ -34,7 +35,9 @@ def run(args: argparse.Namespace) -> int:
     options = DiagnosisOptions(
         candidates=tuple(args.candidates) if args.candidates else DiagnosisOptions().candidates,
         holdout_every=2 if args.split_by else 3, holdout_key=args.split_by, trim=args.trim,
-        h_t=args.h_t, h_e=args.h_e)
+        h_t=args.h_t, h_e=args.h_e, interval=args.interval or config['interval'])
+    say(f'sample interval: {options.interval}'
+        + (' (given)' if args.interval else f' (from {args.params})'))
     bars = None if args.no_progress else RoundBars()
     try:
         result = diagnose([d for s in train for d in s.drives],
@@ -83,5 +86,8 @@ def add_parser(subparsers) -> None:
                         '%(default)s here); the result does not depend on it')
     parser.add_argument('--h-t', type=float, default=2.0, metavar='M')
     parser.add_argument('--h-e', type=float, default=2.0, metavar='M')
+    parser.add_argument('--interval', choices=INTERVALS,
+                        help="which interval a wheel sample describes (default: the file's "
+                        'interval; written to the output file)')
     add_source_args(parser)
     parser.set_defaults(run=run)

@@ -12,30 +12,45 @@ from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
 from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.gyro import IMU_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['add_parser']
 
 
 def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
-    """Return how to read the recording: with the node's wheel limits and pairing."""
+    """Return how to read the recording: with the node's wheel limits, pairing and signal."""
+    given = getattr(args, 'wheel_signal', None)
+    if given is not None and given != config['wheel_signal']:
+        raise ParameterError(f'--wheel-signal {given} differs from the wheel_signal of the '
+                             f'parameters file, {config["wheel_signal"]}, which the node uses; '
+                             'drop the option (predict reads what the node reads)')
     return dataclasses.replace(source_options(args),
                                max_wheel_speed_rad_s=config['max_wheel_speed'],
                                pair_tolerance_s=config['pair_tolerance'],
                                max_wheel_acceleration=config['max_wheel_acceleration'],
-                               max_dt_s=config['max_dt'])
+                               max_dt_s=config['max_dt'], wheel_signal=config['wheel_signal'])
+
+
+def _check_gyro(config: OdometryConfig, drives) -> None:
+    if config.imu.mode != 'off' and all(drive.imu is None for drive in drives):
+        raise DataError(f'imu mode {config.imu.mode} needs gyro samples and the recording has '
+                        'none: a table needs the imu_yaw_rate column, a bag a sensor_msgs/Imu '
+                        'topic (--imu-topic); or use --imu-mode off')
 
 
 def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
     loaded = load_source(args.source, _reading(args, config), need_truth=True)
     print_notes([loaded])
+    _check_gyro(config, loaded.drives)
     with args.source.open(newline='', encoding='utf-8-sig') as handle:
         rows = list(csv.reader(handle))
     header, body = rows[0], rows[1:]
     extra = [['', '', ''] for _ in body]
     odometer = Odometer.from_config(config)
     for drive in loaded.drives:
-        pred = odometer.predict(drive.wheels, start=drive.truth.poses[0])
+        pred = odometer.predict(drive.wheels, start=drive.truth.poses[0], imu=drive.imu)
         for row, pose in zip(drive.meta['row_index'], pred.poses):
             extra[row] = [f'{pose[0]:.6f}', f'{pose[1]:.6f}', f'{pose[2]:.6f}']
     out = io.StringIO()
@@ -49,8 +64,9 @@ def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[st
 def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
     loaded = load_source(args.source, _reading(args, config), need_truth=False)
     print_notes([loaded])
+    _check_gyro(config, loaded.drives)
     wheels = loaded.drives[0].wheels
-    pred = Odometer.from_config(config).predict(wheels)
+    pred = Odometer.from_config(config).predict(wheels, imu=loaded.drives[0].imu)
     out = io.StringIO()
     out.write('t,t_ns,x,y,yaw,vx,vy,wz,status,cov_xx,cov_xy,cov_xyaw,cov_yy,cov_yyaw,'
               'cov_yawyaw\n')
@@ -70,6 +86,10 @@ def run(args: argparse.Namespace) -> int:
     config = OdometryConfig.from_file(args.params, args.model,
                                       {'use_parameter_covariance': False}
                                       if args.no_parameter_covariance else None)
+    if args.imu_mode is not None:
+        config = dataclasses.replace(config, values={**config.values, 'imu.mode': args.imu_mode})
+    if config.imu.mode != 'off':
+        say(f'imu mode {config.imu.mode}: the gyro is used as the node uses it')
     text, rows = (_predict_table if is_table(args.source) else _predict_bag)(args, config)
     atomic_write_text(args.out, text, force=args.force)
     say(f'{config.model}: predicted {rows} samples -> {args.out}')
@@ -87,6 +107,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument('source', type=Path, help='bag or trajectory table')
     parser.add_argument('--params', type=Path, required=True, help='parameters file')
     parser.add_argument('--model', help="model to use (default: the file's model)")
+    parser.add_argument('--imu-mode', choices=IMU_MODES,
+                        help="use the gyro as odom_node's imu.mode does (default: the file's "
+                        'imu.mode); a bag needs --imu-topic (or one Imu topic), a table the '
+                        'imu_yaw_rate column')
     parser.add_argument('--out', type=Path, required=True, help='CSV to write')
     parser.add_argument('--force', action='store_true', help='overwrite an existing output')
     parser.add_argument('--no-parameter-covariance', action='store_true',

@@ -20,6 +20,7 @@ from skidkin_ros.cli.progress import Progress
 from skidkin_ros.cli.tables import error_table, parameter_lines
 from skidkin_ros.core.calibration.pipeline import CalibrationResult
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.core.parallel import usable_cpus
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
@@ -102,6 +103,11 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
                        help='JointState names of the right wheels (default: names with "right")')
     group.add_argument('--left-topic', help='std_msgs/Float64 left wheel speed topic (rad/s)')
     group.add_argument('--right-topic', help='std_msgs/Float64 right wheel speed topic (rad/s)')
+    group.add_argument('--wheel-signal', choices=WHEEL_SIGNALS,
+                       help='JointState: integrate the wheel velocities, the joint positions '
+                       '(travel between samples) or auto (positions when they change); written '
+                       'to the parameters file so the node reads the same (default velocity; '
+                       "predict: the parameters file's; tables hold speeds only)")
     group.add_argument('--imu-topic', help='sensor_msgs/Imu topic (optional)')
     if not ground_truth:
         return
@@ -167,7 +173,8 @@ def source_options(args: argparse.Namespace) -> SourceOptions:
         ground_truth=get('ground_truth') or 'icp', base_frame=get('base_frame') or 'base_link',
         extrinsic=extrinsic_from_xyz_rpy(extrinsic) if extrinsic else None,
         cache_dir=cache, icp=icp, chunks=chunks,
-        on_progress=None if get('no_progress') else Progress('kiss-icp', 'frames'))
+        on_progress=None if get('no_progress') else Progress('kiss-icp', 'frames'),
+        wheel_signal=get('wheel_signal') or 'velocity')
 
 
 def check_report_dir(path: Path | None, force: bool, what: str = '--report') -> None:
@@ -185,7 +192,8 @@ def input_parameters(sources: Sequence[LoadedSource]) -> dict[str, Any]:
         wheel = source.wheel_input
         if wheel.get('input') == 'joint_state':
             return {'input': 'joint_state', 'left_wheel_joints': wheel['left_wheel_joints'],
-                    'right_wheel_joints': wheel['right_wheel_joints']}
+                    'right_wheel_joints': wheel['right_wheel_joints'],
+                    'wheel_signal': wheel.get('wheel_signal', 'velocity')}
         if wheel.get('input') == 'wheel_topics':
             return {'input': 'wheel_topics'}
     return {}
@@ -215,7 +223,16 @@ def print_calibration(result: CalibrationResult) -> None:
     say(f'\nsegments: {len(result.train_segments)} training (h_t = {result.options.h_t:g} m), '
         f'{len(result.eval_segments)} evaluation (h_e = {result.options.h_e:g} m, '
         f'{result.holdout})')
-    say(error_table(result.evaluation, result.fits, result.noise, result.best))
+    say(error_table(result.evaluation, result.fits, result.noise, result.best,
+                    result.window_end, result.likelihood))
+    if result.selection_rule == 'likelihood':
+        say('best model: lowest held-out NLL per segment (noise fitted on the other half, by '
+            'group); a model with fewer parameters is taken within 2 paired standard errors. '
+            f'end yaw: median |heading error| (rad) at the end of held-out '
+            f'{result.options.window_s:g} s windows; fit: {result.options.weighting} weighting')
+    else:
+        say('best model: eps_t and eps_theta relative to the best (a model with fewer '
+            'parameters within 2 %)')
     say('\nfitted parameters (± standard error):')
     for line in parameter_lines(result.fits):
         say(line)
@@ -225,5 +242,11 @@ def print_calibration(result: CalibrationResult) -> None:
         say(f'  edd_symmetric b_hat / track_width = {ratio:.3f}: the '
             'wheel_separation_multiplier of diff_drive_controller that matches this data '
             f'(its alpha = {sym.values["alpha"]:.3f} would be wheel_radius_multiplier)')
+    gyro = result.gyro
+    if gyro is not None:
+        say(f'  gyro (imu.*): scale {gyro.scale:.4f} ±{gyro.scale_se:.2g}, bias '
+            f'{gyro.bias:+.5f} ±{gyro.bias_se:.2g} rad/s, time offset '
+            f'{gyro.time_offset * 1e3:+.0f} ms ({gyro.pairs} pose pairs, {gyro.trimmed} trimmed '
+            'as ground-truth glitches); imu.mode stays off: set it to fuse or adapt to use it')
     for warning in result.warnings:
         say(f'  warning: {warning}')

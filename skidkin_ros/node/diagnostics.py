@@ -25,7 +25,8 @@ NS_PER_S = 1_000_000_000
 WARN_CAUSES = ('non_finite', 'implausible', 'wheel_jump', 'older', 'gap', 'zero_stamp',
                'negative_stamp', 'future_stamp', 'stamp_step_back', 'stamp_reset', 'missing_joint',
                'duplicate_joint', 'malformed_message', 'unpaired', 'waiting_for_clock',
-               'set_pose_rejected')
+               'set_pose_rejected', 'imu_non_finite', 'imu_saturated', 'imu_older',
+               'imu_bad_stamp', 'imu_future_stamp', 'imu_no_rate', 'imu_interval_stale')
 ERROR_CAUSES = ('non_finite_state', 'non_finite_output', 'callback_error')
 
 
@@ -38,11 +39,15 @@ class StatusReport:
 
     def status(self, name: str, config: OdometryConfig, counters: collections.Counter[str],
                stale: bool, age_s: float | None,
-               side_ages_s: Mapping[str, float | None] | None = None) -> DiagnosticStatus:
+               side_ages_s: Mapping[str, float | None] | None = None,
+               wheel_signal: str = 'velocity',
+               imu: Mapping[str, float] | None = None) -> DiagnosticStatus:
         """Return the status of the period since the last call, and start a new period.
 
         ``age_s``: steady-clock age of the last accepted sample (None: none yet);
-        ``side_ages_s``: the same per wheel topic (wheel_topics input only).
+        ``side_ages_s``: the same per wheel topic (wheel_topics input only); ``wheel_signal``:
+        the signal (velocity or position) that measured the last interval; ``imu``: the gyro
+        filter's state (gain, bias, their sigmas, ...) when imu.mode is not off.
         """
         now = time.monotonic_ns()
         period_s = max((now - self._start_mono_ns) / NS_PER_S, 1e-9)
@@ -50,11 +55,17 @@ class StatusReport:
         self._counters_at_start = collections.Counter(counters)
         self._start_mono_ns = now
         level, summary = _level(recent, stale)
+        if imu is not None and level == DiagnosticStatus.OK and imu.get('at_bound'):
+            level = DiagnosticStatus.WARN
+            summary = ('imu gain at its bound (imu.adapt.gain_min/gain_max): the model or the '
+                       'gyro calibration is far off')
         status = DiagnosticStatus(level=level, name=name, message=summary,
                                   hardware_id=config['robot'])
         values = {
             'model': config.model,
+            'interval': config['interval'],
             'input': config['input'],
+            'wheel_signal': f'{config["wheel_signal"]} (in use: {wheel_signal})',
             'covariance': 'calibrated' if config.active_noise else 'fallback',
             'rate_hz': f'{recent["published"] / period_s:.2f}',
             'accepted_rate_hz': f'{_accepted(recent) / period_s:.2f}',
@@ -62,6 +73,9 @@ class StatusReport:
         }
         for side, side_age in (side_ages_s or {}).items():
             values[f'{side}_age_s'] = _age(side_age)
+        values['imu.mode'] = config['imu.mode']
+        for key, value in (imu or {}).items():
+            values[f'imu.{key}'] = f'{value:.6g}'
         for cause in sorted(counters):
             values[f'count.{cause}'] = str(counters[cause])
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]

@@ -17,6 +17,17 @@ Inputs (parameter ``input``, read-only after start-up):
   (rad/s), stamped with the node clock on receipt (honours use_sim_time) and paired within
   ``pair_tolerance``.
 
+Optional gyro (``imu.mode`` adapt or fuse; off by default): sensor_msgs/Imu on ``imu/data``
+(remappable), its ``angular_velocity.z`` taken as the base frame's yaw rate (the IMU mounted
+z-up; ``imu.scale``, ``imu.bias``, ``imu.time_offset`` from ``skidkin calibrate``). The
+subscription exists only while the mode is not off. A message whose
+``angular_velocity_covariance[0]`` is -1 (the ROS convention for "no data") or with a zero,
+negative or future stamp is refused; NaN/inf, saturated, older and duplicate rates are counted
+and never used (the odometer's :class:`~skidkin_ros.core.odometry.gyro.GyroBuffer`). A wheel
+sample whose interval the gyro does not cover yet waits at most ``imu.max_wait`` (checked on
+every gyro message and on the 0.1 s watchdog tick); a stale gyro never stops the odometry (the
+learned gain carries on). The gain and bias are on /diagnostics.
+
 Inputs use the sensor-data QoS (best-effort and reliable publishers both connect); QoS can be
 overridden with the standard ``qos_overrides.<topic>.subscription.*`` parameters.
 
@@ -40,6 +51,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import math
 import sys
 import threading
 import time
@@ -59,12 +71,13 @@ from rclpy.node import Node
 from rclpy.qos import (qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Estimate, Odometer
-from skidkin_ros.core.odometry.wheels import (check_velocity_count, DuplicateJointError,
-                                              joint_indices, MissingJointError,
-                                              repeated_names, speeds_at)
+from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
+                                              DuplicateJointError, joint_indices,
+                                              MissingJointError, positions_at, repeated_names,
+                                              speeds_at)
 from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_msg,
@@ -119,7 +132,7 @@ class OdomNode(Node):
             raise
         config = self._config
         self._odometer = Odometer.from_config(config, counters=self.counters, warn=self._warn,
-                                              fresh=self._mark_fresh)
+                                              fresh=self._mark_fresh, note=self._note_signal)
         self._last_accepted_mono_ns: int | None = None
         self._stale = True
         self._stale_reported = False
@@ -154,6 +167,8 @@ class OdomNode(Node):
                                      qos_profile_sensor_data, qos_overriding_options=overridable)
             self.create_subscription(Float64, 'wheel/right/velocity', self._on_right_wheel,
                                      qos_profile_sensor_data, qos_overriding_options=overridable)
+        self._imu_sub: Any = None
+        self._sync_imu_subscription(config)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose,
                                  QoSProfile(depth=OUTPUT_DEPTH,
@@ -172,6 +187,7 @@ class OdomNode(Node):
         self.get_logger().info(
             f'odometry with model {config.model!r} (r {config.geometry.wheel_radius:g} m, '
             f'b {config.geometry.track_width:g} m), input {self._input}, '
+            f'interval {config["interval"]}, '
             f'covariance {"calibrated" if config.active_noise else "fallback diagonals"}')
 
     # ------------------------------------------------------------------ parameters
@@ -195,10 +211,22 @@ class OdomNode(Node):
     def _apply_config(self, config: OdometryConfig) -> None:
         """Switch to a validated configuration; the pose and its covariance are kept."""
         self._odometer.configure(config)
+        self._sync_imu_subscription(config)
         self._joint_names = None  # the wheel joints may have changed
         if config['publish_tf'] and self._tf_broadcaster is None:
             self._tf_broadcaster = self._make_tf_broadcaster(True)
         self._config = config
+
+    def _sync_imu_subscription(self, config: OdometryConfig) -> None:
+        """Subscribe to the gyro while imu.mode is not off (no cost for a gyro not used)."""
+        wanted = config['imu.mode'] != 'off'
+        if wanted and self._imu_sub is None:
+            self._imu_sub = self.create_subscription(
+                Imu, 'imu/data', self._on_imu, qos_profile_sensor_data,
+                qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        elif not wanted and self._imu_sub is not None:
+            self.destroy_subscription(self._imu_sub)
+            self._imu_sub = None
 
     @property
     def config(self) -> OdometryConfig:
@@ -220,8 +248,11 @@ class OdomNode(Node):
             fields = self._joint_state_fields(msg)
             if fields is None:
                 return
-            names, velocity = fields.names, fields.velocity
-            check_velocity_count(len(names), len(velocity))  # raises: reported by _guarded
+            names, velocity, position = fields.names, fields.velocity, fields.position
+            has_position = (self._config['wheel_signal'] != 'velocity'
+                            and check_position_count(len(names), len(position)))  # may raise
+            if not (has_position and self._config['wheel_signal'] == 'position' and not velocity):
+                check_velocity_count(len(names), len(velocity))  # raises: reported by _guarded
             if names != self._joint_names:
                 config = self._config
                 try:
@@ -239,11 +270,14 @@ class OdomNode(Node):
                     self._warn('repeated_joint', f'JointState lists joint(s) {repeated} more '
                                'than once; they are not wheel joints, odometry is unaffected; '
                                'fix the driver so that each joint is listed once')
-            omega_l, omega_r = speeds_at(velocity, *self._joint_index)
+            omega_l, omega_r = (speeds_at(velocity, *self._joint_index) if velocity
+                                else (math.nan, math.nan))
+            positions = positions_at(position, *self._joint_index) if has_position else None
             now_ns = self._clock_now_ns()
             if now_ns is None:
                 return
-            estimate = self._odometer.joint_sample(fields.stamp_ns, omega_l, omega_r, now_ns)
+            estimate = self._odometer.joint_sample(fields.stamp_ns, omega_l, omega_r, now_ns,
+                                                   positions)
             if estimate is not None:
                 self._publish(estimate)
 
@@ -273,6 +307,22 @@ class OdomNode(Node):
                                        'counted as read_by_rclpy in /diagnostics')
         return JointStateFields(stamp_to_ns(msg.header.stamp), tuple(msg.name),
                                 tuple(msg.position), tuple(msg.velocity))
+
+    @_guarded
+    def _on_imu(self, msg: Imu) -> None:
+        """Take a gyro sample: the yaw rate angular_velocity.z, on header.stamp."""
+        with self._lock:
+            self.counters['imu_received'] += 1
+            if msg.angular_velocity_covariance[0] == -1.0:
+                self._reject('imu_no_rate', 'Imu message has angular_velocity_covariance[0] = '
+                             '-1 ("no angular velocity data"): not used')
+                return
+            now_ns = self._clock_now_ns()
+            if now_ns is None:
+                return
+            for estimate in self._odometer.imu_sample(stamp_to_ns(msg.header.stamp),
+                                                      msg.angular_velocity.z, now_ns):
+                self._publish(estimate)
 
     @_guarded
     def _on_left_wheel(self, msg: Float64) -> None:
@@ -434,6 +484,10 @@ class OdomNode(Node):
         self.counters[cause] += 1
         self._warn(cause, message)
 
+    def _note_signal(self, message: str) -> None:
+        """Say which wheel signal is integrated, when that changes (wheel_signal auto)."""
+        self.get_logger().info(message)
+
     def _warn(self, cause: str, message: str, error: bool = False) -> None:
         """Log at most once a second per cause, saying how many were suppressed."""
         self.last_warnings[cause] = message
@@ -466,6 +520,7 @@ class OdomNode(Node):
     def _on_timer(self) -> None:
         """Run the input watchdog every tick and publish /diagnostics every second."""
         self._on_watchdog()
+        self._flush_waiting()
         now_ns = time.monotonic_ns()
         if now_ns >= self._next_diagnostics_ns:
             period_ns = int(DIAGNOSTICS_PERIOD_S * NS_PER_S)
@@ -473,6 +528,18 @@ class OdomNode(Node):
             self._next_diagnostics_ns = max(self._next_diagnostics_ns + period_ns,
                                             now_ns + period_ns // 2)
             self._on_diagnostics()
+
+    @_guarded
+    def _flush_waiting(self) -> None:
+        """Integrate wheel samples that waited imu.max_wait for the gyro in vain."""
+        with self._lock:
+            if self._odometer.gyro is None:
+                return
+            now_ns = self._clock_now_ns()
+            if now_ns is None:
+                return
+            for estimate in self._odometer.flush(now_ns):
+                self._publish(estimate)
 
     @_guarded
     def _on_watchdog(self) -> None:
@@ -504,9 +571,18 @@ class OdomNode(Node):
                 now = time.monotonic_ns()
                 side_ages = {side: None if seen is None else (now - seen) / NS_PER_S
                              for side, seen in self._side_seen_mono_ns.items()}
+            gyro = self._odometer.gyro
+            imu = None
+            if gyro is not None:
+                imu = gyro.state()
+                newest = gyro.buffer.newest_ns
+                now_ns = self._clock_now_ns()
+                imu['newest_age_s'] = (float('nan') if newest is None or now_ns is None
+                                       else (now_ns - newest) / NS_PER_S)
+                imu['at_bound'] = float(gyro.filter.at_bound)
             return self._status_report.status(
                 f'{self.get_fully_qualified_name()}: wheel odometry', self._config,
-                self.counters, stale, age_s, side_ages)
+                self.counters, stale, age_s, side_ages, self._odometer.signal.in_use, imu)
 
     @_guarded
     def _on_diagnostics(self) -> None:

@@ -11,6 +11,7 @@ them (empty, aliases, too large: refused; a duplicate key: a warning), so both a
 from __future__ import annotations
 
 import array
+import dataclasses
 import math
 from typing import Any, Sequence
 
@@ -19,7 +20,7 @@ from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from skidkin_ros.core.kinematics.specs import Geometry, GEOMETRY_SPECS
-from skidkin_ros.core.odometry.config import (OdometryConfig, parameter_schema,
+from skidkin_ros.core.odometry.config import (implied_interval, OdometryConfig, parameter_schema,
                                               read_params_document, SchemaEntry)
 from skidkin_ros.errors import ConfigError
 
@@ -73,7 +74,7 @@ def declare_schema(node: Node) -> dict[str, SchemaEntry]:
 
     Geometry is declared first: the models' defaults follow it.
     """
-    _check_overrides(node)
+    overrides = _check_overrides(node)
     geometry_names = {spec.name for spec in GEOMETRY_SPECS}
     geometry_entries = {entry.name: entry for entry in parameter_schema()
                         if entry.name in geometry_names}
@@ -82,6 +83,9 @@ def declare_schema(node: Node) -> dict[str, SchemaEntry]:
     geometry = Geometry(**{name: float(node.get_parameter(name).value)
                            for name in geometry_entries})
     schema = {entry.name: entry for entry in parameter_schema(geometry)}
+    # A calibrated file without an interval keeps its meaning (config.implied_interval).
+    schema['interval'] = dataclasses.replace(schema['interval'],
+                                             default=implied_interval(overrides))
     for name, entry in schema.items():
         if name not in geometry_entries:
             _declare(node, entry)
@@ -101,16 +105,18 @@ def _declare(node: Node, entry: SchemaEntry) -> None:
                           f'{entry.description}') from err
 
 
-def _check_overrides(node: Node) -> None:
+def _check_overrides(node: Node) -> dict[str, Any]:
     """Validate the values given on the command line / in files before declaring them.
 
-    Refuses names the node does not know (typos) and values out of range, naming both.
+    Refuses names the node does not know (typos) and values out of range, naming both; returns
+    them (provenance included).
     """
     builtin = set(node._parameters)  # declared by rclpy itself (use_sim_time, ...)
     overrides = {name: plain_value(param.value)
                  for name, param in node._parameter_overrides.items()
                  if name not in builtin}
     OdometryConfig.from_flat(overrides)
+    return overrides
 
 
 def check_params_files(argv: Sequence[str], warnings: list[str] | None = None) -> list[str]:

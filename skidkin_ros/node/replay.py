@@ -29,8 +29,8 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import JointState
-from skidkin_ros.core.drive import WheelSamples
+from sensor_msgs.msg import Imu, JointState
+from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.rotation import quaternion_to_yaw
 from skidkin_ros.errors import SkidkinError
 from skidkin_ros.node.conversions import ns_to_stamp, stamp_to_ns
@@ -106,6 +106,47 @@ def _stamp_offset(samples: WheelSamples, stamp_offset_ns: int | None) -> int:
     return 0
 
 
+def _joint_state(names: list[str], n_left: int, t_ns: int, omega_l: float,
+                 omega_r: float) -> JointState:
+    msg = JointState()
+    msg.header.stamp = ns_to_stamp(t_ns)
+    msg.name = names
+    msg.velocity = [float(omega_l)] * n_left + [float(omega_r)] * (len(names) - n_left)
+    return msg
+
+
+def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
+                   names: list[str], n_left: int, offset_ns: int, deadline: float) -> None:
+    """Send wheel and gyro samples merged in stamp order, waiting for the node to take each."""
+    harness.spin_until(lambda: harness.imu_publisher.get_subscription_count() > 0,
+                       max(deadline - time.monotonic(), 0.0), 'the node to subscribe to imu')
+    counters = harness.odom.counters
+    gyro_t = np.asarray(imu.t_ns, dtype=np.int64)
+
+    def send_gyro(k: int) -> None:
+        msg = Imu()
+        msg.header.stamp = ns_to_stamp(int(gyro_t[k]) + offset_ns)
+        msg.angular_velocity.z = float(imu.yaw_rate[k])
+        target = counters['imu_received'] + 1
+        harness.imu_publisher.publish(msg)
+        harness.spin_until(lambda: counters['imu_received'] >= target,
+                           max(deadline - time.monotonic(), 0.0), f'gyro sample {k}')
+
+    j = 0
+    for i in range(len(samples)):
+        t_wheel = int(samples.t_ns[i])
+        while j < gyro_t.size and gyro_t[j] <= t_wheel:
+            send_gyro(j)
+            j += 1
+        target = counters['received'] + 1
+        harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
+                                               samples.omega_l[i], samples.omega_r[i]))
+        harness.spin_until(lambda: counters['received'] >= target,
+                           max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
+    for k in range(j, gyro_t.size):   # the rest releases the samples still waiting
+        send_gyro(k)
+
+
 class _Harness:
     """The node under test, a driver node and one executor in a private context."""
 
@@ -121,6 +162,7 @@ class _Harness:
                                         enable_rosout=False, start_parameter_services=False)
         qos = QoSProfile(depth=QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self.publisher = self.driver.create_publisher(JointState, 'joint_states', qos)
+        self.imu_publisher = self.driver.create_publisher(Imu, 'imu/data', qos)
         self.received: list[Odometry] = []
         self.driver.create_subscription(Odometry, 'odom', self.received.append, qos)
         self.executor = SingleThreadedExecutor(context=context)
@@ -149,7 +191,9 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
                         left_joints: Sequence[str] | None = None,
                         right_joints: Sequence[str] | None = None,
                         timeout_s: float = 60.0,
-                        stamp_offset_ns: int | None = None) -> ReplayResult:
+                        stamp_offset_ns: int | None = None,
+                        positions: Sequence[tuple[float, float] | None] | None = None,
+                        imu: ImuSamples | None = None) -> ReplayResult:
     """Feed ``samples`` to a real OdomNode as JointState messages and return its odometry.
 
     ``params_file`` and ``overrides`` (flat parameter names, e.g. ``{'model': 'roc'}``) configure
@@ -157,6 +201,11 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
     Joint names default to the node's ``left_wheel_joints`` / ``right_wheel_joints``. Stamps are
     shifted by ``stamp_offset_ns`` (default: only when the first stamp is <= 0, which the node
     would reject as unset) and shifted back in the result. ``timeout_s`` bounds the whole run.
+    ``positions``: per sample, the (left, right) joint positions (rad) the messages carry, or
+    None for a message without positions (default: none carries any).
+    ``imu``: gyro samples sent as sensor_msgs/Imu on imu/data (for imu.mode adapt or fuse), in
+    stamp order with the wheel samples (a gyro sample before a wheel sample of the same stamp)
+    and one message at a time, so the node takes them in the order ``Odometer.predict`` does.
     Raises ConfigError if the node refuses the configuration, ReplayError on a timeout.
     """
     params = dict(overrides or {})
@@ -166,7 +215,8 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
     if right_joints is not None:
         params['right_wheel_joints'] = list(right_joints)
     namespace = f'/skidkin_replay_{os.getpid()}_{next(_instance)}'
-    for topic, role in (('joint_states', 'subscription'), ('odom', 'publisher')):
+    for topic, role in (('joint_states', 'subscription'), ('odom', 'publisher'),
+                        ('imu/data', 'subscription')):
         params[f'qos_overrides.{namespace}/{topic}.{role}.reliability'] = 'reliable'
         params[f'qos_overrides.{namespace}/{topic}.{role}.depth'] = QUEUE_DEPTH
     offset_ns = _stamp_offset(samples, stamp_offset_ns)
@@ -182,6 +232,9 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
         names = left + right
         sent = 0
         n = len(samples)
+        if imu is not None:
+            _send_with_imu(harness, samples, imu, names, len(left), offset_ns, deadline)
+            sent = n
         while sent < n:
             stop = min(sent + WINDOW, n)
             for i in range(sent, stop):
@@ -190,6 +243,9 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
                 msg.name = names
                 msg.velocity = ([float(samples.omega_l[i])] * len(left)
                                 + [float(samples.omega_r[i])] * len(right))
+                if positions is not None and positions[i] is not None:
+                    msg.position = ([float(positions[i][0])] * len(left)
+                                    + [float(positions[i][1])] * len(right))
                 harness.publisher.publish(msg)
             sent = stop
             target = sent

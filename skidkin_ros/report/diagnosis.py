@@ -29,7 +29,11 @@ def _main_library_term(result: DiagnosisResult, name: str) -> tuple[str, str]:
     signals = result.trace.signals
     twist = np.stack([signals['body_speed'], np.zeros_like(signals['body_speed']),
                       signals['yaw_rate']], axis=-1)
-    spread = dict(zip((term.name for term in LIBRARY), sparse_features(twist).std(axis=0)))
+    zero = np.zeros_like(signals['body_speed'])
+    rate = np.stack([signals.get('d_body_speed', zero), zero, signals.get('d_yaw_rate', zero)],
+                    axis=-1)
+    spread = dict(zip((term.name for term in LIBRARY),
+                      sparse_features(twist, rate).std(axis=0)))
     signal_of = {term.name: term.signal for term in LIBRARY}
     values = result.final.ext_values.get(name, {})
     best = max(result.final.sparse_terms,
@@ -143,6 +147,7 @@ def render_diagnosis_page(result: DiagnosisResult, images: dict[str, str]) -> st
     lines += ['', '## Findings', '']
     for line in result.summary_lines()[1:3]:
         lines.append('- ' + line.strip())
+    lines += [f'- **{line}**' for line in result.unexplained_lines()]
     for name in found:
         ext = get_extension(name)
         lines.append(f'- `{name}` ({ext.title}; {ext.formula}): ' + ', '.join(

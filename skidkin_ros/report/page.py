@@ -40,6 +40,15 @@ def provenance_lines(provenance: object) -> list[str]:
     return ['## Provenance', '', '```', json.dumps(provenance, indent=1, default=str), '```', '']
 
 
+def _rule_text(rule: str) -> str:
+    if rule == 'likelihood':
+        return ('lowest held-out negative log-likelihood per segment under the calibrated noise; '
+                'a model with fewer parameters is taken within 2 paired standard errors, '
+                'clustered by drive or hold-out group')
+    return ('lowest sum of medians of eps_t and eps_theta, each relative to the best valid '
+            'model; within 2 % the model with fewer parameters wins')
+
+
 def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
     """Return the Markdown text of the report (images: figure key -> file name)."""
     lines = ['# skidkin_ros calibration report', '',
@@ -47,20 +56,26 @@ def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
              f'b = {result.geometry.track_width:g} m. Training horizon h_t = '
              f'{result.options.h_t:g} m, evaluation horizon h_e = {result.options.h_e:g} m; '
              f'evaluation data: {result.holdout}.', '',
-             f'**Best model: `{result.best}`** (lowest sum of medians of eps_t and eps_theta, '
-             'each relative to the best valid model; within 2 % the model with fewer parameters '
-             'wins).', '', '## Evaluation errors (per metre of ground-truth path)', '']
+             f'**Best model: `{result.best}`** ({_rule_text(result.selection_rule)}). Fit: '
+             f'{result.options.weighting} weighting.', '',
+             '## Evaluation errors (per metre of ground-truth path)', '']
     rows = []
     for name, ev in result.evaluation.items():
         st, sth = ev.stats_t, ev.stats_theta
         fit = result.fits[name]
+        end = result.window_end.get(name)
+        like = result.likelihood.get(name)
         rows.append([f'`{name}`', 'yes' if fit.valid else '**no**',
                      f'{_num(st.median)} [{_num(st.q25)}, {_num(st.q75)}]', _num(st.p90),
                      f'{_num(sth.median)} [{_num(sth.q25)}, {_num(sth.q75)}]', _num(sth.p90),
-                     str(st.count), _num(result.scores.get(name, math.nan), 3)])
+                     str(st.count), _num(end.yaw_rad if end else math.nan, 3),
+                     _num(like.mean_nll if like else math.nan, 3),
+                     _num(like.delta if like else math.nan, 3)
+                     + (f' ({_num(2 * like.standard_error, 2)})' if like else ''),
+                     _num(result.scores.get(name, math.nan), 3)])
     lines += _table(['model', 'valid', 'eps_t m/m median [q25, q75]', 'eps_t p90',
                      'eps_theta deg/m median [q25, q75]', 'eps_theta p90', 'segments',
-                     'score'], rows)
+                     'end yaw rad', 'NLL/segment', 'dNLL (2 SE)', 'paper score'], rows)
     lines += ['', '## Fitted parameters (value ± standard error)', '']
     rows = []
     for name, fit in result.fits.items():
@@ -74,7 +89,7 @@ def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
             value = _num(fit.values[spec.name], 5)
             error = _num(fit.std_errors[spec.name], 2)
             rows.append([f'`{name}`', spec.name, f'{value} ± {error}',
-                         spec.unit, spec.range_text(), flag])
+                         spec.unit, spec.fit_range_text(), flag])
     lines += _table(['model', 'parameter', 'value', 'unit', 'bounds', 'note'], rows)
     if 'edd_symmetric' in result.fits:
         b_hat = result.fits['edd_symmetric'].values['b_hat']

@@ -5,7 +5,13 @@ stage of the simulator's truth pipeline:
 
 - ``wheels``: on the actual wheel speeds that drive the body (``time_offset``);
 - ``twist``: on the body twist given by the true model (slips, skid, terrain);
-- ``dynamics``: on the twist as a signal in time (``first_order_lag``), applied last.
+- ``dynamics``: on the twist as a signal in time, applied last: a first-order response of the
+  whole twist (``first_order_lag``), of the forward speed only (``forward_lag``) or of the yaw rate
+  only (``yaw_lag``), and a body whose forward speed follows the wheels through a first-order
+  response only while they speed up, and at once when they slow down (``acceleration_slip``:
+  traction limits how fast the body gains speed, not how fast it loses it). These run on the
+  simulator's fine time grid as continuous-time responses, not as the extensions' formulas (the
+  acceleration slip extension is a derivative term of the wheel speeds held at 20 Hz).
 
 All effects are causal, so simulating a prefix of a drive gives the prefix of the full drive.
 ``random_effect(rng)`` draws one effect and a strength within its range (seeded), for tests that
@@ -73,6 +79,16 @@ EFFECTS: dict[str, EffectSpec] = {spec.name: spec for spec in (
     EffectSpec('terrain_regime', 'twist', '-', 0.1, 0.4,
                'v_x and omega lose a fraction k after a switch time (mode time) or where x > '
                'boundary (mode region)'),
+    # Appended (not inserted) so the strengths drawn for the effects above stay as they were.
+    EffectSpec('forward_lag', 'dynamics', 's', 0.05, 0.4,
+               'forward speed follows the wheel-implied forward speed through a first-order '
+               'filter of time constant tau (v_y and omega at once)'),
+    EffectSpec('yaw_lag', 'dynamics', 's', 0.05, 0.4,
+               'yaw rate follows the wheel-implied yaw rate through a first-order filter of '
+               'time constant tau (v_x and v_y at once)'),
+    EffectSpec('acceleration_slip', 'dynamics', 's', 0.05, 0.25,
+               'forward speed lags the wheels by a first-order response of time constant tau '
+               'while they speed up, and follows them at once when they slow down'),
 )}
 EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
 _STAGE_ORDER = {'wheels': 0, 'twist': 1, 'dynamics': 2}
@@ -170,6 +186,13 @@ class Effect:
         k = float(self.strength)
         if self.name == 'first_order_lag':
             return _first_order(twist, data.t_s, k)
+        if self.name in ('forward_lag', 'yaw_lag'):
+            column = 0 if self.name == 'forward_lag' else 2
+            twist[:, column] = _first_order(twist[:, column:column + 1], data.t_s, k)[:, 0]
+            return twist
+        if self.name == 'acceleration_slip':
+            twist[:, 0] = _lag_while_speeding_up(v_x, data.t_s, k)
+            return twist
         if self.name == 'speed_slip':
             twist[:, 0] = v_x * (1.0 - np.minimum(k * np.abs(v_x), _MAX_SPEED_SLIP))
         elif self.name == 'ratio_yaw_slip':
@@ -202,6 +225,29 @@ def _first_order(signal: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarra
     dt_s = float(np.median(np.diff(t_s)))
     decay = math.exp(-dt_s / tau_s)
     return lfilter([0.0, 1.0 - decay], [1.0, -decay], signal, axis=0)
+
+
+def _lag_while_speeding_up(target: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """Follow ``target`` through 1 / (tau s + 1) while it outruns the output, else at once.
+
+    The body starts settled; each fine step, if the target is faster than the body in the same
+    direction the body closes the gap by the exact first-order step, otherwise it takes the
+    target's value.
+    """
+    if tau_s <= 0.0 or target.size < 2:
+        return target
+    dt_s = float(np.median(np.diff(t_s)))
+    keep = math.exp(-dt_s / tau_s)
+    values = target.tolist()
+    out = [0.0] * len(values)
+    body = values[0]
+    for i, goal in enumerate(values):
+        out[i] = body
+        if goal * body >= 0.0 and abs(goal) > abs(body):
+            body = goal + (body - goal) * keep
+        else:
+            body = goal
+    return np.asarray(out)
 
 
 def make_effect(name: str, strength: float | None = None, **options) -> Effect:

@@ -57,6 +57,7 @@ from skidkin_ros.core.estimation.nees import (drive_nees, DriveNees, nees, nees_
                                               SegmentNees, summarize_nees)
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.integrator import wrap_angle
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, held_wheels
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.errors import FitError, ParameterError
@@ -336,8 +337,12 @@ def _world_errors(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
 
 
 def run_filter(drives: Sequence[Drive], source, noise: NoiseModel, options: StudyOptions,
-               rng: np.random.Generator) -> FilterRuns:
+               rng: np.random.Generator, interval: str = DEFAULT_INTERVAL) -> FilterRuns:
     """Run odometry alone and the EKF on each drive from its true start pose.
+
+    The filters hold each sample's speeds until the next one; they are fed the speeds the
+    sample-interval convention ``interval`` holds (:func:`held_wheels`, offline: it looks one
+    sample ahead), so they move as the calibrated odometry does.
 
     Odometry alone starts with a zero covariance (the start is exact); the EKF with the loose
     prior diag(initial_sigma_m^2, initial_sigma_m^2, initial_sigma_yaw_rad^2), forgotten within
@@ -366,8 +371,9 @@ def run_filter(drives: Sequence[Drive], source, noise: NoiseModel, options: Stud
         odom_pose = np.empty((count, 3))
         ekf_pose = np.empty((count, 3))
         run_nis = []
-        for i, (t_ns, omega_l, omega_r) in enumerate(zip(drive.wheels.t_ns, drive.wheels.omega_l,
-                                                         drive.wheels.omega_r)):
+        wheels = held_wheels(drive.wheels, interval)
+        for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns, wheels.omega_l,
+                                                         wheels.omega_r)):
             odom.predict(int(t_ns), omega_l, omega_r)
             ekf.predict(int(t_ns), omega_l, omega_r)
             if i in fixes:
@@ -435,20 +441,22 @@ def run_estimation_study(seed: int = 0, quick: bool = False,
         spec = get_model(model)
         parameters = ParameterUncertainty.of_model(spec, spec.vector(fit.values, geometry),
                                                    geometry, fit.covariance)
-    window = SegmentOptions(horizon_m=options.horizon_m, short_drive='drop')
+    window = SegmentOptions(horizon_m=options.horizon_m, short_drive='drop',
+                            interval=cal_options.interval)
     odometry = segment_nees(tests, source, noise, window, parameters)
     horizons = {options.horizon_m: odometry.summary()}
     for horizon in options.other_horizons_m:
-        other = SegmentOptions(horizon_m=horizon, short_drive='drop')
+        other = SegmentOptions(horizon_m=horizon, short_drive='drop',
+                               interval=cal_options.interval)
         horizons[float(horizon)] = segment_nees(tests, source, noise, other,
                                                 parameters).summary()
     whole = drive_nees(tests, source, noise, options.drive_distances_m, options.checkpoint_s,
-                       parameters)
+                       parameters, cal_options.interval)
     shortest = float(whole.drive_length_m.min())
     whole = drive_nees(tests, source, noise,
                        [d for d in options.drive_distances_m if d < shortest] + [shortest],
-                       options.checkpoint_s, parameters)
-    runs = run_filter(tests, source, noise, options, rng)
+                       options.checkpoint_s, parameters, cal_options.interval)
+    runs = run_filter(tests, source, noise, options, rng, cal_options.interval)
     sweep = {}
     for sigma_m, sigma_yaw in options.fix_sweep:
         other = replace(options, fix_sigma_m=sigma_m, fix_sigma_yaw_rad=sigma_yaw)

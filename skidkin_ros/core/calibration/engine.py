@@ -9,8 +9,10 @@ A fit, as a recipe:
 2. **Errors.** The caller says how a twist source is scored: the end-pose errors (N, 3) of its
    segments in each segment's start frame (a plain rollout for the five models, the
    :class:`~skidkin_ros.core.calibration.predictor.SegmentPredictor` for stateful sources).
-3. **Whitening.** Errors are multiplied by W (W^T W = Sigma^-1, Sigma = diag(sigma_diag)): metres
-   and radians on one unitless scale, and the loss l = sum_i e_i^T Sigma^-1 e_i.
+3. **Whitening.** Errors are multiplied by W (W^T W = Sigma^-1): metres and radians on one
+   unitless scale, and the loss l = sum_i e_i^T Sigma_i^-1 e_i. W is either one diagonal for
+   every segment (a vector (3,), Sigma = diag(sigma_diag)) or one matrix per segment (N, 3, 3),
+   as the iterated fit of :mod:`skidkin_ros.core.calibration.weighting` gives it.
 4. **Non-finite predictions.** A parameter vector far from the data can make a prediction NaN or
    infinite (a spin's yaw rate divided by a vanishing ICR distance). Such an error becomes
    +-``NONFINITE_PENALTY`` whitened units: a wall the optimizer backs away from instead of a
@@ -49,6 +51,7 @@ __all__ = [
     'ParameterLayout',
     'check_sigma_diag',
     'whitening',
+    'whiten',
     'whitened_residuals',
     'segment_losses',
     'solve',
@@ -82,16 +85,25 @@ def whitening(sigma_diag: Sequence[float]) -> np.ndarray:
     return 1.0 / np.sqrt(np.asarray(sigma_diag, dtype=float))
 
 
+def whiten(errors: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Return W e for every segment: ``weight`` is a diagonal (3,) or matrices (N, 3, 3)."""
+    weight = np.asarray(weight, dtype=float)
+    if weight.ndim == 3:
+        with np.errstate(invalid='ignore', over='ignore'):
+            return np.einsum('nij,nj->ni', weight, errors)
+    return errors * weight
+
+
 def whitened_residuals(errors: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Return the flat whitened residuals, non-finite ones replaced by the penalty (step 4)."""
-    white = errors * weight
+    white = whiten(errors, weight)
     return np.nan_to_num(white, nan=NONFINITE_PENALTY, posinf=NONFINITE_PENALTY,
                          neginf=-NONFINITE_PENALTY).ravel()
 
 
 def segment_losses(errors: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Return each segment's whitened squared distance e^T Sigma^-1 e (penalty if non-finite)."""
-    white = errors * weight
+    white = whiten(errors, weight)
     return np.nan_to_num((white ** 2).sum(axis=1), nan=NONFINITE_PENALTY,
                          posinf=NONFINITE_PENALTY)
 
@@ -210,7 +222,7 @@ def trim_mask(errors: np.ndarray, weight: np.ndarray, chi2_factor: float = TRIM_
     robust scale (median of the distances / median of chi2 with 3 dof); at most
     ``max_fraction`` of them are dropped, the worst first.
     """
-    dist2 = ((errors * weight) ** 2).sum(axis=1)
+    dist2 = (whiten(errors, weight) ** 2).sum(axis=1)
     scale = np.median(dist2) / stats.chi2.median(3)
     if not scale > 0:
         return np.ones(dist2.shape, bool)

@@ -35,6 +35,8 @@ __all__ = [
     'evaluate_model',
     'evaluate_models',
     'relative_pose_errors',
+    'WindowEnd',
+    'window_end_errors',
 ]
 
 
@@ -105,6 +107,26 @@ def evaluate_models(values: Mapping[str, Mapping[str, float]], geometry: Geometr
         raise DataError('no evaluation segment: drive more, or shorten h_e')
     return {name: evaluate_model(name, vals, geometry, segments, min_path_m)
             for name, vals in values.items()}
+
+
+@dataclass(frozen=True)
+class WindowEnd:
+    """Median errors at the end of held-out windows (heading drift is what odometry must hold)."""
+
+    yaw_rad: float        # median |heading error| at the window ends
+    position_m: float     # median |position error| at the window ends
+    windows: int
+
+
+def window_end_errors(name: str, values: Mapping[str, float], geometry: Geometry,
+                      windows: SegmentSet) -> WindowEnd:
+    """Return the median heading and position errors at the end of each window segment."""
+    model = get_model(name)
+    errors = segment_errors(model, model.vector(dict(values), geometry), geometry, windows)
+    if len(windows) == 0:
+        return WindowEnd(math.nan, math.nan, 0)
+    return WindowEnd(float(np.median(np.abs(errors[:, 2]))),
+                     float(np.median(np.hypot(errors[:, 0], errors[:, 1]))), len(windows))
 
 
 def relative_pose_errors(t_ns: np.ndarray, estimate: np.ndarray, truth: PoseTrack,

@@ -54,6 +54,9 @@ __all__ = [
     'predict_end_poses',
     'segment_errors',
     'measure_excitation',
+    'parameter_scales',
+    'solve_model',
+    'assess_fit',
     'fit_model',
     'fit_models',
 ]
@@ -157,6 +160,8 @@ class FitResult:
     trimmed_mask: np.ndarray = field(default=None, repr=False)
     # s^2 (J^T J)^-1 in the order of the model's parameters (the std_errors are its diagonal)
     covariance: np.ndarray | None = field(default=None, repr=False)
+    weighting: str = 'fixed'
+    iterations: int = 0
 
     @property
     def valid(self) -> bool:
@@ -199,7 +204,7 @@ def measure_excitation(segments: SegmentSet, options: FitOptions) -> Excitation:
                       float(rotation.sum()), float(segments.path_m.sum()))
 
 
-def _scales(model: KinematicModel, geometry: Geometry) -> np.ndarray:
+def parameter_scales(model: KinematicModel, geometry: Geometry) -> np.ndarray:
     """Typical magnitude of each parameter (for start draws and relative uncertainty)."""
     unit_scale = {'m': geometry.track_width, 'm/rad': geometry.wheel_radius,
                   '-': 1.0}
@@ -217,21 +222,26 @@ def _starts(model: KinematicModel, geometry: Geometry, options: FitOptions,
     if len(model.params) < options.multi_start_min_params:
         return starts
     lo, hi = ParameterLayout.of_model(model.name, geometry).bounds()
-    scales = _scales(model, geometry)
+    scales = parameter_scales(model, geometry)
     for _ in range(options.n_starts - 1):
         draw = x0 + rng.uniform(-0.5, 0.5, size=x0.size) * scales
         starts.append(np.clip(draw, lo + 1e-3 * scales, hi - 1e-3 * scales))
     return starts
 
 
-def _solve(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
-           options: FitOptions, x0: np.ndarray,
-           max_nfev: int | None = None) -> optimize.OptimizeResult:
-    """Fit every parameter of the model from ``x0`` with the engine (plain rollout errors)."""
+def solve_model(model: KinematicModel, geometry: Geometry, segments: SegmentSet,
+                options: FitOptions, x0: np.ndarray, max_nfev: int | None = None,
+                weight: np.ndarray | None = None) -> optimize.OptimizeResult:
+    """Fit every parameter of the model from ``x0`` with the engine (plain rollout errors).
+
+    ``weight``: the whitening, a diagonal (3,) or one matrix per segment (N, 3, 3); default
+    the options' fixed Sigma.
+    """
     def errors(source: TwistSource) -> np.ndarray:
         return segment_errors(model, source.k, geometry, segments)
 
-    return solve(errors, ParameterLayout.of_model(model.name, geometry), options.whitening, x0,
+    weight = options.whitening if weight is None else weight
+    return solve(errors, ParameterLayout.of_model(model.name, geometry), weight, x0,
                  max_nfev or options.max_nfev, options.loss, options.f_scale)
 
 
@@ -253,11 +263,11 @@ def _best_solution(model: KinematicModel, geometry: Geometry, segments: SegmentS
     cap = options.screen_max_nfev if len(starts) > 1 else None
     best = None
     for x0 in starts:
-        sol = _solve(model, geometry, screen, options, x0, cap)
+        sol = solve_model(model, geometry, screen, options, x0, cap)
         if best is None or sol.cost < best.cost - 1e-12 * max(1.0, best.cost):
             best = sol
     if cap is not None and screen is segments:
-        best = _solve(model, geometry, segments, options, best.x)
+        best = solve_model(model, geometry, segments, options, best.x)
     return best, len(starts), screen is segments
 
 
@@ -274,7 +284,7 @@ def _parameter_covariance(sol: optimize.OptimizeResult, n_params: int) -> np.nda
 def _null_space_params(model: KinematicModel, geometry: Geometry, jac: np.ndarray,
                        tol: float) -> set[str]:
     """Parameters involved in near-null directions of the column-scaled Jacobian."""
-    scaled = jac * _scales(model, geometry)
+    scaled = jac * parameter_scales(model, geometry)
     norms = np.linalg.norm(scaled, axis=0)
     names = set()
     top = norms.max() if norms.size else 0.0
@@ -322,15 +332,16 @@ def fit_model(name: str, geometry: Geometry, segments: SegmentSet,
             used = segments.subset(kept)
             on_all = False
     if not on_all:
-        sol = _solve(model, geometry, used, options, sol.x)
+        sol = solve_model(model, geometry, used, options, sol.x)
     trimmed = int((~kept).sum())
-    return _assess_fit(model, geometry, used, options, sol, n_starts, trimmed, kept,
-                       time.perf_counter() - tic)
+    return assess_fit(model, geometry, used, options, sol, n_starts, trimmed, kept,
+                      time.perf_counter() - tic)
 
 
-def _assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
-                options: FitOptions, sol: optimize.OptimizeResult, n_starts: int,
-                trimmed: int, kept: np.ndarray, seconds: float) -> FitResult:
+def assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
+               options: FitOptions, sol: optimize.OptimizeResult, n_starts: int,
+               trimmed: int, kept: np.ndarray, seconds: float, weighting: str = 'fixed'
+               ) -> FitResult:
     """Turn a solution into a FitResult: standard errors, bounds, observability, convergence."""
     names = model.param_names
     param_cov = _parameter_covariance(sol, len(names))
@@ -339,7 +350,8 @@ def _assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
     specs = model.params
     on_bound = tuple(spec.name for spec, value in zip(specs, sol.x) if spec.on_bound(value))
     if on_bound:
-        ranges = ', '.join(f'{s.name} in {s.range_text()}' for s in specs if s.name in on_bound)
+        ranges = ', '.join(f'{s.name} fitted in {s.fit_range_text()}' for s in specs
+                           if s.name in on_bound)
         warnings.append(f'{model.name}: parameter(s) {", ".join(on_bound)} sit on a bound '
                         f'({ranges}): the data want a value outside the model; the fit is '
                         'marked invalid')
@@ -360,7 +372,7 @@ def _assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
                 f'{model.name}: not enough {gap} in the training data ({have} of '
                 f'{excitation.segments} segments, need {need}): {", ".join(params)} cannot be '
                 f'observed; drive {remedy}')
-    scales = _scales(model, geometry)
+    scales = parameter_scales(model, geometry)
     vague = [n for n, s, sc in zip(names, se, scales) if s > options.max_relative_se * sc]
     if vague:
         unobservable.update(vague)
@@ -374,14 +386,15 @@ def _assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
     converged = bool(sol.success) and bool(np.all(np.isfinite(sol.x)))
     if not converged:
         warnings.append(f'{model.name}: optimizer did not converge ({sol.message})')
-    err = sol.fun.reshape(-1, 3) / options.whitening
+    err = segment_errors(model, sol.x, geometry, used)
     return FitResult(
         model=model.name, values=model.mapping(sol.x),
         std_errors={n: float(s) for n, s in zip(names, se)},
         cost=float(sol.cost), rms_error=tuple(float(v) for v in np.sqrt((err ** 2).mean(0))),
         segments_used=len(used), segments_trimmed=trimmed, converged=converged,
         status=str(sol.message), starts=n_starts, on_bound=on_bound, unobservable=ordered,
-        warnings=tuple(warnings), seconds=seconds, trimmed_mask=~kept, covariance=param_cov)
+        warnings=tuple(warnings), seconds=seconds, trimmed_mask=~kept, covariance=param_cov,
+        weighting=weighting)
 
 
 def fit_models(geometry: Geometry, segments: SegmentSet,

@@ -11,13 +11,29 @@
    (``noise_horizon_factors`` times h_e: a variance per metre and a length-independent part),
    with the fit's own parameter covariance as a fixed term, and check it two-fold per horizon
    (average NEES against its chi2 band; a warning says when the held-out data are too few to
-   support the claim, or disagree with it);
+   support the claim, or disagree with it); measure the errors at the end of held-out windows
+   of ``window_s`` (heading drift);
 5. pick the best model by the rule below.
 
-Best-model rule: among the valid fits (ideal_dd always counts as valid), score each model by
-median eps_t / (best median eps_t) + median eps_theta / (best median eps_theta), both over the
-valid models; the lowest score wins, and when two scores are within 2 % the model with fewer
-parameters wins (the paper's argument for the symmetric EDD).
+The fit (step 2) is the iterated one of :mod:`skidkin_ros.core.calibration.weighting` (each
+segment weighted by the covariance the noise model predicts for it) unless ``weighting`` is
+``fixed`` (the loss covariance ``sigma_diag`` for every segment, as before).
+
+Best-model rule (``selection: likelihood``, :mod:`skidkin_ros.core.calibration.selection`): the
+lowest held-out negative log-likelihood per segment among the valid fits; a model with fewer
+parameters is taken when it is within 2 paired standard errors (clustered by drive or hold-out
+group). When the likelihood cannot be computed (too little held-out data) or with ``selection:
+paper``: score each valid model by median eps_t / (best median eps_t) + median eps_theta /
+(best median eps_theta); the lowest score wins, and when two scores are within 2 % the model
+with fewer parameters wins (the paper's argument for the symmetric EDD).
+
+The sample-interval convention (``options.interval``,
+:mod:`skidkin_ros.core.odometry.interval`) is part of the model: :func:`calibrate_interval`
+chooses it on the held-out data. It calibrates under ``ending`` (the default), refits the model
+that won under ``starting`` and ``midpoint`` on the same segments, scores the three by the paper's
+rule on the model's held-out errors (median eps_t / best + median eps_theta / best; within 2 %
+of the lowest, ``ending`` is kept, then the order of :data:`INTERVALS`), and returns the
+calibration under the winner; the parameters file records it (``interval``).
 """
 
 from __future__ import annotations
@@ -30,23 +46,31 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from skidkin_ros import __version__
-from skidkin_ros.core.calibration.evaluation import evaluate_models, ModelEvaluation
-from skidkin_ros.core.calibration.fitting import fit_models, FitOptions, FitResult
+from skidkin_ros.core.calibration.evaluation import (evaluate_models, ModelEvaluation,
+                                                     window_end_errors, WindowEnd)
+from skidkin_ros.core.calibration.fitting import FitOptions, FitResult
 from skidkin_ros.core.calibration.holdout import resolve_holdout
+from skidkin_ros.core.calibration.imu import fit_gyro, gyro_parameters, GyroFit
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
                                                    SegmentSet, usable_segments)
+from skidkin_ros.core.calibration.selection import (choose_by_likelihood, heldout_nll,
+                                                    Likelihood, segment_clusters)
+from skidkin_ros.core.calibration.weighting import fit_models_weighted, WEIGHTINGS
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
 __all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best', 'noise_warnings',
-           'result_to_parameters', 'horizon_study', 'HorizonStudy']
+           'calibrate_interval', 'choose_interval',
+           'result_to_parameters', 'horizon_study', 'HorizonStudy', 'SELECTIONS']
 
 LOG = logging.getLogger(__name__)
 TIE_TOLERANCE = 0.02
+SELECTIONS = ('likelihood', 'paper')
 
 
 @dataclass(frozen=True)
@@ -66,8 +90,18 @@ class CalibrationOptions(HorizonOptions):
     noise_horizon_factors: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0)
     noise_constant: bool = True
     parameter_covariance: bool = True
+    weighting: str = 'iterated'
+    selection: str = 'likelihood'
+    window_s: float = 2.0
 
     def __post_init__(self) -> None:
+        if self.weighting not in WEIGHTINGS:
+            raise ParameterError(f'weighting must be one of {WEIGHTINGS}, got {self.weighting!r}')
+        if self.selection not in SELECTIONS:
+            raise ParameterError(f'selection must be one of {SELECTIONS}, '
+                                 f'got {self.selection!r}')
+        if not (math.isfinite(self.window_s) and self.window_s > 0):
+            raise ParameterError(f'window_s must be a duration > 0 s, got {self.window_s!r}')
         for name in self.models:
             get_model(name)
         if not self.models:
@@ -113,6 +147,12 @@ class CalibrationResult:
     eval_segments: SegmentSet = field(repr=False)
     holdout: str = 'given'
     provenance: dict[str, Any] = field(default_factory=dict)
+    likelihood: dict[str, Likelihood] = field(default_factory=dict)
+    window_end: dict[str, WindowEnd] = field(default_factory=dict)
+    selection_rule: str = 'paper'
+    # Held-out median (eps_t m/m, eps_theta deg/m) of the best model under each convention tried.
+    interval_errors: dict[str, tuple[float, float]] = field(default_factory=dict)
+    gyro: GyroFit | None = None
 
     @property
     def counts(self) -> dict[str, Any]:
@@ -145,6 +185,51 @@ def choose_best(fits: Mapping[str, FitResult],
     return best, scores
 
 
+def choose_interval(errors: Mapping[str, tuple[float, float]]) -> tuple[str, dict[str, float]]:
+    """Return the convention the module docstring's rule picks, and each one's score.
+
+    ``errors``: held-out median (eps_t, eps_theta) of one model under each convention.
+    """
+    finite = {k: v for k, v in errors.items() if math.isfinite(v[0]) and math.isfinite(v[1])}
+    if not finite:
+        raise FitError('no sample-interval convention gave finite held-out errors')
+    best_t = max(min(v[0] for v in finite.values()), 1e-12)
+    best_th = max(min(v[1] for v in finite.values()), 1e-12)
+    scores = {k: v[0] / best_t + v[1] / best_th for k, v in finite.items()}
+    lowest = min(scores.values())
+    tied = [k for k in INTERVALS if k in scores and scores[k] <= lowest * (1.0 + TIE_TOLERANCE)]
+    return tied[0], scores
+
+
+def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
+                       geometry: Geometry, options: CalibrationOptions | None = None,
+                       intervals: Sequence[str] = INTERVALS) -> CalibrationResult:
+    """Calibrate and choose the sample-interval convention on held-out data (module docstring).
+
+    ``intervals``: the conventions to try, the first one calibrated with every model; one name
+    calibrates under it alone.
+    """
+    options = options or CalibrationOptions()
+    intervals = tuple(dict.fromkeys(intervals))
+    first = calibrate(train, evaluate, geometry, replace(options, interval=intervals[0]))
+    if len(intervals) == 1:
+        return first
+    model = first.best
+    errors = {}
+    for interval in intervals:
+        result = first if interval == intervals[0] else calibrate(
+            train, evaluate, geometry, replace(options, interval=interval, models=(model,)))
+        stats = result.evaluation[model]
+        errors[interval] = (float(stats.stats_t.median), float(stats.stats_theta.median))
+    chosen, _ = choose_interval(errors)
+    if chosen != intervals[0]:
+        first = calibrate(train, evaluate, geometry, replace(options, interval=chosen))
+    provenance = dict(first.provenance)
+    provenance['interval_errors'] = {k: [round(v[0], 6), round(v[1], 6)]
+                                     for k, v in errors.items()}
+    return replace(first, provenance=provenance, interval_errors=errors)
+
+
 def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry: Geometry,
               options: CalibrationOptions | None = None) -> CalibrationResult:
     """Run the whole calibration recipe (module docstring) and return its result."""
@@ -157,9 +242,12 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation',
                                needed_by='a calibration')
     models = tuple(dict.fromkeys(('ideal_dd',) + tuple(options.models)))
-    fits = fit_models(geometry, train_seg, options.fit_options(), models)
+    fits = fit_models_weighted(geometry, train_seg, options.fit_options(), models,
+                               options.weighting)
     evaluation = evaluate_models({m: f.values for m, f in fits.items()}, geometry, eval_seg,
                                  options.min_eval_path_m)
+    windows = cut_segments(evaluate, replace(options.eval_segments(), horizon_s=options.window_s))
+    window_end = {m: window_end_errors(m, f.values, geometry, windows) for m, f in fits.items()}
     noise = {}
     warnings = [w for fit in fits.values() for w in fit.warnings]
     other = {h: cut_segments(evaluate, seg) for h, seg in options.noise_horizons().items()}
@@ -176,6 +264,25 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     if counts.stationary:
         warnings.append(f'{counts.stationary} training segment(s) without motion were excluded')
     best, scores = choose_best(fits, evaluation)
+    likelihood, rule = {}, 'paper'
+    if options.selection == 'likelihood':
+        try:
+            best, likelihood = _choose_by_likelihood(fits, geometry, eval_seg, evaluate,
+                                                     options.holdout_key)
+            rule = 'likelihood'
+        except DataError as err:
+            warnings.append(f'best model chosen on eps_t and eps_theta: {err}')
+    gyro = None
+    if any(drive.imu is not None for drive in train):
+        try:
+            gyro = fit_gyro(train)
+        except (DataError, FitError) as err:
+            warnings.append(f'gyro not calibrated (imu.* not written): {err}')
+        else:
+            if gyro.at_grid_edge:
+                warnings.append(f'gyro time offset {gyro.time_offset:+.3f} s is at the edge of '
+                                'the searched range: the gyro and wheel clocks may differ by '
+                                'more; check the stamps')
     provenance = {
         'tool': f'skidkin_ros {__version__}',
         'train_drives': len(train), 'evaluate_drives': len(evaluate),
@@ -187,8 +294,20 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
         'noise_heldout_nees': {name: [round(c.mean_nees, 3) for c in nf.consistency.horizons]
                                for name, nf in noise.items()},
     }
+    provenance['selection'] = rule
     return CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
-                             tuple(warnings), train_seg, eval_seg, holdout, provenance)
+                             tuple(warnings), train_seg, eval_seg, holdout, provenance,
+                             likelihood, window_end, rule, gyro=gyro)
+
+
+def _choose_by_likelihood(fits: Mapping[str, FitResult], geometry: Geometry,
+                          eval_seg: SegmentSet, evaluate: Sequence[Drive],
+                          key: str | None) -> tuple[str, dict[str, Likelihood]]:
+    """Held-out NLL of every valid fit, then the rule of selection.choose_by_likelihood."""
+    clusters = segment_clusters(eval_seg, evaluate, key)
+    valid = [m for m, f in fits.items() if f.valid]
+    nll = {m: heldout_nll(m, fits[m].values, geometry, eval_seg, clusters) for m in valid}
+    return choose_by_likelihood(nll, clusters, {m: len(get_model(m).params) for m in valid})
 
 
 def noise_warnings(fit: NoiseFit) -> list[str]:
@@ -247,6 +366,9 @@ def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | No
         problems = '; '.join(w for w in result.warnings) or 'see the fit status'
         raise FitError(f'no kinematic model could be calibrated from this data: {problems}')
     flat['model'] = result.best
+    flat['interval'] = result.options.interval
+    if result.gyro is not None:
+        flat.update(gyro_parameters(result.gyro))
     return flat
 
 
@@ -285,7 +407,8 @@ def horizon_study(train: Sequence[Drive], evaluate: Sequence[Drive], geometry: G
         if len(train_seg) < 8:
             LOG.warning('h_t = %g m leaves %d training segments: skipped', h_t, len(train_seg))
             continue
-        fits = fit_models(geometry, train_seg, options.fit_options(), models)
+        fits = fit_models_weighted(geometry, train_seg, options.fit_options(), models,
+                                   options.weighting)
         for j, eval_seg in enumerate(eval_sets):
             if len(eval_seg) == 0:
                 continue

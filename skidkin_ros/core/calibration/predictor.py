@@ -17,12 +17,14 @@ from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSe
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.integrator import (body_increment, compose, is_stateful,
                                                   rollout_columns)
+from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
 
 __all__ = ['SegmentPredictor']
 
 
-def _pad_drives(drives: Sequence[Drive]
+def _pad_drives(drives: Sequence[Drive], interval: str
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pad the drives' stamps and held speeds (:func:`held_wheels`) to (D, L) arrays."""
     width = max(max((len(d.wheels) for d in drives), default=1), 1)
     count = len(drives)
     t = np.zeros((count, width), dtype=np.int64)
@@ -30,16 +32,17 @@ def _pad_drives(drives: Sequence[Drive]
     wr = np.zeros((count, width))
     sizes = np.zeros(count, dtype=int)
     for i, drive in enumerate(drives):
-        n = len(drive.wheels)
+        wheels = held_wheels(drive.wheels, interval)
+        n = len(wheels)
         sizes[i] = n
         if n == 0:
             continue
-        t[i, :n] = drive.wheels.t_ns
-        t[i, n:] = drive.wheels.t_ns[-1]
-        wl[i, :n] = drive.wheels.omega_l
-        wr[i, :n] = drive.wheels.omega_r
-        wl[i, n:] = drive.wheels.omega_l[-1]
-        wr[i, n:] = drive.wheels.omega_r[-1]
+        t[i, :n] = wheels.t_ns
+        t[i, n:] = wheels.t_ns[-1]
+        wl[i, :n] = wheels.omega_l
+        wr[i, :n] = wheels.omega_r
+        wl[i, n:] = wheels.omega_l[-1]
+        wr[i, n:] = wheels.omega_r[-1]
     return t, wl, wr, sizes
 
 
@@ -47,17 +50,19 @@ class SegmentPredictor:
     """Predict segment end poses with any (stateful) source, over whole drives.
 
     The source runs over every drive (its state evolves along the drive as in the node); each
-    segment then integrates the mean twists of the wheel samples held over its window
+    segment then integrates the mean twists of the wheel speeds held (under the sample-interval
+    convention ``interval``) over its window
     [t_a - offset, t_b - offset] from its ground-truth start pose. With a plain base model and no
     offset this is exactly what :func:`skidkin_ros.core.calibration.fitting.predict_end_poses`
     computes.
     """
 
     def __init__(self, drives: Sequence[Drive], segments: SegmentSet,
-                 max_dt_s: float = 0.5) -> None:
+                 max_dt_s: float = 0.5, interval: str = DEFAULT_INTERVAL) -> None:
         self.drives = list(drives)
         self.segments = segments
-        self.t_ns, self.omega_l, self.omega_r, self.sizes = _pad_drives(self.drives)
+        self.interval = check_interval(interval)
+        self.t_ns, self.omega_l, self.omega_r, self.sizes = _pad_drives(self.drives, interval)
         dt = np.zeros(self.t_ns.shape)
         dt[:, :-1] = np.diff(self.t_ns, axis=1) * 1e-9
         self.restart = np.zeros(self.t_ns.shape, dtype=bool)

@@ -22,8 +22,10 @@ first wheel sample.
 :func:`usable_segments` is how a fit asks for segments: it cuts them, or raises a DataError that
 names what is missing (no drive, or how many segments were dropped and why).
 
-Padded arrays: for each segment, the wheel speeds held over [t_a, t_b] (zero-order hold; the
-speed held at t_a is that of the last wheel sample <= t_a), the step durations between t_a, the
+Padded arrays: for each segment, the wheel speeds held over [t_a, t_b] (the speeds the
+sample-interval convention ``interval`` gives between two stamps,
+:func:`~skidkin_ros.core.odometry.interval.held_wheels`; at t_a, those of the interval that holds
+it), the step durations between t_a, the
 wheel stamps strictly inside (t_a, t_b) and t_b, padded with dt = 0 to a common length.
 """
 
@@ -35,7 +37,8 @@ from typing import Sequence
 
 import numpy as np
 
-from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.drive import Drive, WheelSamples
+from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['SegmentOptions', 'HorizonOptions', 'SegmentCounts', 'SegmentSet', 'cut_segments',
@@ -55,8 +58,10 @@ class SegmentOptions:
     min_motion_m: float = 0.05
     min_rotation_rad: float = 0.05
     max_gap_s: float = 0.5
+    interval: str = DEFAULT_INTERVAL
 
     def __post_init__(self) -> None:
+        check_interval(self.interval)
         if self.horizon_s is None and not (math.isfinite(self.horizon_m) and self.horizon_m > 0):
             raise ParameterError(f'segment horizon_m must be > 0 m, got {self.horizon_m!r}')
         if self.horizon_s is not None and not self.horizon_s > 0:
@@ -86,16 +91,19 @@ class HorizonOptions:
     max_gap_s: float = 0.5
     min_eval_path_m: float = 0.1
     sigma_diag: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    interval: str = DEFAULT_INTERVAL
 
     def train_segments(self) -> SegmentOptions:
         return SegmentOptions(horizon_m=self.h_t, horizon_rad=self.h_t_rad,
                               short_drive=self.short_drive, min_motion_m=self.min_motion_m,
-                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
+                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s,
+                              interval=self.interval)
 
     def eval_segments(self) -> SegmentOptions:
         return SegmentOptions(horizon_m=self.h_e, short_drive=self.short_drive,
                               min_motion_m=self.min_motion_m,
-                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s)
+                              min_rotation_rad=self.min_rotation_rad, max_gap_s=self.max_gap_s,
+                              interval=self.interval)
 
 
 @dataclass(frozen=True)
@@ -235,8 +243,7 @@ def _cut_indices(path: np.ndarray, yaw: np.ndarray, t_ns: np.ndarray,
     return pairs
 
 
-def _held_steps(drive: Drive, t_a: int, t_b: int) -> tuple[np.ndarray, ...] | None:
-    wheels = drive.wheels
+def _held_steps(wheels: WheelSamples, t_a: int, t_b: int) -> tuple[np.ndarray, ...] | None:
     t = wheels.t_ns
     first = int(np.searchsorted(t, t_a, side='right')) - 1
     if first < 0:
@@ -273,6 +280,7 @@ def cut_segments(drives: Sequence[Drive], options: SegmentOptions | None = None)
             continue
         path = truth.path_length()
         poses = truth.poses
+        wheels = held_wheels(drive.wheels, options.interval)
         pairs = _cut_indices(path, truth.yaw, truth.t_ns, options)
         if not pairs and options.short_drive == 'whole':
             pairs = [(0, len(truth) - 1)]
@@ -286,7 +294,7 @@ def cut_segments(drives: Sequence[Drive], options: SegmentOptions | None = None)
             if length < options.min_motion_m and abs(rotation) < options.min_rotation_rad:
                 counts['stationary'] += 1
                 continue
-            steps = _held_steps(drive, int(truth.t_ns[a]), int(truth.t_ns[b]))
+            steps = _held_steps(wheels, int(truth.t_ns[a]), int(truth.t_ns[b]))
             if steps is None:
                 counts['no_wheel_data'] += 1
                 continue

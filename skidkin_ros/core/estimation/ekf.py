@@ -1,7 +1,9 @@
 """A small reference EKF on the planar pose (x, y, yaw): skidkin's prediction, absolute fixes.
 
-The prediction step IS skidkin's: wheel speeds are held between samples (the integrator's
-zero-order hold) and every interval is one
+The prediction step IS skidkin's: wheel speeds are held from each sample's stamp to the next
+(the ``starting`` sample-interval convention; feed it
+:func:`~skidkin_ros.core.odometry.interval.held_wheels` of the samples for another one, which looks
+one sample ahead and is for offline use) and every interval is one
 :func:`skidkin_ros.core.odometry.propagation.propagate_step` (the exact SE(2) step of the
 integrator and its first-order covariance with the calibrated NoiseModel). The correction is a
 standard EKF update with an absolute pose measurement (a GNSS or lidar fix: position, optionally

@@ -44,6 +44,7 @@ from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
 from skidkin_ros.core.calibration.segments import cut_segments, segment_frame_error, SegmentOptions
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.integrator import TwistSource, wrap_angle
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, held_wheels
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.propagation import predict, predict_track
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
@@ -130,7 +131,7 @@ def segment_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel
     predicted = np.empty((n, 3))
     covs = np.empty((n, 3, 3))
     for i in range(n):
-        wheels = drives[int(segments.drive[i])].wheels
+        wheels = held_wheels(drives[int(segments.drive[i])].wheels, options.interval)
         # The window starts on a wheel stamp or after it: hold the last sample <= t_a from t_a.
         first = int(np.searchsorted(wheels.t_ns, segments.t_a_ns[i], side='right')) - 1
         inner = wheels.between(int(segments.t_a_ns[i]) + 1, int(segments.t_b_ns[i]) - 1)
@@ -138,7 +139,8 @@ def segment_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel
         omega_l = np.concatenate([[wheels.omega_l[first]], inner.omega_l, [0.0]])
         omega_r = np.concatenate([[wheels.omega_r[first]], inner.omega_r, [0.0]])
         predicted[i], cov = predict(segments.start[i], np.zeros((3, 3)), t_ns, omega_l,
-                                    omega_r, source, noise, parameters=parameters)
+                                    omega_r, source, noise, parameters=parameters,
+                                    interval='starting')
         cos_a, sin_a = np.cos(segments.start[i, 2]), np.sin(segments.start[i, 2])
         to_start = np.array([[cos_a, sin_a, 0.0], [-sin_a, cos_a, 0.0], [0.0, 0.0, 1.0]])
         covs[i] = to_start @ cov @ to_start.T + MIN_VARIANCE * np.eye(3)
@@ -211,8 +213,12 @@ class DriveNees:
 
 def drive_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel,
                distances_m: Sequence[float], checkpoint_s: float = 15.0,
-               parameters: ParameterUncertainty | None = None) -> DriveNees:
-    """NEES of odometry alone from the start of every drive (module docstring)."""
+               parameters: ParameterUncertainty | None = None,
+               interval: str = DEFAULT_INTERVAL) -> DriveNees:
+    """NEES of odometry alone from the start of every drive (module docstring).
+
+    ``interval``: the sample-interval convention the odometry runs under.
+    """
     if not drives:
         raise DataError('no drive to score')
     distances = np.asarray(sorted({float(d) for d in distances_m}), dtype=float)
@@ -222,7 +228,8 @@ def drive_nees(drives: Sequence[Drive], source: TwistSource, noise: NoiseModel,
         wheels = drive.wheels
         truth = drive.truth.interpolate(wheels.t_ns)
         poses, covs = predict_track(truth[0], np.zeros((3, 3)), wheels.t_ns, wheels.omega_l,
-                                    wheels.omega_r, source, noise, parameters=parameters)
+                                    wheels.omega_r, source, noise, parameters=parameters,
+                                    interval=interval)
         errors = truth - poses
         errors[:, 2] = wrap_angle(errors[:, 2])
         covs = covs + MIN_VARIANCE * np.eye(3)

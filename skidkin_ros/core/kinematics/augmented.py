@@ -9,12 +9,15 @@
 
 Per wheel sample i (stamp t_i, speeds held over [t_i, t_i+1)):
 
-1. x_i = twist-stage extensions applied, in order, to the base twist J(k) [omega_l, omega_r],
-   with the time since the drive (or the node) started;
-2. with ``first_order_lag`` (tau > 0) the body twist y follows x exactly for a held input:
-   y_i+1 = x_i + (y_i - x_i) d, d = exp(-dt / tau), and the twist integrated over the step is its
-   mean x_i + (y_i - x_i) tau (1 - d) / dt; y starts at x on the first sample and after a gap;
-   without a lag y = x;
+1. x_i = twist-stage extensions applied, in order, to the base twist b_i = J(k) [omega_l,
+   omega_r], with the time since the drive (or the node) started and the base twist's rate
+   r_i = (b_i - b_i-1) / (t_i - t_i-1) (0 on the first sample, after a gap and at a repeated
+   stamp);
+2. with a lag extension (``first_order_lag`` on every component, ``forward_lag``, ``yaw_lag``,
+   ``component_lags`` on some; tau > 0) each lagged component of the body twist y follows x
+   exactly for a held input: y_i+1 = x_i + (y_i - x_i) d, d = exp(-dt / tau), and the twist
+   integrated over the step is its mean x_i + (y_i - x_i) tau (1 - d) / dt; y starts at x on the
+   first sample and after a gap; a component without a lag has y = x;
 3. ``time_offset`` shifts what is published: the pose integrated up to t_i is the pose at
    t_i + offset (``output_offset_ns``).
 
@@ -27,7 +30,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import functools
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from scipy.signal import lfilter
@@ -38,18 +41,42 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['AUGMENTED_NAME', 'AugmentedModel', 'AugmentedState', 'BoundAugmented',
-           'lag_factors', 'lag_response']
+           'lag_factors', 'lag_response', 'twist_rates']
 
 AUGMENTED_NAME = 'augmented'
 
 
-@dataclass(frozen=True)
-class AugmentedState:
-    """Streaming state: first stamp (ns), twist-stage output x and body twist y (held)."""
+Triple = tuple[float, float, float]
+_STILL: Triple = (0.0, 0.0, 0.0)
+
+
+class AugmentedState(NamedTuple):
+    """Streaming state: first stamp (ns), twist-stage output x and body twist y (held).
+
+    ``t_ns`` and ``b``: the last sample's stamp and base twist (for the rate of the next one).
+    A named tuple: the node builds one per sample, and a tuple is the cheapest to build.
+    """
 
     t0_ns: int
-    x: tuple[float, float, float]
-    y: tuple[float, float, float]
+    x: Triple
+    y: Triple
+    t_ns: int = 0
+    b: Triple = _STILL
+
+
+def twist_rates(base: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.ndarray:
+    """Return the base twist's backward-difference rate over (D, L) rows (D, L, 3).
+
+    ``dt_s[:, i]``: the step from sample i to i+1 (0 across a gap or a repeated stamp); the rate
+    is 0 on the first sample, after a restart and after a zero step, as the streaming form has it.
+    """
+    rate = np.zeros(base.shape)
+    step = np.asarray(dt_s, dtype=float)[:, :-1]
+    usable = (step > 0.0) & ~np.asarray(restart, bool)[:, 1:]
+    safe = np.where(usable, step, 1.0)
+    rate[:, 1:] = np.where(usable[..., None],
+                           (base[:, 1:] - base[:, :-1]) / safe[..., None], 0.0)
+    return rate
 
 
 def lag_factors(dt_s, tau_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -84,9 +111,18 @@ class BoundAugmented:
         return float(self.values[index][get_extension(ext).param_names.index(param)])
 
     @functools.cached_property
+    def taus(self) -> Triple:
+        """Return the lag (s) of each twist component, 0 without one (read once)."""
+        for name, k in zip(self.extensions, self.values):
+            ext = get_extension(name)
+            if ext.stage == 'dynamics':
+                return ext.time_constants(k)
+        return _STILL
+
+    @property
     def tau_s(self) -> float:
-        """Return the first-order lag in s, 0 without one (read once: used on every sample)."""
-        return self._param('first_order_lag', 'tau_s')
+        """Return the longest lag in s, 0 without one."""
+        return max(self.taus)
 
     @property
     def output_offset_s(self) -> float:
@@ -101,13 +137,17 @@ class BoundAugmented:
         return {name: get_extension(name).mapping(k)
                 for name, k in zip(self.extensions, self.values)}
 
-    def memoryless(self, omega_l, omega_r, t_s) -> np.ndarray:
-        """Return x: the base twist after the twist-stage extensions (..., 3)."""
+    def memoryless(self, omega_l, omega_r, t_s, rate=None, base=None) -> np.ndarray:
+        """Return x: the base twist after the twist-stage extensions (..., 3).
+
+        ``rate``: the base twist's rate (..., 3), None: 0 (steady); ``base``: the base twist
+        when the caller has it.
+        """
         omega_l = np.asarray(omega_l, dtype=float)
         omega_r = np.asarray(omega_r, dtype=float)
-        twist = self.base.twist(omega_l, omega_r)
+        twist = self.base.twist(omega_l, omega_r) if base is None else base
         for name, k in zip(self.extensions, self.values):
-            twist = get_extension(name).apply(k, twist, omega_l, omega_r, t_s)
+            twist = get_extension(name).apply(k, twist, omega_l, omega_r, t_s, rate)
         return twist
 
     def twist(self, omega_l, omega_r) -> np.ndarray:
@@ -126,46 +166,63 @@ class BoundAugmented:
             chain.append((function, tuple(np.asarray(k, dtype=float).tolist())))
         return tuple(chain)
 
-    def scalar_memoryless(self, omega_l: float, omega_r: float,
-                          t_s: float) -> tuple[float, float, float]:
+    def scalar_memoryless(self, omega_l: float, omega_r: float, t_s: float,
+                          rate: Triple = _STILL, base: Triple | None = None) -> Triple:
         """:meth:`memoryless` for one sample on plain floats (equal to it bit for bit)."""
         chain = self._scalar_chain
         if chain is None:  # an extension without a float form (the sparse correction)
-            vx, vy, w = np.asarray(self.memoryless(omega_l, omega_r, t_s), dtype=float).tolist()
+            vx, vy, w = np.asarray(self.memoryless(
+                omega_l, omega_r, t_s, np.asarray(rate, dtype=float),
+                None if base is None else np.asarray(base, dtype=float)), dtype=float).tolist()
             return vx, vy, w
-        vx, vy, w = self.base.scalar_twist(omega_l, omega_r)
+        vx, vy, w = self.base.scalar_twist(omega_l, omega_r) if base is None else base
         for function, k in chain:
-            vx, vy, w = function(k, vx, vy, w, omega_l, omega_r, t_s)
+            vx, vy, w = function(k, vx, vy, w, omega_l, omega_r, t_s, rate)
         return vx, vy, w
 
     def begin(self, state: AugmentedState | None, t_ns: int, omega_l: float, omega_r: float,
-              restart: bool) -> tuple[AugmentedState, tuple[float, float, float]]:
+              restart: bool) -> tuple[AugmentedState, Triple]:
         """Take a new sample; return the new state and the body twist published now."""
         t0 = t_ns if state is None else state.t0_ns
-        x = self.scalar_memoryless(float(omega_l), float(omega_r), (t_ns - t0) * 1e-9)
-        if state is None or restart or not self.tau_s > 0.0:
+        b = self.base.scalar_twist(float(omega_l), float(omega_r))
+        rate = _STILL
+        if state is not None and not restart:
+            step = (t_ns - state.t_ns) * 1e-9
+            if step > 0.0:
+                p = state.b
+                rate = ((b[0] - p[0]) / step, (b[1] - p[1]) / step, (b[2] - p[2]) / step)
+        x = self.scalar_memoryless(float(omega_l), float(omega_r), (t_ns - t0) * 1e-9, rate, b)
+        if state is None or restart:
             y = x
         else:
-            y = state.y
-        return AugmentedState(t0, x, y), y
+            t_v, t_y, t_w = self.taus
+            y = (state.y[0] if t_v > 0.0 else x[0], state.y[1] if t_y > 0.0 else x[1],
+                 state.y[2] if t_w > 0.0 else x[2])
+        return AugmentedState(t0, x, y, t_ns, b), y
 
-    def advance(self, state: AugmentedState, dt_s: float
-                ) -> tuple[AugmentedState, tuple[float, float, float]]:
+    def advance(self, state: AugmentedState, dt_s: float) -> tuple[AugmentedState, Triple]:
         """Return the state after holding for dt_s and the mean twist over that interval.
 
-        :func:`lag_factors` and :func:`lag_response`'s sample loop on plain floats.
+        :func:`lag_factors` and :func:`lag_response`'s sample loop on plain floats, per lagged
+        component.
         """
-        tau = self.tau_s
-        if not tau > 0.0:
+        t_v, t_y, t_w = self.taus
+        if not (t_v > 0.0 or t_y > 0.0 or t_w > 0.0):
             return state, state.x
-        ratio = dt_s / tau
-        d = float(np.exp(-ratio))
-        g = -float(np.expm1(-ratio)) / ratio if dt_s > 0.0 else 1.0
         (x0, x1, x2), (y0, y1, y2) = state.x, state.y
-        diff0, diff1, diff2 = y0 - x0, y1 - x1, y2 - x2
-        return (AugmentedState(state.t0_ns, state.x,
-                               (x0 + diff0 * d, x1 + diff1 * d, x2 + diff2 * d)),
-                (x0 + diff0 * g, x1 + diff1 * g, x2 + diff2 * g))
+        if t_v == t_y == t_w:  # one lag on the whole twist: its factors once
+            ratio = dt_s / t_v
+            d = float(np.exp(-ratio))
+            g = -float(np.expm1(-ratio)) / ratio if dt_s > 0.0 else 1.0
+            diff0, diff1, diff2 = y0 - x0, y1 - x1, y2 - x2
+            held = (x0 + diff0 * d, x1 + diff1 * d, x2 + diff2 * d)
+            mean = (x0 + diff0 * g, x1 + diff1 * g, x2 + diff2 * g)
+        else:
+            h0, m0 = _lag_step(x0, y0, t_v, dt_s)
+            h1, m1 = _lag_step(x1, y1, t_y, dt_s)
+            h2, m2 = _lag_step(x2, y2, t_w, dt_s)
+            held, mean = (h0, h1, h2), (m0, m1, m2)
+        return AugmentedState(state.t0_ns, state.x, held, state.t_ns, state.b), mean
 
     # ---------------------------------------------------------------- batch form
     def intervals(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
@@ -173,11 +230,32 @@ class BoundAugmented:
         """Batch form over (D, L): (published twists, mean twists over each interval)."""
         t_ns = np.asarray(t_ns, dtype=np.int64)
         t_s = (t_ns - t_ns[:, :1]) * 1e-9
-        x = np.asarray(self.memoryless(omega_l, omega_r, t_s), dtype=float)
-        tau = self.tau_s
-        if not tau > 0.0:
+        base = np.asarray(self.base.twist(np.asarray(omega_l, dtype=float),
+                                          np.asarray(omega_r, dtype=float)), dtype=float)
+        rate = twist_rates(base, dt_s, restart)
+        x = np.asarray(self.memoryless(omega_l, omega_r, t_s, rate, base), dtype=float)
+        taus = self.taus
+        if not max(taus) > 0.0:
             return x, x
-        return lag_response(x, np.asarray(dt_s, dtype=float), np.asarray(restart, bool), tau)
+        held, mean = x.copy(), x.copy()
+        dt_s = np.asarray(dt_s, dtype=float)
+        restart = np.asarray(restart, bool)
+        for tau in sorted({t for t in taus if t > 0.0}):
+            columns = [c for c in range(3) if taus[c] == tau]
+            held[..., columns], mean[..., columns] = lag_response(x[..., columns], dt_s,
+                                                                  restart, tau)
+        return held, mean
+
+
+def _lag_step(x: float, y: float, tau_s: float, dt_s: float) -> tuple[float, float]:
+    """Return (y after dt_s, mean of y over dt_s) for one component; (x, x) without a lag."""
+    if not tau_s > 0.0:
+        return x, x
+    ratio = dt_s / tau_s
+    d = float(np.exp(-ratio))
+    g = -float(np.expm1(-ratio)) / ratio if dt_s > 0.0 else 1.0
+    diff = y - x
+    return x + diff * d, x + diff * g
 
 
 def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
@@ -199,13 +277,15 @@ def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
                           zi=x[r, :1].copy())[0]
     rows = np.nonzero(~steady)[0]
     if rows.size:
-        xs, ds, rs = x[rows], d[rows], restart[rows]
+        xs, ds, rs, still = x[rows], d[rows], restart[rows], dt_s[rows] == 0.0
         y = xs[:, 0].copy()
         for i in range(length):
             held[rows, i] = y
             if i + 1 < length:
                 x_i = xs[:, i]
-                y = np.where(rs[:, i + 1, None], xs[:, i + 1], x_i + (y - x_i) * ds[:, i, None])
+                # a repeated stamp holds y as it is (the streaming form advances nothing)
+                moved = np.where(still[:, i, None], y, x_i + (y - x_i) * ds[:, i, None])
+                y = np.where(rs[:, i + 1, None], xs[:, i + 1], moved)
     mean = x + (held - x) * g[..., None]
     return held, mean
 

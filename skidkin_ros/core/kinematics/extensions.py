@@ -7,10 +7,13 @@ description), a formula, the signal that reveals it in the residuals, and acts a
 - ``timing``: the true motion lags the wheel stamps by an offset (``time_offset``): poses are
   published at sample stamp + offset, and a segment [t_a, t_b] of ground truth is predicted from
   the wheel samples of [t_a - offset, t_b - offset];
-- ``twist``: a memoryless change of the body twist (v_x, v_y, omega) given the wheel speeds and
-  the time since the drive started (slips, skid, direction, terrain, the sparse fallback);
+- ``twist``: a change of the body twist (v_x, v_y, omega) given the wheel speeds, the time since
+  the drive started and the base twist's rate of change (its backward difference over one wheel
+  sample: acceleration slip, the sparse fallback's derivative terms); slips, skid, direction,
+  terrain;
 - ``dynamics``: the body twist follows the twist of the previous stages through a first-order
-  response (``first_order_lag``), applied last.
+  response, on every component (``first_order_lag``) or on some (``forward_lag``, ``yaw_lag``,
+  ``component_lags``), applied last. At most one of them (they share the ``group`` 'lag').
 
 Every extension with default parameters leaves the base model unchanged (the neutral value),
 so an augmented model with defaults predicts exactly what its base model predicts.
@@ -28,6 +31,7 @@ twist terms is a registry too (``LIBRARY``): a new term is one :class:`LibraryTe
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -48,6 +52,7 @@ __all__ = [
     'ordered',
     'ratio_bump',
     'sparse_features',
+    'speeding_up',
 ]
 
 # Never remove more than this fraction of the forward speed (keeps v_x's sign).
@@ -78,7 +83,10 @@ class Extension:
     :class:`FitHints`. ``scan`` names parameters first searched on a grid over
     ``scan_range(hints)`` (step-like effects), and ``refine`` says whether they are then refined
     by least squares. ``library``: the parameters are coefficients of library terms, the terms
-    chosen by sparse regression (only those are fitted). ``short_alias`` = (parameter, other
+    chosen by sparse regression (only those are fitted). ``group``: extensions of one group
+    exclude each other (one lag per model). ``lags``: for a dynamics extension, the parameter
+    giving the time constant of each twist component (v_x, v_y, omega), None: not lagged.
+    ``short_alias`` = (parameter, other
     extension): with that parameter no longer than one wheel sample period this extension cannot
     be told from the other one, which the selection keeps. ``residual_view`` = (residual
     component, trace signal, fold by the component's direction): the plot that shows the effect.
@@ -98,6 +106,8 @@ class Extension:
     library: bool = False
     short_alias: tuple[str, str] | None = None
     residual_view: tuple[str, str, bool] = ('v_x', 'body_speed', False)
+    group: str = ''
+    lags: tuple[str | None, str | None, str | None] = (None, None, None)
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -135,19 +145,30 @@ class Extension:
         return {name: float(value) for name, value in zip(self.param_names, k)}
 
     def apply(self, k: np.ndarray, twist: np.ndarray, omega_l: np.ndarray,
-              omega_r: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-        """Return the twist (..., 3) after this extension (twist stage; identity otherwise)."""
+              omega_r: np.ndarray, t_s: np.ndarray, rate: np.ndarray | None = None
+              ) -> np.ndarray:
+        """Return the twist (..., 3) after this extension (twist stage; identity otherwise).
+
+        ``rate``: the base twist's rate of change (..., 3) (None: zero, a steady state).
+        """
         if self.stage != 'twist':
             return twist
-        return _TWIST_FUNCTIONS[self.name](k, twist, omega_l, omega_r, t_s)
+        if rate is None:
+            rate = np.zeros(np.shape(twist))
+        return _TWIST_FUNCTIONS[self.name](k, twist, omega_l, omega_r, t_s, rate)
+
+    def time_constants(self, k: Sequence[float]) -> tuple[float, float, float]:
+        """Return the lag time constant (s) of each twist component, 0 where not lagged."""
+        values = self.mapping(k)
+        return tuple(0.0 if name is None else values[name] for name in self.lags)
 
     def scalar_apply(self) -> Callable[..., tuple[float, float, float]] | None:
         """Return this extension on plain floats, or None if it has no such form.
 
-        The function takes ``(k, vx, vy, wz, omega_l, omega_r, t_s)`` (``k`` a tuple of floats)
-        and returns the new (vx, vy, wz): :meth:`apply`'s operations in its order, so the node's
-        per-sample path equals the batch form bit for bit. Stages other than the twist stage
-        return the twist unchanged.
+        The function takes ``(k, vx, vy, wz, omega_l, omega_r, t_s, rate)`` (``k`` and ``rate``
+        tuples of floats) and returns the new (vx, vy, wz): :meth:`apply`'s operations in its
+        order, so the node's per-sample path equals the batch form bit for bit. Stages other
+        than the twist stage return the twist unchanged.
         """
         if self.stage != 'twist':
             return _scalar_identity
@@ -169,14 +190,14 @@ def ratio_bump(omega_l: np.ndarray, omega_r: np.ndarray, peak: float,
     return np.exp(-((ratio - peak) / width) ** 2)
 
 
-def _speed_slip(k, twist, omega_l, omega_r, t_s):
+def _speed_slip(k, twist, omega_l, omega_r, t_s, rate):
     out = np.array(twist, dtype=float, copy=True)
     v_x = out[..., 0]
     out[..., 0] = v_x * (1.0 - np.minimum(k[0] * np.abs(v_x), MAX_SPEED_SLIP))
     return out
 
 
-def _direction_asymmetry(k, twist, omega_l, omega_r, t_s):
+def _direction_asymmetry(k, twist, omega_l, omega_r, t_s, rate):
     out = np.array(twist, dtype=float, copy=True)
     v_x = out[..., 0]
     reverse = np.clip(-v_x / k[1], 0.0, 1.0)
@@ -184,26 +205,26 @@ def _direction_asymmetry(k, twist, omega_l, omega_r, t_s):
     return out
 
 
-def _lateral_skid(k, twist, omega_l, omega_r, t_s):
+def _lateral_skid(k, twist, omega_l, omega_r, t_s, rate):
     out = np.array(twist, dtype=float, copy=True)
     out[..., 1] = out[..., 1] + k[0] * out[..., 0] * out[..., 2]
     return out
 
 
-def _icr_offset(k, twist, omega_l, omega_r, t_s):
+def _icr_offset(k, twist, omega_l, omega_r, t_s, rate):
     out = np.array(twist, dtype=float, copy=True)
     out[..., 1] = out[..., 1] + k[0] * out[..., 2]
     return out
 
 
-def _ratio_yaw_slip(k, twist, omega_l, omega_r, t_s):
+def _ratio_yaw_slip(k, twist, omega_l, omega_r, t_s, rate):
     out = np.array(twist, dtype=float, copy=True)
     bump = ratio_bump(np.asarray(omega_l, float), np.asarray(omega_r, float), k[1], k[2])
     out[..., 2] = out[..., 2] * (1.0 - k[0] * bump)
     return out
 
 
-def _terrain_regime(k, twist, omega_l, omega_r, t_s):
+def _terrain_regime(k, twist, omega_l, omega_r, t_s, rate):
     out = np.array(twist, dtype=float, copy=True)
     scale = np.where(np.asarray(t_s) >= k[1], 1.0 - k[0], 1.0)
     out[..., 0] = out[..., 0] * scale
@@ -211,30 +232,44 @@ def _terrain_regime(k, twist, omega_l, omega_r, t_s):
     return out
 
 
+def speeding_up(v: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    """Return dv where the speed's magnitude grows (v dv > 0), else 0: the accelerating part."""
+    return np.where(v * dv > 0.0, dv, 0.0)
+
+
+def _acceleration_slip(k, twist, omega_l, omega_r, t_s, rate):
+    out = np.array(twist, dtype=float, copy=True)
+    v_x = out[..., 0]
+    dv = np.asarray(rate, dtype=float)[..., 0]
+    loss = np.where(v_x * dv > 0.0, np.minimum(k[0] * np.abs(dv), np.abs(v_x)), 0.0)
+    out[..., 0] = v_x - np.copysign(loss, v_x)
+    return out
+
+
 # The same functions on plain floats (one sample): the node runs these once per wheel sample.
 # numpy's exp (not math's) where the array forms use it: libm may differ by an ulp.
-def _scalar_identity(k, vx, vy, w, omega_l, omega_r, t_s):
+def _scalar_identity(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     return vx, vy, w
 
 
-def _scalar_speed_slip(k, vx, vy, w, omega_l, omega_r, t_s):
+def _scalar_speed_slip(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     return vx * (1.0 - min(k[0] * abs(vx), MAX_SPEED_SLIP)), vy, w
 
 
-def _scalar_direction_asymmetry(k, vx, vy, w, omega_l, omega_r, t_s):
+def _scalar_direction_asymmetry(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     reverse = min(max(-vx / k[1], 0.0), 1.0)
     return vx * (1.0 - k[0] * reverse), vy, w
 
 
-def _scalar_lateral_skid(k, vx, vy, w, omega_l, omega_r, t_s):
+def _scalar_lateral_skid(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     return vx, vy + k[0] * vx * w, w
 
 
-def _scalar_icr_offset(k, vx, vy, w, omega_l, omega_r, t_s):
+def _scalar_icr_offset(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     return vx, vy + k[0] * w, w
 
 
-def _scalar_ratio_yaw_slip(k, vx, vy, w, omega_l, omega_r, t_s):
+def _scalar_ratio_yaw_slip(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     big = max(abs(omega_l), abs(omega_r))
     small = min(abs(omega_l), abs(omega_r))
     ratio = small / big if (omega_l * omega_r) > 0.0 and big > 0.0 else -1.0
@@ -243,47 +278,62 @@ def _scalar_ratio_yaw_slip(k, vx, vy, w, omega_l, omega_r, t_s):
     return vx, vy, w * (1.0 - k[0] * bump)
 
 
-def _scalar_terrain_regime(k, vx, vy, w, omega_l, omega_r, t_s):
+def _scalar_terrain_regime(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     scale = 1.0 - k[0] if t_s >= k[1] else 1.0
     return vx * scale, vy, w * scale
 
 
-# The sparse fallback: a library of candidate terms of the base twist (v = v_x, w = omega).
+def _scalar_acceleration_slip(k, vx, vy, w, omega_l, omega_r, t_s, rate):
+    dv = rate[0]
+    loss = min(k[0] * abs(dv), abs(vx)) if vx * dv > 0.0 else 0.0
+    return vx - math.copysign(loss, vx), vy, w
+
+
+# The sparse fallback: a library of candidate terms of the base twist (v = v_x, w = omega) and
+# of its rate of change (dv, dw: backward differences over one wheel sample, as the integrator
+# has them). Derivative terms stop at the first derivative: a second difference of wheel speeds
+# (jerk) is mostly encoder noise.
 @dataclass(frozen=True)
 class LibraryTerm:
-    """One term of the sparse library: a function of the base twist's v_x and omega.
+    """One term of the sparse library: a function of the base twist's v_x, omega and rates.
 
-    ``signal``: the diagnosis trace signal a residual is plotted against for this term.
+    ``of(v, w, dv, dw)``; ``signal``: the diagnosis trace signal a residual is plotted against
+    for this term.
     """
 
     name: str
     unit: str
-    of: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    of: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
     signal: str
 
 
 LIBRARY: tuple[LibraryTerm, ...] = (
-    LibraryTerm('v', 'm/s', lambda v, w: v, 'body_speed'),
-    LibraryTerm('w', 'rad/s', lambda v, w: w, 'yaw_rate'),
-    LibraryTerm('v_abs_v', 'm^2/s^2', lambda v, w: v * np.abs(v), 'v_abs_v'),
-    LibraryTerm('w_abs_w', 'rad^2/s^2', lambda v, w: w * np.abs(w), 'yaw_rate'),
-    LibraryTerm('v_w', 'm rad/s^2', lambda v, w: v * w, 'v_omega'),
-    LibraryTerm('abs_v', 'm/s', lambda v, w: np.abs(v), 'body_speed'),
-    LibraryTerm('abs_w', 'rad/s', lambda v, w: np.abs(w), 'yaw_rate'),
+    LibraryTerm('v', 'm/s', lambda v, w, dv, dw: v, 'body_speed'),
+    LibraryTerm('w', 'rad/s', lambda v, w, dv, dw: w, 'yaw_rate'),
+    LibraryTerm('v_abs_v', 'm^2/s^2', lambda v, w, dv, dw: v * np.abs(v), 'v_abs_v'),
+    LibraryTerm('w_abs_w', 'rad^2/s^2', lambda v, w, dv, dw: w * np.abs(w), 'yaw_rate'),
+    LibraryTerm('v_w', 'm rad/s^2', lambda v, w, dv, dw: v * w, 'v_omega'),
+    LibraryTerm('abs_v', 'm/s', lambda v, w, dv, dw: np.abs(v), 'body_speed'),
+    LibraryTerm('abs_w', 'rad/s', lambda v, w, dv, dw: np.abs(w), 'yaw_rate'),
+    LibraryTerm('dv', 'm/s^2', lambda v, w, dv, dw: dv, 'd_body_speed'),
+    LibraryTerm('dw', 'rad/s^2', lambda v, w, dv, dw: dw, 'd_yaw_rate'),
+    LibraryTerm('dv_up', 'm/s^2', lambda v, w, dv, dw: speeding_up(v, dv), 'speeding_up'),
 )
 SPARSE_FEATURES: tuple[tuple[str, str], ...] = tuple((term.name, term.unit) for term in LIBRARY)
 SPARSE_OUTPUTS: tuple[tuple[str, str], ...] = (('vx', 'm/s'), ('vy', 'm/s'), ('wz', 'rad/s'))
 
 
-def sparse_features(twist: np.ndarray) -> np.ndarray:
-    """Return the library terms (..., F) of the base twist, in LIBRARY order."""
+def sparse_features(twist: np.ndarray, rate: np.ndarray | None = None) -> np.ndarray:
+    """Return the library terms (..., F) of the base twist and its rate, in LIBRARY order."""
     v = np.asarray(twist)[..., 0]
     w = np.asarray(twist)[..., 2]
-    return np.stack([term.of(v, w) for term in LIBRARY], axis=-1)
+    rate = np.zeros(np.shape(twist)) if rate is None else np.asarray(rate, dtype=float)
+    dv, dw = rate[..., 0], rate[..., 2]
+    return np.stack([term.of(v, w, dv, dw) for term in LIBRARY], axis=-1)
 
 
-def _sparse_correction(k, twist, omega_l, omega_r, t_s):
-    features = sparse_features(twist)
+def _sparse_correction(k, twist, omega_l, omega_r, t_s, rate):
+    features = sparse_features(twist, rate)
     coef = np.asarray(k, dtype=float).reshape(len(SPARSE_OUTPUTS), len(SPARSE_FEATURES))
     return np.asarray(twist, dtype=float) + features @ coef.T
 
@@ -304,6 +354,7 @@ _TWIST_FUNCTIONS = {
     'icr_offset': _icr_offset,
     'ratio_yaw_slip': _ratio_yaw_slip,
     'terrain_regime': _terrain_regime,
+    'acceleration_slip': _acceleration_slip,
     'sparse_correction': _sparse_correction,
 }
 
@@ -314,6 +365,7 @@ _SCALAR_FUNCTIONS = {
     'icr_offset': _scalar_icr_offset,
     'ratio_yaw_slip': _scalar_ratio_yaw_slip,
     'terrain_regime': _scalar_terrain_regime,
+    'acceleration_slip': _scalar_acceleration_slip,
 }
 
 
@@ -325,6 +377,11 @@ def _start_offset(hints: FitHints) -> dict[str, float]:
 def _start_lag(hints: FitHints) -> dict[str, float]:
     # A delay and a first-order lag shift a drive alike: the lag found is a fair time constant.
     return {'tau_s': float(np.clip(abs(hints.lag_s), 0.03, 1.5))}
+
+
+def _start_slip(hints: FitHints) -> dict[str, float]:
+    # A body that lags while speeding up looks like a lag: the lag found is a fair start.
+    return {'tau_s': float(np.clip(abs(hints.lag_s), 0.03, 0.9))}
 
 
 def _over_the_drive(hints: FitHints) -> tuple[float, float]:
@@ -344,7 +401,30 @@ _ALL: tuple[Extension, ...] = (
         'wheel acceleration',
         (_spec('tau_s', 's', 0.0, 0.0, 2.0, 'time constant of the body twist response'),),
         ('tau_s',), start=_start_lag, short_alias=('tau_s', 'time_offset'),
-        residual_view=('v_x', 'd_wheel_sum', False)),
+        residual_view=('v_x', 'd_wheel_sum', False), group='lag',
+        lags=('tau_s', 'tau_s', 'tau_s')),
+    Extension(
+        'forward_lag', 'First-order response of the forward speed only', 'dynamics',
+        'tau d(v_x)/dt = v_x,model - v_x (v_y and omega follow at once)', 'forward acceleration',
+        (_spec('tau_s', 's', 0.0, 0.0, 2.0, 'time constant of the forward speed response'),),
+        ('tau_s',), start=_start_lag, residual_view=('v_x', 'd_body_speed', False),
+        group='lag', lags=('tau_s', None, None)),
+    Extension(
+        'yaw_lag', 'First-order response of the yaw rate only', 'dynamics',
+        'tau d(omega)/dt = omega_model - omega (v_x and v_y follow at once)', 'yaw acceleration',
+        (_spec('tau_s', 's', 0.0, 0.0, 2.0, 'time constant of the yaw rate response'),),
+        ('tau_s',), start=_start_lag, residual_view=('omega', 'd_yaw_rate', False),
+        group='lag', lags=(None, None, 'tau_s')),
+    Extension(
+        'component_lags', 'First-order responses of forward speed and yaw rate', 'dynamics',
+        'tau_v d(v_x)/dt = v_x,model - v_x; tau_w d(omega)/dt = omega_model - omega',
+        'forward and yaw acceleration',
+        (_spec('tau_v_s', 's', 0.0, 0.0, 2.0, 'time constant of the forward speed response'),
+         _spec('tau_w_s', 's', 0.0, 0.0, 2.0, 'time constant of the yaw rate response')),
+        ('tau_v_s', 'tau_w_s'),
+        start=lambda hints: {f'tau_{c}_s': _start_lag(hints)['tau_s'] for c in 'vw'},
+        residual_view=('v_x', 'd_body_speed', False), group='lag',
+        lags=('tau_v_s', None, 'tau_w_s')),
     Extension(
         'speed_slip', 'Longitudinal slip growing with speed', 'twist',
         'v_x *= 1 - min(k |v_x|, 0.8)', 'v_x |v_x|',
@@ -388,8 +468,17 @@ _ALL: tuple[Extension, ...] = (
         ('k',), scan=('switch_s',), refine=False, scan_range=_over_the_drive,
         residual_view=('v_x', 'time_in_drive', True)),
     Extension(
+        'acceleration_slip', 'Forward slip while the wheels speed up', 'twist',
+        'v_x -= sign(v_x) min(tau |dv/dt|, |v_x|) where v_x dv/dt > 0 (speeding up), dv/dt the '
+        "base forward speed's backward difference over one wheel sample",
+        'forward acceleration while speeding up',
+        (_spec('tau_s', 's', 0.0, 0.0, 1.0,
+               'forward speed lost per m/s^2 of wheel acceleration while speeding up'),),
+        ('tau_s',), start=_start_slip, residual_view=('v_x', 'speeding_up', False)),
+    Extension(
         'sparse_correction', 'Sparse regression on a library of twist terms', 'twist',
-        'twist += C @ [v, w, v|v|, w|w|, v w, |v|, |w|] (terms chosen by STLSQ)',
+        'twist += C @ [v, w, v|v|, w|w|, v w, |v|, |w|, dv, dw, dv_up] (terms chosen by STLSQ; '
+        'dv, dw: backward differences; dv_up: dv while speeding up)',
         'selected library terms', _sparse_specs(), (), library=True,
         residual_view=('v_x', 'body_speed', False)),
 )
@@ -409,13 +498,23 @@ def get_extension(name: str) -> Extension:
                              f'{", ".join(EXTENSION_NAMES)}') from None
 
 
-def ordered(names: Sequence[str]) -> tuple[str, ...]:
-    """Return extension names in application order, checking each is known and unique."""
+def ordered(names: Sequence[str], exclusive: bool = True) -> tuple[str, ...]:
+    """Return extension names in application order, checking each is known and unique.
+
+    ``exclusive``: also check that no two share a group (a model's structure; a list of
+    candidates may hold rivals).
+    """
     seen = []
     for name in names:
-        get_extension(name)
+        group = get_extension(name).group
         if name in seen:
             raise ParameterError(f'extension {name!r} is listed twice')
+        rival = [other for other in seen
+                 if exclusive and group and EXTENSIONS[other].group == group]
+        if rival:
+            members = ', '.join(n for n, e in EXTENSIONS.items() if e.group == group)
+            raise ParameterError(f'extensions {rival[0]!r} and {name!r} cannot be combined (both '
+                                 f'are a {group}); keep one of: {members}')
         seen.append(name)
     return tuple(sorted(seen, key=lambda n: (_STAGE_ORDER[EXTENSIONS[n].stage],
                                              EXTENSION_NAMES.index(n))))

@@ -38,6 +38,8 @@ __all__ = [
 # published yaw rate would otherwise become infinite.
 Y0_MIN_FACTOR = 1e-3
 Y0_MAX_FACTOR = 1e3
+# The largest ICR gain the calibrator fits: y0 <= b/2 (1 + 1000) stays inside the clamp.
+ROC_MAX_GAIN = 1000.0
 
 
 class KinematicModel:
@@ -218,6 +220,13 @@ class RocModel(KinematicModel):
     lambda = |(omega_r + omega_l) / (omega_r - omega_l)|. Evaluated as
     beta_1 sqrt|d| / (sqrt|d| + beta_2 sqrt|s|) so that straight driving (d = 0, lambda = inf)
     and pure rotation (s = 0) stay finite.
+
+    The calibrator keeps beta_1 and beta_2 >= 0, as Wang et al. do (the ICR gain is positive
+    and decays as the path straightens): the denominator is then >= sqrt|d| and y0 stays in
+    [b/2, b/2 (1 + beta_1)], far from the clamp [b/1000, 1000 b] that guards the singularity
+    of a negative beta_2 (a fit that ran into it ended at a clamp, not a minimum). A file may
+    still hold any finite value (older files load); beta_2 = 0 is edd_symmetric with
+    b_hat = b (1 + beta_1).
     """
 
     name = 'roc'
@@ -227,9 +236,12 @@ class RocModel(KinematicModel):
                'y0 = b/2 (1 + beta_1/(1 + beta_2 sqrt(lambda)))')
     params = (
         ParamSpec('alpha', '-', 1.0, 0.0, 1.0, 'slip factor of both sides', default_doc='1'),
-        ParamSpec('beta_1', '-', 0.0, -INF, INF, 'ICR gain at pure rotation', default_doc='0'),
-        ParamSpec('beta_2', '-', 0.0, -INF, INF, 'decay of the ICR gain with sqrt(lambda)',
-                  default_doc='0'),
+        ParamSpec('beta_1', '-', 0.0, -INF, INF,
+                  'ICR gain at pure rotation (fitted in [0, 1000])', default_doc='0',
+                  fit_lower=0.0, fit_upper=ROC_MAX_GAIN),
+        ParamSpec('beta_2', '-', 0.0, -INF, INF,
+                  'decay of the ICR gain with sqrt(lambda) (fitted >= 0)', default_doc='0',
+                  fit_lower=0.0),
     )
 
     @staticmethod

@@ -41,7 +41,10 @@ class ParamSpec:
 
     ``default`` is a number or a function of the geometry; every model defaults to the ideal
     differential drive of the configured geometry (``default_doc`` says how, for the docs).
-    Bounds are closed unless ``lower_open``/``upper_open`` say otherwise.
+    Bounds are closed unless ``lower_open``/``upper_open`` say otherwise. ``fit_lower`` and
+    ``fit_upper``, when set, narrow the range the calibrator searches (a fitted value on them is
+    on a bound) while any value in the range still loads: a model constraint of the fit (roc's
+    positive ICR gain) that must not make older parameters files unreadable.
     """
 
     name: str
@@ -53,6 +56,8 @@ class ParamSpec:
     default_doc: str = ''
     lower_open: bool = False
     upper_open: bool = False
+    fit_lower: float | None = None
+    fit_upper: float | None = None
 
     def default_for(self, geometry: Geometry) -> float:
         if callable(self.default):
@@ -66,10 +71,23 @@ class ParamSpec:
         right = ')' if self.upper_open or self.upper == INF else ']'
         return f'{left}{lo}, {hi}{right}'
 
+    def fit_range_text(self) -> str:
+        """Return the range the calibrator searches (the range, narrowed by fit_lower/upper)."""
+        lo, hi = self.optimizer_bounds(margin=0.0)
+        if (lo, hi) == (self.lower, self.upper):
+            return self.range_text()
+        low = '(-inf' if lo == -INF else f'[{lo:g}'
+        high = 'inf)' if hi == INF else f'{hi:g}]'
+        return f'{low}, {high}'
+
     def optimizer_bounds(self, margin: float = 1e-6) -> tuple[float, float]:
         """Bounds for scipy's least_squares; open bounds are pulled in by a small margin."""
         lo = self.lower + margin if self.lower_open and self.lower != -INF else self.lower
         hi = self.upper - margin if self.upper_open and self.upper != INF else self.upper
+        if self.fit_lower is not None:
+            lo = max(lo, self.fit_lower)
+        if self.fit_upper is not None:
+            hi = min(hi, self.fit_upper)
         return lo, hi
 
     def contains(self, value: float) -> bool:
@@ -83,8 +101,10 @@ class ParamSpec:
 
     def on_bound(self, value: float, rel_tol: float = 1e-4) -> bool:
         """Tell whether a fitted value sits on a finite bound (the fit wanted to go further)."""
-        for bound in (self.lower, self.upper):
-            if math.isfinite(bound) and abs(value - bound) <= rel_tol * max(1.0, abs(bound)):
+        for bound in (self.lower, self.upper, self.fit_lower, self.fit_upper):
+            if bound is None or not math.isfinite(bound):
+                continue
+            if abs(value - bound) <= rel_tol * max(1.0, abs(bound)):
                 return True
         return False
 

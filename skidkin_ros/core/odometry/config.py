@@ -21,11 +21,14 @@ from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
+from skidkin_ros.core.odometry.gyro import IMU_MODES, IMU_SPECS, ImuParams
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
 from skidkin_ros.core.odometry.uncertainty import (check_parameter_covariance,
                                                    ParameterUncertainty)
+from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.errors import brief, ConfigError, ParameterError
 import yaml
 
@@ -39,6 +42,7 @@ __all__ = [
     'flatten',
     'nest',
     'parse_extensions',
+    'implied_interval',
     'read_params_file',
     'read_params_document',
     'parse_params_text',
@@ -151,6 +155,21 @@ def _augmented_entries() -> list[SchemaEntry]:
     return entries
 
 
+def implied_interval(flat: Mapping[str, Any]) -> str:
+    """Return the sample-interval convention parameters mean when they do not name one.
+
+    A parameters file written by ``skidkin calibrate`` (it carries ``provenance.*``) before the
+    convention existed was fitted with the zero-order hold from the stamp, and its parameters
+    (a time offset above all) are right only under it: such a file keeps meaning
+    ``starting`` (:data:`LEGACY_INTERVAL`). Anything else takes the default, ``ending``.
+    """
+    if 'interval' in flat:
+        return flat['interval']
+    if any(str(name).startswith('provenance.') for name in flat):
+        return LEGACY_INTERVAL
+    return DEFAULT_INTERVAL
+
+
 def parse_extensions(text: str) -> tuple[str, ...]:
     """Return the extension names of a comma-separated list, in application order."""
     names = [part.strip() for part in str(text).replace(';', ',').split(',')]
@@ -175,6 +194,15 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
         SchemaEntry('model', 'string', 'ideal_dd',
                     'kinematic model to run (augmented: a base model plus extensions, see '
                     'augmented.*)', choices=tuple(MODELS) + (AUGMENTED_NAME,)),
+        SchemaEntry('interval', 'string', DEFAULT_INTERVAL,
+                    'which interval a wheel sample describes: ending (the one up to its stamp, '
+                    'as diff_drive_controller), starting (held from its stamp on) or midpoint '
+                    '(trapezoid); a calibrated file without it means starting',
+                    choices=INTERVALS),
+        SchemaEntry('wheel_signal', 'string', 'velocity',
+                    'what a JointState wheel reading integrates: velocity, position (the travel '
+                    'between two samples, wraps of continuous joints handled) or auto (positions '
+                    'when they change, velocities otherwise)', choices=WHEEL_SIGNALS),
         SchemaEntry('input', 'string', 'joint_state',
                     'joint_state (sensor_msgs/JointState) or wheel_topics (two std_msgs/Float64)',
                     choices=INPUT_MODES),
@@ -204,6 +232,18 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                 for spec in NODE_SPECS]
     entries += _model_entries(geometry)
     entries += _augmented_entries()
+    entries += _imu_entries()
+    return entries
+
+
+def _imu_entries() -> list[SchemaEntry]:
+    entries = [SchemaEntry('imu.mode', 'string', 'off',
+                           'gyro use: off (wheels only), adapt (model yaw rate x a gain learned '
+                           'from the gyro) or fuse (the gyro yaw rate replaces the model one)',
+                           choices=IMU_MODES)]
+    entries += [SchemaEntry(f'imu.{spec.name}', 'double', spec.default_for(None),
+                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
+                for spec in IMU_SPECS]
     return entries
 
 
@@ -301,6 +341,8 @@ class OdometryConfig:
     augmented_base: str = 'ideal_dd'
     augmented_extensions: tuple[str, ...] = ()
     augmented_values: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    # Models whose parameters the source gave (ideal_dd needs none): the others hold defaults.
+    models_in_file: tuple[str, ...] = ()
 
     def __getitem__(self, name: str) -> Any:
         return self.values[name]
@@ -348,6 +390,11 @@ class OdometryConfig:
             np.asarray(flat, dtype=float).reshape(size, size))
 
     @property
+    def imu(self) -> ImuParams:
+        """Return the gyro parameters (imu.*; mode off unless set)."""
+        return ImuParams.from_values(self.values)
+
+    @property
     def active_noise(self) -> NoiseModel | None:
         """Return the noise model in force (an augmented model uses its base model's)."""
         if self.model == AUGMENTED_NAME:
@@ -385,8 +432,9 @@ class OdometryConfig:
             raise ParameterError(f'unknown parameter(s) {brief(unknown, 400)}; see the README for '
                                  'the parameters the node accepts')
         values = {}
+        defaults = {'interval': implied_interval(flat)}
         for name, entry in schema.items():
-            values[name] = _check_entry(entry, flat.get(name, entry.default))
+            values[name] = _check_entry(entry, flat.get(name, defaults.get(name, entry.default)))
         _check_node_values(values)
         if values['schema_version'] != SCHEMA_VERSION:
             raise ConfigError(
@@ -418,8 +466,11 @@ class OdometryConfig:
             ext.vector(augmented_values[ext.name])
         if values['model'] != AUGMENTED_NAME:
             get_model(values['model'])
+        given = tuple(m.name for m in MODELS.values()
+                      if not m.params or any(f'models.{m.name}.{p.name}' in flat
+                                             for p in m.params))
         return cls(values['model'], geometry, model_values, noise, values,
-                   values['augmented.base'], extensions, augmented_values)
+                   values['augmented.base'], extensions, augmented_values, given)
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:

@@ -1,7 +1,11 @@
 """The one integrator shared by the live node and every offline tool.
 
-Wheel speeds are held constant between samples (zero-order hold): the speeds of sample i drive
-the robot over [t_i, t_{i+1}). Over each interval the body twist is constant and the pose is
+Wheel speeds are constant between samples: over [t_i, t_{i+1}] the robot moves with the speeds
+the sample-interval convention gives (:mod:`skidkin_ros.core.odometry.interval`: sample i+1's by
+default, sample i's for ``starting``, their mean for ``midpoint``); the batch functions below take
+those *held* speeds, slot i held over [t_i, t_{i+1}) (:func:`~skidkin_ros.core.odometry.interval.
+held_wheels` makes them), the streaming integrator combines two samples itself. Over each
+interval the body twist is constant and the pose is
 advanced by the exact SE(2) exponential, with a series branch for small rotations that is
 continuous with the closed form. The batch rollout (vectorized over many segments, used for
 fitting) and the streaming integrator (used by the node and ``skidkin predict``) perform the same
@@ -22,10 +26,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 import enum
 import math
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
+from skidkin_ros.core.odometry.interval import (check_interval, DEFAULT_INTERVAL, held_speeds,
+                                                interval_speed)
 from skidkin_ros.core.odometry.wheels import jump_limit, jumped_sides
 
 __all__ = [
@@ -224,16 +230,20 @@ def _as_rows(values, dtype=float) -> np.ndarray:
 
 
 def stream_twists(source: TwistSource, t_ns, omega_l, omega_r,
-                  max_dt_s: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  max_dt_s: float = math.inf, interval: str = DEFAULT_INTERVAL
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Batch form of the streaming pipeline over clean drives (D, L) or one drive (L,).
 
-    Returns (published twists (D, L, 3), mean twists over [t_i, t_i+1) (D, L, 3), step
-    durations (D, L) with the last step and steps longer than ``max_dt_s`` set to 0, as the
-    streaming integrator does not integrate across gaps). Padding: repeat the last stamp.
+    ``omega_l``/``omega_r`` are the samples as measured; ``interval`` the convention.
+    Returns (twists of the speeds held over each interval (D, L, 3), mean twists over
+    [t_i, t_i+1) (D, L, 3), step durations (D, L) with the last step and steps longer than
+    ``max_dt_s`` set to 0, as the streaming integrator does not integrate across gaps). Padding:
+    repeat the last stamp.
     """
+    check_interval(interval)
     t = _as_rows(t_ns, np.int64)
-    wl = _as_rows(omega_l)
-    wr = _as_rows(omega_r)
+    wl = held_speeds(_as_rows(omega_l), interval)
+    wr = held_speeds(_as_rows(omega_r), interval)
     dt_s = np.zeros(t.shape)
     dt_s[:, :-1] = np.diff(t, axis=1) * 1e-9
     restart = np.zeros(t.shape, dtype=bool)
@@ -248,9 +258,9 @@ def stream_twists(source: TwistSource, t_ns, omega_l, omega_r,
 
 
 def rollout_stream(source: TwistSource, t_ns, omega_l, omega_r, start=(0.0, 0.0, 0.0),
-                   max_dt_s: float = math.inf) -> np.ndarray:
+                   max_dt_s: float = math.inf, interval: str = DEFAULT_INTERVAL) -> np.ndarray:
     """Pose after every sample of one clean drive (L, 3), as the streaming integrator gives it."""
-    _, mean, dt_s = stream_twists(source, t_ns, omega_l, omega_r, max_dt_s)
+    _, mean, dt_s = stream_twists(source, t_ns, omega_l, omega_r, max_dt_s, interval)
     poses = rollout_segments(mean[:, :-1], dt_s[:, :-1], np.asarray(start, float)[None])
     return poses[0]
 
@@ -312,22 +322,37 @@ class StepResult:
 class StreamingIntegrator:
     """Sample-by-sample form of :func:`rollout`, with the plausibility checks of the node.
 
-    ``step(t_ns, omega_l, omega_r)`` integrates the previously held speeds from the previous
-    stamp to ``t_ns`` and then holds the new speeds. Stamps are integer nanoseconds. The state is
-    kept in plain floats: numpy on three numbers costs more than the arithmetic, and this runs
-    once per wheel sample in the node.
+    ``step(t_ns, omega_l, omega_r)`` integrates from the previous stamp to ``t_ns`` with the
+    speeds the sample-interval convention ``interval`` gives (the new sample's for ``ending``,
+    the previous one's for ``starting``, their mean for ``midpoint``) and then holds the new
+    speeds (the published twist is theirs). Stamps are integer nanoseconds. The state is kept in
+    plain floats: numpy on three numbers costs more than the arithmetic, and this runs once per
+    wheel sample in the node.
+
+    A stateful source under ``ending`` or ``midpoint`` takes each interval's speeds when the
+    sample that ends it arrives (``begin`` at the interval's start stamp, then ``advance``), as
+    the batch form does with the held speeds; between samples its state is the one at the last
+    stamp, and the published twist is what ``begin`` would give for the newest sample.
     """
 
-    def __init__(self, source: TwistSource, limits: IntegratorLimits | None = None) -> None:
+    def __init__(self, source: TwistSource, limits: IntegratorLimits | None = None,
+                 interval: str = DEFAULT_INTERVAL) -> None:
         self._source = source
         self.limits = limits or IntegratorLimits()
+        self.interval = check_interval(interval)
         self._stateful = is_stateful(source)
+        self._deferred = self._stateful and self.interval != 'starting'
+        self._restart = False
         self._offset_ns = _offset_ns(source)
         self._pose: Triple = (0.0, 0.0, 0.0)
         self._twist: Triple = (0.0, 0.0, 0.0)
         self.last_t_ns: int | None = None
         self.held_speeds: tuple[float, float] = (0.0, 0.0)
         self.state: Any = None
+        # Optional aid (an IMU's, see core/odometry/gyro.py): called with every interval about
+        # to be integrated, aid(t0_ns, t1_ns, dt_s, twist, speeds at t0, speeds at t1, yaw rate
+        # of speeds or None), it returns the twist to integrate instead.
+        self.aid: Callable[..., Triple] | None = None
 
     @property
     def source(self) -> TwistSource:
@@ -357,18 +382,31 @@ class StreamingIntegrator:
         self._twist = (0.0, 0.0, 0.0)
         self.held_speeds = (0.0, 0.0)
         self.state = None
+        self._restart = False
 
-    def set_source(self, source: TwistSource) -> None:
+    def restart_pose(self, pose: Triple) -> None:
+        """Move the pose to ``pose``; the held speeds, the stamp and any state are kept."""
+        x, y, yaw = pose
+        self._pose = (float(x), float(y), float(yaw))
+
+    def set_source(self, source: TwistSource, interval: str | None = None) -> None:
         """Switch model (parameters changed at runtime); the held twist is recomputed.
 
-        A stateful source starts afresh from the held speeds (its state is not carried over).
+        ``interval`` (None: keep it) switches the convention from the next sample on. A stateful
+        source starts afresh from the held speeds (its state is not carried over).
         """
         self._source = source
+        if interval is not None:
+            self.interval = check_interval(interval)
         self._stateful = is_stateful(source)
+        self._deferred = self._stateful and self.interval != 'starting'
         self._offset_ns = _offset_ns(source)
         self.state = None
+        self._restart = False
         if self._stateful and self.last_t_ns is not None:
-            self.state, twist = source.begin(None, self.last_t_ns, *self.held_speeds, True)
+            state, twist = source.begin(None, self.last_t_ns, *self.held_speeds, True)
+            if not self._deferred:
+                self.state = state
             self._twist = _triple(twist)
             return
         self._twist = _scalar_twist(source, *self.held_speeds)
@@ -377,14 +415,45 @@ class StreamingIntegrator:
         return StepResult(status, self._pose, self._twist, dt_s, detail, self._pose,
                           self._twist)
 
-    def _hold(self, t_ns: int, omega_l: float, omega_r: float, restart: bool = False) -> None:
+    def _hold(self, t_ns: int, omega_l: float, omega_r: float, restart: bool = False,
+              twist: Triple | None = None) -> None:
         self.last_t_ns = t_ns
         self.held_speeds = (omega_l, omega_r)
+        if self._deferred:
+            # The state stays at this stamp; begin runs when the next sample ends the interval.
+            self._restart = self._restart or restart
+            _, twist = self.source.begin(self.state, t_ns, omega_l, omega_r, self._restart)
+            self._twist = _triple(twist)
+            return
         if self._stateful:
             self.state, twist = self.source.begin(self.state, t_ns, omega_l, omega_r, restart)
             self._twist = _triple(twist)
             return
-        self._twist = _scalar_twist(self.source, omega_l, omega_r)
+        # ``twist``: these very speeds' twist, already computed (ending): not computed twice
+        self._twist = twist if twist is not None else _scalar_twist(self.source, omega_l, omega_r)
+
+    def _interval_twist(self, omega_l: float, omega_r: float, dt_s: float
+                        ) -> tuple[Triple, Any]:
+        """Return the twist integrated up to a new sample and the source state after it."""
+        interval = self.interval
+        if self._deferred:
+            held_l, held_r = self.held_speeds
+            state, _ = self.source.begin(self.state, self.last_t_ns,
+                                         interval_speed(held_l, omega_l, interval),
+                                         interval_speed(held_r, omega_r, interval),
+                                         self._restart)
+            state, mean = self.source.advance(state, dt_s)
+            return _triple(mean), state
+        if self._stateful:
+            state, mean = self.source.advance(self.state, dt_s)
+            return _triple(mean), state
+        if interval == 'starting':
+            return self._twist, None
+        if interval == 'ending':
+            return _scalar_twist(self.source, omega_l, omega_r), None
+        held_l, held_r = self.held_speeds
+        return _scalar_twist(self.source, interval_speed(held_l, omega_l, interval),
+                             interval_speed(held_r, omega_r, interval)), None
 
     def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
         omega_l = float(omega_l)
@@ -417,14 +486,16 @@ class StreamingIntegrator:
         if not (abs(omega_l - held_l) <= limit and abs(omega_r - held_r) <= limit):
             return self._jump(omega_l, omega_r, dt_s)
         if dt_ns == 0:
+            if self._deferred:  # a zero-length interval still runs the source, as in batch
+                _, self.state = self._interval_twist(omega_l, omega_r, 0.0)
+                self._restart = False
             self._hold(t_ns, omega_l, omega_r)
             return self._result(SampleStatus.DUPLICATE_STAMP,
                                 detail='duplicate stamp (dt = 0)')
-        step_twist = self._twist
-        new_state = self.state
-        if self._stateful:
-            new_state, mean = self.source.advance(self.state, dt_s)
-            step_twist = _triple(mean)
+        step_twist, new_state = self._interval_twist(omega_l, omega_r, dt_s)
+        if self.aid is not None:
+            step_twist = self.aid(self.last_t_ns, t_ns, dt_s, step_twist, self.held_speeds,
+                                  (omega_l, omega_r), None if self._stateful else self._yaw_rate)
         vx, vy, w = step_twist
         start = self._pose
         x, y, theta = start
@@ -437,10 +508,16 @@ class StreamingIntegrator:
             return self._result(SampleStatus.NON_FINITE_STATE, dt_s,
                                 'integration produced a non-finite pose; kept the last finite one')
         self._pose = (x, y, theta)
-        self.state = new_state
-        self._hold(t_ns, omega_l, omega_r)
+        if self._stateful:
+            self.state = new_state
+            self._restart = False
+        self._hold(t_ns, omega_l, omega_r, twist=(
+            step_twist if self.interval == 'ending' and not self._stateful else None))
         return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
                           step_twist)
+
+    def _yaw_rate(self, omega_l: float, omega_r: float) -> float:
+        return _scalar_twist(self._source, omega_l, omega_r)[2]
 
     def _jump(self, omega_l: float, omega_r: float, dt_s: float) -> StepResult:
         sides = jumped_sides(self.held_speeds, omega_l, omega_r, dt_s,

@@ -33,19 +33,22 @@ the same pipeline without touching the node.
 from __future__ import annotations
 
 import collections
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
-from typing import Callable, NamedTuple, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.odometry.config import node_default, OdometryConfig
-from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, StepResult,
-                                                  StreamingIntegrator, TwistSource)
+from skidkin_ros.core.odometry.gyro import GyroAid, GyroStatus, ImuParams
+from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, step_scalar,
+                                                  StepResult, StreamingIntegrator, TwistSource)
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
 from skidkin_ros.core.odometry.noise import FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL
-from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
-from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer
+from skidkin_ros.core.odometry.propagation import (PoseCovariancePropagator,
+                                                   TWIST_VARIANCE_FLOOR)
+from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer, WheelSignal
 
 __all__ = ['SampleRules', 'Estimate', 'Odometer', 'Prediction', 'predict_wheels',
            'check_pose', 'check_covariance', 'POSE_LIMIT_M', 'VARIANCE_LIMIT',
@@ -59,6 +62,8 @@ POSE_LIMIT_M = 1e9
 VARIANCE_LIMIT = 1e12
 # Samples in a row that confirm a stepped-back input clock (one corrupt stamp is not a restart).
 STEP_BACK_CONFIRM = 3
+# Wheel samples that may wait for the gyro at once (beyond: the oldest goes on without it).
+MAX_PENDING = 1000
 Triple = tuple[float, float, float]
 Warn = Callable[..., None]  # warn(cause, message, error=False)
 
@@ -145,8 +150,13 @@ class Odometer:
                  rules: SampleRules | None = None,
                  covariance: PoseCovariancePropagator | None = None, *,
                  counters: collections.Counter[str] | None = None, warn: Warn | None = None,
-                 fresh: Callable[[], None] | None = None) -> None:
-        self.integrator = StreamingIntegrator(source, limits)
+                 fresh: Callable[[], None] | None = None, imu: ImuParams | None = None,
+                 wheel_radius_m: float = 0.1651,
+                 interval: str = DEFAULT_INTERVAL, wheel_signal: str = 'velocity',
+                 note: Callable[[str], None] | None = None) -> None:
+        self.integrator = StreamingIntegrator(source, limits, interval)
+        self.signal = WheelSignal(wheel_signal, self.integrator.limits.max_wheel_speed_rad_s)
+        self._note = note or _ignore
         self.covariance = covariance or PoseCovariancePropagator(
             None, FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL)
         self.counters: collections.Counter[str] = (collections.Counter() if counters is None
@@ -160,14 +170,24 @@ class Odometer:
         # The last accepted input stamp, kept across reset() (see the module docstring).
         self.last_input_t_ns: int | None = None
         self._step_back_run: list[int] = []
+        # Wheel samples waiting for the gyro samples that cover them: (t_ns, l, r, arrival_ns).
+        self._pending: collections.deque[tuple[int, float, float, int]] = collections.deque()
+        self.gyro: GyroAid | None = None
+        self.set_imu(imu or ImuParams(), wheel_radius_m)
 
     @classmethod
     def from_config(cls, config: OdometryConfig, model: str | None = None, *,
                     counters: collections.Counter[str] | None = None, warn: Warn | None = None,
-                    fresh: Callable[[], None] | None = None) -> 'Odometer':
-        """Return the odometer a configuration describes (``model`` replaces its model)."""
+                    fresh: Callable[[], None] | None = None,
+                    note: Callable[[str], None] | None = None) -> 'Odometer':
+        """Return the odometer a configuration describes (``model`` replaces its model).
+
+        ``note(message)`` hears which wheel signal is in use when that changes.
+        """
         return cls(config.bound_model(model), config.limits, SampleRules.from_config(config),
-                   _propagator(config), counters=counters, warn=warn, fresh=fresh)
+                   _propagator(config), counters=counters, warn=warn, fresh=fresh,
+                   imu=config.imu, wheel_radius_m=config.geometry.wheel_radius,
+                   interval=config['interval'], wheel_signal=config['wheel_signal'], note=note)
 
     # ------------------------------------------------------------------ state
     @property
@@ -190,13 +210,32 @@ class Odometer:
 
     def configure(self, config: OdometryConfig) -> None:
         """Switch to a validated configuration; the pose and its covariance are kept."""
-        self.integrator.set_source(config.bound_model())
+        self.integrator.set_source(config.bound_model(), config['interval'])
         self.integrator.limits = config.limits
+        if (config['wheel_signal'], config['max_wheel_speed']) != (
+                self.signal.mode, self.signal.max_speed_rad_s):
+            self.signal = WheelSignal(config['wheel_signal'], config['max_wheel_speed'])
         covariance = _propagator(config)
         covariance.reset(float(self.pose[2]))
         covariance.cov = self.covariance.cov.copy()
         self.covariance = covariance
         self.set_rules(SampleRules.from_config(config))
+        self.set_imu(config.imu, config.geometry.wheel_radius)
+
+    def set_imu(self, params: ImuParams, wheel_radius_m: float) -> None:
+        """Use the gyro as ``params`` say (mode off: not at all).
+
+        Unchanged parameters keep the gyro history and the learned gain and bias; changed ones
+        start them afresh (from the calibrated model).
+        """
+        gyro = self.gyro
+        if (gyro is not None and gyro.params == params
+                and gyro.wheel_radius_m == float(wheel_radius_m)):
+            return
+        self.gyro = None if params.mode == 'off' else GyroAid(params, wheel_radius_m)
+        self.integrator.aid = self.gyro
+        if self.gyro is None:
+            self._pending.clear()
 
     def reset(self, pose: Sequence[float] = (0.0, 0.0, 0.0),
               covariance: np.ndarray | None = None) -> None:
@@ -216,17 +255,27 @@ class Odometer:
         self.period_s = 0.0
         self.last_published_t_ns = None
         self.pairer.clear()
+        self.signal.clear()
         self._step_back_run.clear()
+        self._pending.clear()
 
     def clock_changed(self) -> None:
         """Reset to the origin and forget the last input stamp (the clock itself jumped)."""
         self.reset()
         self.last_input_t_ns = None
+        if self.gyro is not None:
+            self.gyro.buffer.clear()
 
     # ------------------------------------------------------------------ inputs
-    def joint_sample(self, t_ns: int, omega_l: float, omega_r: float,
-                     now_ns: int) -> Estimate | None:
-        """Take a stamped sample (a JointState's) received at ``now_ns`` on the node clock."""
+    def joint_sample(self, t_ns: int, omega_l: float, omega_r: float, now_ns: int,
+                     positions: tuple[Sequence[float], Sequence[float]] | None = None
+                     ) -> Estimate | None:
+        """Take a stamped sample (a JointState's) received at ``now_ns`` on the node clock.
+
+        ``positions``: the left and right wheel joints' positions (rad), None when the message
+        has none; ``wheel_signal`` says which of them and the speeds is integrated
+        (:class:`~skidkin_ros.core.odometry.wheels.WheelSignal`).
+        """
         if t_ns == 0:
             if not self.rules.zero_stamp_uses_receive_time:
                 self._reject('zero_stamp', 'JointState header.stamp is zero; sample rejected '
@@ -245,7 +294,15 @@ class Odometer:
                          f'clock (future_tolerance {self.rules.future_tolerance_s:g} s); sample '
                          'rejected: check the clocks of the driver and this machine')
             return None
-        return self.update(t_ns, omega_l, omega_r)
+        taken = self.signal.take(t_ns, omega_l, omega_r, positions)
+        if taken.switched:
+            plural = 'positions' if taken.switched == 'position' else 'velocities'
+            self._note(f'wheel signal: integrating the wheel {plural} (wheel_signal '
+                       f'{self.signal.mode})')
+        if taken.speeds is None:
+            self._reject(taken.cause, taken.detail)
+            return None
+        return self.update(t_ns, *taken.speeds, now_ns)
 
     def wheel_sample(self, side: str, omega_rad_s: float, now_ns: int) -> Estimate | None:
         """Take one side's unstamped speed (a Float64 topic's) received at ``now_ns``."""
@@ -263,9 +320,73 @@ class Odometer:
                          f'{self.rules.pair_tolerance_s:g} s')
         return None
 
+    def imu_sample(self, t_ns: int, yaw_rate: float, now_ns: int) -> list[Estimate]:
+        """Take a gyro yaw rate (rad/s, base frame z) stamped ``t_ns``, received at ``now_ns``.
+
+        Ignored (counted) with mode off. A zero, negative or future stamp is refused; NaN, inf,
+        saturated, older and duplicate samples are counted by the buffer and never used. Returns
+        the estimates of wheel samples that were waiting for it (see :meth:`update`).
+        """
+        gyro = self.gyro
+        if gyro is None:
+            self.counters['imu_ignored'] += 1
+            return []
+        if t_ns <= 0:
+            self._reject('imu_bad_stamp', f'Imu stamp is {"zero" if t_ns == 0 else "negative"}; '
+                         'gyro sample ignored: check the IMU driver clock')
+        elif t_ns - now_ns > self._future_ns:
+            self._reject('imu_future_stamp',
+                         f'Imu stamp is {(t_ns - now_ns) / NS_PER_S:.3f} s ahead of the node '
+                         f'clock (future_tolerance {self.rules.future_tolerance_s:g} s); gyro '
+                         'sample ignored')
+        else:
+            status = gyro.buffer.add(t_ns, yaw_rate)
+            self.counters['imu_' + status.value] += 1
+            if status is not GyroStatus.ACCEPTED:
+                self._warn('imu_' + status.value,
+                           f'gyro sample {status.value} (yaw rate {yaw_rate!r} rad/s, stamp '
+                           f'{t_ns / NS_PER_S:.3f} s): not used')
+        return self._drain(now_ns)
+
+    def flush(self, now_ns: int) -> list[Estimate]:
+        """Integrate the wheel samples that waited longer than imu.max_wait (node timer)."""
+        return self._drain(now_ns)
+
+    def _drain(self, now_ns: int) -> list[Estimate]:
+        out = []
+        pending = self._pending
+        gyro = self.gyro
+        wait_ns = (gyro.params.max_wait if gyro is not None else 0.0) * NS_PER_S
+        while pending:
+            t_ns, omega_l, omega_r, arrived_ns = pending[0]
+            if (gyro is not None and not gyro.buffer.ready(t_ns)
+                    and now_ns - arrived_ns <= wait_ns):
+                break
+            pending.popleft()
+            estimate = self._update_now(t_ns, omega_l, omega_r)
+            if estimate is not None:
+                out.append(estimate)
+        return out
+
     # ------------------------------------------------------------------ the pipeline
-    def update(self, t_ns: int, omega_l: float, omega_r: float) -> Estimate | None:
-        """Integrate a stamped sample; return what to publish for it, if anything."""
+    def update(self, t_ns: int, omega_l: float, omega_r: float,
+               now_ns: int | None = None) -> Estimate | None:
+        """Integrate a stamped sample; return what to publish for it, if anything.
+
+        With the gyro in use, a sample whose interval the gyro does not cover yet waits (at
+        most imu.max_wait after ``now_ns``, its arrival; default: its stamp): it is then
+        integrated by :meth:`imu_sample` or :meth:`flush`, which return its estimate.
+        """
+        if self.gyro is not None:
+            arrived = t_ns if now_ns is None else now_ns
+            if self._pending or not self.gyro.buffer.ready(t_ns):
+                self._pending.append((t_ns, omega_l, omega_r, arrived))
+                if len(self._pending) > MAX_PENDING:  # never hold more than a few seconds
+                    return self._update_now(*self._pending.popleft()[:3])
+                return None
+        return self._update_now(t_ns, omega_l, omega_r)
+
+    def _update_now(self, t_ns: int, omega_l: float, omega_r: float) -> Estimate | None:
         last = self.last_input_t_ns
         if last is not None and last - t_ns > self._step_back_ns:
             if not self._clock_restarted(t_ns):
@@ -317,7 +438,11 @@ class Odometer:
         status = result.status
         self.counters[status.value] += 1
         if status is SampleStatus.INTEGRATED:
-            self.covariance.step(result.start_pose, result.step_twist, result.dt_s)
+            gyro = self.gyro
+            if gyro is None:
+                self.covariance.step(result.start_pose, result.step_twist, result.dt_s)
+            else:
+                result = self._aided(gyro, result)
             self.period_s = result.dt_s
         elif status is SampleStatus.GAP:
             self._warn('gap', result.detail)
@@ -327,6 +452,29 @@ class Odometer:
             self._warn(status.value, f'wheel sample rejected: {result.detail}')
         return result
 
+    def _aided(self, gyro: GyroAid, result: StepResult) -> StepResult:
+        """Count the gyro interval and propagate the covariance of the aided step.
+
+        Published: the yaw rate integrated (fuse on the gyro) or the model's times the gain.
+        """
+        last = gyro.last
+        self.counters['imu_interval_' + last.status.value] += 1
+        vx, vy, w = result.step_twist
+        dt_s = result.dt_s
+        noise = self.covariance.noise
+        extra = None
+        if noise is not None:
+            x, y, yaw = result.start_pose
+            dx, dy = step_scalar(x, y, yaw, vx, vy, w, dt_s)[3:]
+            ds = math.hypot(dx, dy)
+            used = noise.step_variances(ds, w * dt_s)[2]
+            model = noise.step_variances(ds, last.model_yaw_rate * dt_s)[2]
+            extra = (0.0, 0.0, 0.0, 0.0, 0.0, gyro.yaw_step_variance(model) - used)
+        self.covariance.step(result.start_pose, result.step_twist, dt_s, extra)
+        hx, hy, hw = result.twist
+        published = w if last.yaw_from_gyro else gyro.filter.gain * hw
+        return replace(result, twist=(hx, hy, published))
+
     def _estimate(self, t_ns: int, result: StepResult) -> Estimate | None:
         last = self.last_published_t_ns
         if self._min_period_ns and last is not None and t_ns - last < self._min_period_ns:
@@ -335,6 +483,11 @@ class Odometer:
         covariance = self.covariance
         pose_cov = covariance.pose_covariance_flat()
         twist_cov = covariance.twist_covariance_flat(result.twist, self.period_s)
+        gyro = self.gyro
+        if gyro is not None and covariance.calibrated and self.period_s > 0.0:
+            twist_cov[35] = max(gyro.yaw_rate_variance(twist_cov[35], self.period_s,
+                                                       gyro.last.model_yaw_rate),
+                                TWIST_VARIANCE_FLOOR[2])
         x, y, yaw = result.pose
         vx, vy, w = result.twist
         # A sum of finite terms may overflow to inf only far beyond any plausible value.
@@ -354,24 +507,82 @@ class Odometer:
         self._warn(cause, message)
 
     # ------------------------------------------------------------------ offline
-    def predict(self, wheels: WheelSamples, start: Sequence[float] = (0.0, 0.0, 0.0)
-                ) -> 'Prediction':
-        """Restart at ``start`` and run every sample through :meth:`step`, as the node does."""
+    def predict(self, wheels: WheelSamples, start: Sequence[float] = (0.0, 0.0, 0.0),
+                imu: ImuSamples | None = None,
+                restarts: Mapping[int, Sequence[float]] | None = None) -> 'Prediction':
+        """Restart at ``start`` and run every sample through :meth:`step`, as the node does.
+
+        With the gyro in use, ``imu`` samples arrive in stamp order, as the node receives them:
+        those stamped up to a wheel sample's stamp before it, then more while the wheel sample
+        waits for its interval to be covered (at most imu.max_wait past its stamp). The gyro
+        history and the learned gain and bias carry over from an earlier call (a drive cut in
+        windows). ``restarts`` ({sample index: pose}): after that sample, the pose is set and its
+        covariance zeroed, everything else kept (the windows of a NEES study); the prediction
+        then holds the pose covariance and the gain after every sample.
+        """
         self.reset(start)
         poses = np.empty((len(wheels), 3))
         twists = np.empty((len(wheels), 3))
         pose_covs = np.empty((len(wheels), 36))
+        covariances = gains = None
+        if restarts is not None:
+            covariances = np.empty((len(wheels), 3, 3))
+            gains = np.ones(len(wheels))
         status = []
-        for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns, wheels.omega_l,
+        gyro = self.gyro
+        feed = _GyroFeed(gyro, imu, self.counters)
+        for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns.tolist(), wheels.omega_l,
                                                          wheels.omega_r)):
+            feed.until(t_ns)
             result = self.step(int(t_ns), omega_l, omega_r)
             poses[i] = result.pose
             twists[i] = result.twist
             pose_covs[i] = self.covariance.pose_covariance_flat()
             status.append(result.status)
+            if restarts is not None:
+                covariances[i] = self.covariance.total_cov()
+                gains[i] = gyro.filter.gain if gyro is not None else 1.0
+                if i in restarts:
+                    self.integrator.restart_pose(check_pose(restarts[i]))
+                    self.covariance.reset(float(restarts[i][2]))
         offset_ns = self.output_offset_ns
         return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns,
-                          pose_covs.reshape(-1, 6, 6))
+                          pose_covs.reshape(-1, 6, 6), covariances, gains)
+
+
+class _GyroFeed:
+    """Offline: hands recorded gyro samples to the buffer in the order the node gets them."""
+
+    def __init__(self, gyro: GyroAid | None, imu: ImuSamples | None,
+                 counters: collections.Counter[str]) -> None:
+        self.gyro = gyro
+        self.counters = counters
+        if gyro is None or imu is None or len(imu.t_ns) == 0:
+            self.t: list[int] = []
+            self.rate: list[float] = []
+        else:
+            self.t = np.asarray(imu.t_ns, dtype=np.int64).tolist()
+            self.rate = np.asarray(imu.yaw_rate, dtype=float).tolist()
+            newest = gyro.buffer.newest_ns
+            if newest is not None and self.t[0] <= newest:   # a new recording's clock
+                gyro.buffer.clear()
+        self.i = 0
+
+    def _add(self) -> None:
+        status = self.gyro.buffer.add(self.t[self.i], self.rate[self.i])
+        self.counters['imu_' + status.value] += 1
+        self.i += 1
+
+    def until(self, t_ns: int) -> None:
+        """Feed what has arrived by the wheel sample at t_ns, then what it waits for."""
+        t, n = self.t, len(self.t)
+        while self.i < n and t[self.i] <= t_ns:
+            self._add()
+        if self.i < n:
+            ready = self.gyro.buffer.ready
+            deadline = t_ns + self.gyro.params.max_wait * NS_PER_S
+            while self.i < n and t[self.i] <= deadline and not ready(t_ns):
+                self._add()
 
 
 def _propagator(config: OdometryConfig) -> PoseCovariancePropagator:
@@ -396,6 +607,8 @@ class Prediction:
     status: tuple[SampleStatus, ...]
     offset_ns: int = 0
     pose_covariances: np.ndarray | None = None  # (N, 6, 6): what the node publishes
+    covariances: np.ndarray | None = None   # (N, 3, 3) pose covariance, with ``restarts``
+    imu_gain: np.ndarray | None = None      # (N,) the learned yaw-rate gain, with ``restarts``
 
     @property
     def accepted(self) -> np.ndarray:
@@ -404,6 +617,9 @@ class Prediction:
 
 def predict_wheels(wheels: WheelSamples, source: TwistSource,
                    limits: IntegratorLimits | None = None,
-                   start: Sequence[float] = (0.0, 0.0, 0.0)) -> Prediction:
+                   start: Sequence[float] = (0.0, 0.0, 0.0), imu: ImuSamples | None = None,
+                   imu_params: ImuParams | None = None, wheel_radius_m: float = 0.1651,
+                   interval: str = DEFAULT_INTERVAL) -> Prediction:
     """Run ``source`` over every wheel sample from ``start``, through the node's odometer."""
-    return Odometer(source, limits).predict(wheels, start)
+    return Odometer(source, limits, imu=imu_params, wheel_radius_m=wheel_radius_m,
+                    interval=interval).predict(wheels, start, imu)

@@ -43,6 +43,7 @@ import numpy as np
 
 from skidkin_ros.core.odometry.integrator import (body_increment, IntegratorLimits, SampleStatus,
                                                   step_scalar, StreamingIntegrator, TwistSource)
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, interval_speed
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NoiseModel)
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
@@ -171,13 +172,14 @@ def propagate_scalar(x: float, y: float, yaw: float, vx: float, vy: float, w: fl
 def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
             omega_l: Sequence[float], omega_r: Sequence[float], source: TwistSource,
             noise: NoiseModel | None, input_variance: float = 0.0,
-            parameters: ParameterUncertainty | None = None
-            ) -> tuple[np.ndarray, np.ndarray]:
+            parameters: ParameterUncertainty | None = None,
+            interval: str = DEFAULT_INTERVAL) -> tuple[np.ndarray, np.ndarray]:
     """Predict the pose and its covariance from t_ns[0] to t_ns[-1].
 
-    ``pose`` (x, y, yaw) and ``cov`` (3 x 3) hold at t_ns[0]; the wheel speeds of each sample are
-    held until the next one (the integrator's zero-order hold), so the last sample only sets the
-    end time. The samples go through the node's streaming integrator, so a stateful ``source``
+    ``pose`` (x, y, yaw) and ``cov`` (3 x 3) hold at t_ns[0]; the speeds between two samples are
+    the sample-interval convention's (``interval``, see
+    :mod:`skidkin_ros.core.odometry.interval`). The samples go through the node's streaming
+    integrator, so a stateful ``source``
     (an augmented model with a lag, a time-in-drive regime) predicts what the node publishes;
     duplicate stamps update the held speeds, and samples with an older stamp or a non-finite
     speed are skipped, as in the node (there is no limit on the step length or the speed here).
@@ -187,7 +189,7 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
     covariance) and a noise model with a length-independent part, both are included.
     """
     poses, covs = predict_track(pose, cov, t_ns, omega_l, omega_r, source, noise, input_variance,
-                                parameters)
+                                parameters, interval)
     if not len(poses):
         return np.asarray(pose, dtype=float).copy(), upper_to_3x3(_upper_of(cov))
     return poses[-1], covs[-1]
@@ -196,8 +198,8 @@ def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
 def predict_track(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
                   omega_l: Sequence[float], omega_r: Sequence[float], source: TwistSource,
                   noise: NoiseModel | None, input_variance: float = 0.0,
-                  parameters: ParameterUncertainty | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  parameters: ParameterUncertainty | None = None,
+                  interval: str = DEFAULT_INTERVAL) -> tuple[np.ndarray, np.ndarray]:
     """:func:`predict` with the pose and published covariance after every sample.
 
     Returns (K, 3) poses and (K, 3, 3) covariances, K = len(t_ns); a sample that was not
@@ -205,7 +207,7 @@ def predict_track(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
     length-independent part).
     """
     unlimited = IntegratorLimits(max_dt_s=math.inf, max_wheel_speed_rad_s=math.inf)
-    integrator = StreamingIntegrator(source, unlimited)
+    integrator = StreamingIntegrator(source, unlimited, interval)
     integrator.reset(pose)
     state = np.asarray(pose, dtype=float).copy()
     propagator = PoseCovariancePropagator(noise, FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
@@ -224,7 +226,9 @@ def predict_track(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
         if result.status is SampleStatus.INTEGRATED:
             extra = None
             if input_variance > 0.0:
-                jac_in = increment_input_jacobian(source, *held, result.dt_s)
+                speeds = (interval_speed(held[0], left, interval),
+                          interval_speed(held[1], right, interval))
+                jac_in = increment_input_jacobian(source, *speeds, result.dt_s)
                 extra = _upper_of(input_variance * jac_in @ jac_in.T)
             propagator.step(result.start_pose, result.step_twist, result.dt_s, extra)
             state = np.asarray(result.pose)

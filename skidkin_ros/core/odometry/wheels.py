@@ -26,6 +26,20 @@ node would not reproduce the offline prediction:
    seconds; the first sample (and the first after a gap longer than ``max_dt``) has no reference
    and is taken as it is.
 
+4. Encoder positions (``wheel_signal``, :class:`WheelSignal`): with ``position``, a side's speed
+   over [t_k-1, t_k] is its travel (the difference of its joints' positions, the mean over its
+   joints) divided by the interval: what diff_drive_controller integrates, and exactly what the
+   ``ending`` sample-interval convention means. A joint whose two positions both lie within one
+   turn of zero (drivers that wrap continuous joints into [-pi, pi) or [0, 2 pi)) and differ by
+   more than half a turn has wrapped: its travel is taken the short way round. A side whose
+   speed would exceed ``max_wheel_speed`` is rejected like a bad speed, and the differences start
+   again from the new positions (a driver that reset its counters is followed, not refused
+   forever); a non-finite position is rejected and the last good one kept. ``auto`` uses the
+   positions when they change and are finite, the velocities otherwise (a driver whose positions
+   never change, or a message without positions), and says which it uses when that changes; an
+   interval is always measured by one signal (using a velocity moves the position reference to
+   that sample).
+
 Times are integer nanoseconds; speeds rad/s.
 """
 
@@ -33,7 +47,7 @@ from __future__ import annotations
 
 import enum
 import math
-from typing import Iterable, Sequence
+from typing import Iterable, NamedTuple, Sequence
 
 from skidkin_ros.errors import brief
 
@@ -54,7 +68,14 @@ __all__ = [
     'jump_limit',
     'jumped_sides',
     'drop_jumps',
+    'WHEEL_SIGNALS',
+    'check_position_count',
+    'positions_at',
+    'SignalResult',
+    'WheelSignal',
 ]
+
+WHEEL_SIGNALS = ('velocity', 'position', 'auto')
 
 SIDES = ('left', 'right')
 # Wheel accelerations are measured over at least this long (s): at kHz rates one encoder count
@@ -243,3 +264,121 @@ def drop_jumps(t_ns: Sequence[int], omega_l: Sequence[float], omega_r: Sequence[
         keep.append(True)
         last_t, held = t, (float(wl), float(wr))
     return keep, sides
+
+
+def check_position_count(n_names: int, n_positions: int) -> bool:
+    """Return whether a JointState carries positions (none, or one per name; else raise)."""
+    if n_positions == 0:
+        return False
+    if n_positions != n_names:
+        raise MalformedMessageError(
+            f'JointState has {n_names} names but {n_positions} positions; expected none or one '
+            'position (rad) per joint name')
+    return True
+
+
+def positions_at(position: Sequence[float], left: Sequence[int], right: Sequence[int]
+                 ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Return the left and right wheel joints' positions (rad), as floats."""
+    return (tuple(float(position[i]) for i in left), tuple(float(position[i]) for i in right))
+
+
+def _travel(before: float, after: float) -> float:
+    """Return a joint's travel (rad) between two positions, a wrap taken the short way round."""
+    travel = after - before
+    if abs(travel) > math.pi and abs(before) <= 2 * math.pi and abs(after) <= 2 * math.pi:
+        travel -= 2 * math.pi * round(travel / (2 * math.pi))
+    return travel
+
+
+class SignalResult(NamedTuple):
+    """What :meth:`WheelSignal.take` made of one sample.
+
+    ``speeds``: (omega_l, omega_r) to integrate, or None when the sample is rejected (``cause``:
+    'no_position', 'non_finite' or 'implausible', with ``detail``); ``switched``: the signal now
+    in use, when it changed with this sample.
+    """
+
+    speeds: tuple[float, float] | None
+    cause: str = ''
+    detail: str = ''
+    switched: str = ''
+
+
+class WheelSignal:
+    """Turn a wheel sample (velocities and, maybe, positions) into speeds (module docstring, 4).
+
+    ``take(t_ns, omega_l, omega_r, positions)`` with ``positions`` = (left joints' positions,
+    right joints' positions) or None. ``in_use`` says which signal measured the last interval.
+    """
+
+    def __init__(self, mode: str = 'velocity', max_speed_rad_s: float = math.inf) -> None:
+        if mode not in WHEEL_SIGNALS:
+            raise ValueError(f'wheel_signal must be one of {", ".join(WHEEL_SIGNALS)}, got '
+                             f'{mode!r}')
+        self.mode = mode
+        self.max_speed_rad_s = max_speed_rad_s
+        self.in_use = 'position' if mode == 'position' else 'velocity'
+        self._reference: tuple[int, tuple[float, ...], tuple[float, ...]] | None = None
+        self._speeds = (0.0, 0.0)
+
+    def clear(self) -> None:
+        """Forget the position reference (after a reset or a clock change)."""
+        self._reference = None
+
+    def _use(self, signal: str) -> str:
+        if signal == self.in_use:
+            return ''
+        self.in_use = signal
+        return signal
+
+    def take(self, t_ns: int, omega_l: float, omega_r: float,
+             positions: tuple[Sequence[float], Sequence[float]] | None) -> SignalResult:
+        mode = self.mode
+        if mode == 'velocity':
+            return SignalResult((omega_l, omega_r))
+        finite = positions is not None and all(
+            math.isfinite(v) for side in positions for v in side)
+        if mode == 'auto':
+            reference = self._reference
+            if not finite or reference is None or (tuple(positions[0]), tuple(positions[1])) == (
+                    reference[1], reference[2]):
+                self._reference = ((t_ns, tuple(positions[0]), tuple(positions[1])) if finite
+                                   else None)
+                return SignalResult((omega_l, omega_r), switched=self._use('velocity'))
+        elif positions is None:
+            return SignalResult(None, 'no_position', 'JointState has no positions but '
+                                'wheel_signal is position; sample rejected: publish the joint '
+                                'positions, or set wheel_signal to velocity or auto')
+        elif not finite:
+            return SignalResult(None, 'non_finite', f'wheel joint positions {positions} are not '
+                                'all finite (expected finite rad); sample rejected, the last '
+                                'finite positions kept')
+        return self._difference(t_ns, omega_l, omega_r, positions)
+
+    def _difference(self, t_ns: int, omega_l: float, omega_r: float,
+                    positions: tuple[Sequence[float], Sequence[float]]) -> SignalResult:
+        left, right = tuple(positions[0]), tuple(positions[1])
+        reference = self._reference
+        if reference is None:  # the first positions: nothing to difference yet
+            self._reference = (t_ns, left, right)
+            speeds = tuple(v if math.isfinite(v) else 0.0 for v in (omega_l, omega_r))
+            return SignalResult(speeds, switched=self._use('position'))
+        dt_ns = t_ns - reference[0]
+        if dt_ns <= 0:  # a duplicate or older stamp: the integrator says which, and skips it
+            return SignalResult(self._speeds)
+        dt_s = dt_ns * 1e-9
+        speeds = []
+        for side, before, after in (('left', reference[1], left), ('right', reference[2], right)):
+            speed = side_speed([_travel(b, a) / dt_s for b, a in zip(before, after)])
+            if not abs(speed) <= self.max_speed_rad_s:
+                self._reference = (t_ns, left, right)
+                return SignalResult(None, 'implausible', (
+                    f'{side} wheel position jumped from {list(before)} to {list(after)} rad in '
+                    f'{dt_s:.3f} s ({speed:.3g} rad/s, beyond max_wheel_speed '
+                    f'{self.max_speed_rad_s:g} rad/s); sample rejected, positions differenced '
+                    'from the new ones on'))
+            speeds.append(speed)
+        self._reference = (t_ns, left, right)
+        self._speeds = (speeds[0], speeds[1])
+        return SignalResult(self._speeds, switched=self._use('position'))

@@ -96,7 +96,8 @@ class CandidateFitter:
                  geometry: Geometry, options: DiagnosisOptions, samples: PoseSamples,
                  hints: FitHints) -> None:
         self.drives = drives
-        self.predictor = SegmentPredictor(drives, segments, options.max_dt_s)
+        self.predictor = SegmentPredictor(drives, segments, options.max_dt_s,
+                                          options.interval)
         self.base_name = base_name
         self.geometry = geometry
         self.options = options

@@ -39,7 +39,7 @@ class DiagnosisOptions(HorizonOptions):
     trim: bool = False
 
     def __post_init__(self) -> None:
-        ordered(self.candidates)
+        ordered(self.candidates, exclusive=False)
         if self.stamp_convention not in ('mid', 'start'):
             raise ParameterError("stamp_convention must be 'mid' (wheel speeds describe the "
                                  "middle of the interval they are held over) or 'start', got "

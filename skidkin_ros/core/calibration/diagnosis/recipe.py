@@ -1,10 +1,12 @@
 """The diagnosis recipe: refit, trace, select, and measure before and after.
 
 :func:`diagnose` runs the steps of :mod:`skidkin_ros.core.calibration.diagnosis` in order; each
-step's module says how and why. The stamp convention is decided here: with the integrator's
-zero-order hold, a wheel speed held from its stamp describes the middle of the interval it is
-held over, so effect-free data gains from a -dt/2 time offset. That offset is part of the
-baseline (its own row in the table), never a found effect.
+step's module says how and why. The stamp convention is decided here: under ``interval:
+starting`` (a zero-order hold from the stamp), a wheel speed held from its stamp describes the
+middle of the interval it is held over, so effect-free data gains from a -dt/2 time offset. That
+offset is part of the baseline (its own row in the table), never a found effect. Under
+``ending`` or ``midpoint`` (:mod:`skidkin_ros.core.odometry.interval`) no offset is needed and
+there is no such row.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ from skidkin_ros.core.calibration.diagnosis.residuals import pose_residuals, pos
 from skidkin_ros.core.calibration.diagnosis.results import DiagnosisResult, ModelStep
 from skidkin_ros.core.calibration.diagnosis.selection import Progress, select
 from skidkin_ros.core.calibration.diagnosis.state import fit_state, ModelState
-from skidkin_ros.core.calibration.diagnosis.tracing import correlations, lag_scan, Trace
+from skidkin_ros.core.calibration.diagnosis.tracing import (correlations, lag_scan,
+                                                            residual_leads, Trace)
 from skidkin_ros.core.calibration.engine import trim_mask
 from skidkin_ros.core.calibration.evaluation import ErrorStats, relative_errors
 from skidkin_ros.core.calibration.holdout import resolve_holdout
@@ -47,8 +50,12 @@ def wheel_period_s(drives: Sequence[Drive]) -> float:
 
 
 def _stamp_convention(drives: Sequence[Drive], options: DiagnosisOptions) -> float:
-    """Return -dt/2 (s) for options.stamp_convention 'mid' (median wheel period), else 0."""
-    if options.stamp_convention != 'mid':
+    """Return -dt/2 (s) for options.stamp_convention 'mid' under the ``starting`` interval, else 0.
+
+    Only the zero-order hold from the stamp (``interval: starting``) lags by half a sample; the
+    ``ending`` and ``midpoint`` conventions need no offset.
+    """
+    if options.stamp_convention != 'mid' or options.interval != 'starting':
         return 0.0
     return -0.5 * wheel_period_s(drives)
 
@@ -83,7 +90,8 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                                'a diagnosis')
     given_state = ModelState((), given, {})
     convention_s = _stamp_convention(train, options)
-    predictor = SegmentPredictor(train, train_seg, options.max_dt_s)
+    predictor = SegmentPredictor(train, train_seg, options.max_dt_s,
+                                 options.interval)
     refit, _ = fit_state(predictor, base_model_name, geometry, given_state, options)
     trimmed = 0
     if options.trim:
@@ -93,7 +101,8 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
         trimmed = int((~kept).sum())
         if trimmed:
             train_seg = train_seg.subset(kept)
-            predictor = SegmentPredictor(train, train_seg, options.max_dt_s)
+            predictor = SegmentPredictor(train, train_seg, options.max_dt_s,
+                                         options.interval)
             refit, _ = fit_state(predictor, base_model_name, geometry, refit, options)
     null = refit
     if convention_s != 0.0:
@@ -113,7 +122,8 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                      max(durations) if durations else 0.0)
     fitter = CandidateFitter(train, train_seg, base_model_name, geometry, options, samples, hints)
     final, scores, accepted = select(fitter, null, jobs, progress)
-    eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s)
+    eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s,
+                                      options.interval)
     steps = [_evaluate(eval_predictor, f'{base_model_name} (given)', given_state,
                        base_model_name, geometry, options),
              _evaluate(eval_predictor, f'{base_model_name} (refitted)', refit, base_model_name,
@@ -127,6 +137,7 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                                options))
     after, after_valid = pose_residuals(train, samples, final.bind(base_model_name, geometry),
                                         options)
+    unexplained = residual_leads(after, after_valid, samples.signals, geometry)
     warnings = []
     if accepted and steps[-1].stats_t.median > steps[1].stats_t.median * 1.05:
         warnings.append('the augmented model is worse than the refitted base model on the '
@@ -138,8 +149,10 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
         'evaluate_drives': len(evaluate), 'train_segments': len(train_seg),
         'train_segments_trimmed': trimmed,
         'evaluate_segments': len(eval_seg), 'holdout': holdout,
+        'unexplained': [f'{lead.signal} ({lead.component} residual): share {lead.share:.3f}, '
+                        f'r {lead.r:+.3f}' for lead in unexplained],
         'seconds': round(time.perf_counter() - tic, 2), 'options': options.as_dict(),
     }
     return DiagnosisResult(base_model_name, geometry, options, trace, tuple(scores),
                            tuple(steps), final, after, valid, after_valid, holdout,
-                           tuple(warnings), provenance)
+                           tuple(warnings), provenance, unexplained)

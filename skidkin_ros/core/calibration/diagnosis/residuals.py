@@ -11,8 +11,10 @@
    differentiator, so both sides are smoothed alike and the residual is the model's error, not
    the smoother's.
 4. **Signals.** At each pose: the held wheel speeds, their sum, difference, ratio and time
-   derivatives, the base model's body speed and yaw rate, curvature, v omega, direction, time in
-   the drive, position and the IMU yaw rate: what :mod:`.tracing` correlates with the residuals.
+   derivatives, the base model's body speed and yaw rate and their rates as the integrator has
+   them (backward differences over one wheel sample; the speeding-up part of the forward one),
+   curvature, v omega, direction, time in the drive, position and the IMU yaw rate: what
+   :mod:`.tracing` correlates with the residuals.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.drive import Drive, fresh_pose_mask, WheelSamples
+from skidkin_ros.core.kinematics.augmented import twist_rates
+from skidkin_ros.core.kinematics.extensions import speeding_up
 from skidkin_ros.core.kinematics.models import BoundModel
 from skidkin_ros.core.odometry.integrator import rollout_stream
 from skidkin_ros.errors import DataError
@@ -86,11 +90,12 @@ def truth_velocities(drive: Drive, half_window_s: float
 
 
 def _model_velocities(source: Any, drive: Drive, t_ns: np.ndarray,
-                      half_window_s: float, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+                      half_window_s: float, max_dt_s: float, interval: str
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """Model body twists at the stamps, through the same differentiator as the ground truth."""
     wheels = drive.wheels
     poses = rollout_stream(source, wheels.t_ns, wheels.omega_l, wheels.omega_r,
-                           max_dt_s=max_dt_s)
+                           max_dt_s=max_dt_s, interval=interval)
     shift = int(getattr(source, 'output_offset_ns', 0))
     at = np.asarray(t_ns, dtype=np.int64) - shift
     ref = wheels.t_ns
@@ -103,7 +108,8 @@ class PoseSamples:
     """Fresh ground-truth poses of all drives, with their velocities and signals.
 
     ``drive``: index of each pose's drive; ``truth``: ground-truth body twists (N, 3);
-    ``signals``: {name: (N,)}; ``base_twist``: the base model's twist of the held wheel speeds.
+    ``signals``: {name: (N,)}; ``base_twist``: the base model's twist of the held wheel speeds;
+    ``base_rate``: its rate of change at the held sample (as the augmented model has it).
     """
 
     drive: np.ndarray
@@ -112,18 +118,31 @@ class PoseSamples:
     valid: np.ndarray
     signals: dict[str, np.ndarray]
     base_twist: np.ndarray
+    base_rate: np.ndarray
 
 
-def _held(wheels: WheelSamples, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    index = np.clip(np.searchsorted(wheels.t_ns, t_ns, side='right') - 1, 0, len(wheels) - 1)
-    return wheels.omega_l[index], wheels.omega_r[index]
+def _held_index(wheels: WheelSamples, t_ns: np.ndarray) -> np.ndarray:
+    return np.clip(np.searchsorted(wheels.t_ns, t_ns, side='right') - 1, 0, len(wheels) - 1)
 
 
-def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel
-             ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Return the signals at the stamps (step 4 of the module docstring) and the base twist."""
+def base_rates(wheels: WheelSamples, base: BoundModel, max_dt_s: float) -> np.ndarray:
+    """Return the base twist's rate at every wheel sample (L, 3), as the integrator has it."""
+    twist = np.asarray(base.twist(wheels.omega_l, wheels.omega_r), dtype=float)[None]
+    dt_s = np.zeros((1, len(wheels)))
+    dt_s[0, :-1] = np.diff(wheels.t_ns) * 1e-9
+    restart = np.zeros(dt_s.shape, dtype=bool)
+    restart[:, 1:] = dt_s[:, :-1] > max_dt_s
+    dt_s[dt_s > max_dt_s] = 0.0
+    return twist_rates(twist, dt_s, restart)[0]
+
+
+def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel, max_dt_s: float
+             ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """Return the signals at the stamps (step 4 of the module docstring), base twist, rate."""
     wheels = drive.wheels
-    wl, wr = _held(wheels, t_ns)
+    index = _held_index(wheels, t_ns)
+    wl, wr = wheels.omega_l[index], wheels.omega_r[index]
+    rate = base_rates(wheels, base, max_dt_s)[index]
     t_w = wheels.t_s
     dwl = np.interp(t_ns, wheels.t_ns, np.gradient(wheels.omega_l, t_w)
                     if len(wheels) > 2 else np.zeros(len(wheels)))
@@ -139,7 +158,8 @@ def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel
         'omega_l': wl, 'omega_r': wr, 'wheel_sum': wl + wr, 'wheel_diff': wr - wl,
         'wheel_ratio': ratio, 'd_omega_l': dwl, 'd_omega_r': dwr,
         'd_wheel_sum': dwl + dwr, 'd_wheel_diff': dwr - dwl,
-        'body_speed': v, 'yaw_rate': w,
+        'body_speed': v, 'yaw_rate': w, 'd_body_speed': rate[:, 0], 'd_yaw_rate': rate[:, 2],
+        'speeding_up': speeding_up(v, rate[:, 0]),
         'curvature': np.clip(w / np.where(np.abs(v) > 0.05, v, np.nan), -20, 20),
         'v_omega': v * w, 'v_abs_v': v * np.abs(v), 'direction': np.sign(v),
         'time_in_drive': (t_ns - wheels.t_ns[0]) * 1e-9,
@@ -148,7 +168,7 @@ def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel
     imu = drive.imu
     if imu is not None and len(imu.t_ns) > 1:
         named['imu_yaw_rate'] = np.interp(t_ns, imu.t_ns, imu.yaw_rate)
-    return named, model_twist
+    return named, model_twist, rate
 
 
 def pose_samples(drives: Sequence[Drive], base: BoundModel,
@@ -158,13 +178,13 @@ def pose_samples(drives: Sequence[Drive], base: BoundModel,
     A signal missing from one drive (the IMU) is left out for all. Raises DataError when no
     drive has at least 4 ground-truth poses.
     """
-    parts = {key: [] for key in ('drive', 't', 'truth', 'valid', 'base')}
+    parts = {key: [] for key in ('drive', 't', 'truth', 'valid', 'base', 'rate')}
     signals: dict[str, list[np.ndarray]] = {}
     for index, drive in enumerate(drives):
         if drive.truth is None or len(drive.truth) < 4 or len(drive.wheels) < 2:
             continue
         t_ns, twist, valid = truth_velocities(drive, options.smoothing_s)
-        named, model_twist = _signals(drive, t_ns, base)
+        named, model_twist, rate = _signals(drive, t_ns, base, options.max_dt_s)
         for key, value in named.items():
             signals.setdefault(key, []).append(np.asarray(value, dtype=float))
         parts['drive'].append(np.full(t_ns.size, index))
@@ -172,6 +192,7 @@ def pose_samples(drives: Sequence[Drive], base: BoundModel,
         parts['truth'].append(twist)
         parts['valid'].append(valid)
         parts['base'].append(model_twist)
+        parts['rate'].append(rate)
     if not parts['t']:
         raise DataError('no drive has at least 4 ground-truth poses: nothing to diagnose')
     count = sum(p.size for p in parts['t'])
@@ -181,7 +202,7 @@ def pose_samples(drives: Sequence[Drive], base: BoundModel,
     merged = {k: v for k, v in merged.items() if v is not None}
     return PoseSamples(np.concatenate(parts['drive']), np.concatenate(parts['t']),
                        np.concatenate(parts['truth']), np.concatenate(parts['valid']),
-                       merged, np.concatenate(parts['base']))
+                       merged, np.concatenate(parts['base']), np.concatenate(parts['rate']))
 
 
 def pose_residuals(drives: Sequence[Drive], samples: PoseSamples, source: Any,
@@ -192,7 +213,7 @@ def pose_residuals(drives: Sequence[Drive], samples: PoseSamples, source: Any,
     for index in np.unique(samples.drive):
         rows = samples.drive == index
         model, ok = _model_velocities(source, drives[index], samples.t_ns[rows],
-                                      options.smoothing_s, options.max_dt_s)
+                                      options.smoothing_s, options.max_dt_s, options.interval)
         residual[rows] = samples.truth[rows] - model
         valid[rows] &= ok
     return residual, valid

@@ -15,7 +15,7 @@ import numpy as np
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.selection import CandidateScore
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
-from skidkin_ros.core.calibration.diagnosis.tracing import Trace
+from skidkin_ros.core.calibration.diagnosis.tracing import ResidualLead, Trace
 from skidkin_ros.core.calibration.engine import TwistSource
 from skidkin_ros.core.calibration.evaluation import ErrorStats
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
@@ -54,6 +54,7 @@ class DiagnosisResult:
     holdout: str = 'given'
     warnings: tuple[str, ...] = ()
     provenance: dict[str, Any] = field(default_factory=dict)
+    unexplained: tuple[ResidualLead, ...] = ()
 
     @property
     def extensions(self) -> tuple[str, ...]:
@@ -72,15 +73,20 @@ class DiagnosisResult:
         """Return the findings and the before/after table as text lines (for stdout)."""
         lines = [f'diagnosis of {self.base_model} ({self.holdout})']
         lag = self.trace.lag_s
-        lines.append(f'  wheel -> ground-truth lag (velocity refit): {lag * 1e3:+.0f} ms, '
-                     f'beyond the stamp convention ({self.convention_s * 1e3:+.0f} ms: speeds '
-                     'held from their stamp describe the middle of the interval)')
+        if self.convention_s:
+            lines.append(f'  wheel -> ground-truth lag (velocity refit): {lag * 1e3:+.0f} ms, '
+                         f'beyond the stamp convention ({self.convention_s * 1e3:+.0f} ms: '
+                         'speeds held from their stamp describe the middle of the interval)')
+        else:
+            lines.append(f'  wheel -> ground-truth lag (velocity refit): {lag * 1e3:+.0f} ms '
+                         f'(interval {self.options.interval}: no stamp convention)')
         lines.append('  strongest residual correlations: ' + ', '.join(
             f'{c}~{s} r={r:+.2f}' for c, s, r in self.trace.top(4)))
         if not self.final.found:
             lines.append('  no extension added: no candidate passed the parsimony rule '
                          f'(held-out gain > {self.options.min_relative_gain:.0%} and p < '
                          f'{self.options.significance:g})')
+        lines += [f'  {line}' for line in self.unexplained_lines()]
         for name in self.final.found:
             ext = get_extension(name)
             units = {spec.name: spec.unit for spec in ext.params}
@@ -104,6 +110,12 @@ class DiagnosisResult:
         lines += [f'  warning: {w}' for w in self.warnings]
         return lines
 
+    def unexplained_lines(self) -> list[str]:
+        """Return one line per signal the final model's residual still follows."""
+        return [f'unexplained residual: signal {lead.signal}, share {lead.share:.0%} of the '
+                f'velocity error left (residual {lead.component} of the final model follows it, '
+                f'r = {lead.r:+.2f}; no candidate explained it)' for lead in self.unexplained]
+
     def table_rows(self) -> list[list[str]]:
         """Return the before/after table rows (model, eps_t median/q25/q75/p90, eps_theta ...)."""
         rows = []
@@ -120,9 +132,10 @@ class DiagnosisResult:
         ``self.provenance`` to write_params_file); the result keeps it and sets
         model = augmented, augmented.base, augmented.extensions and every extension value, and
         the base model's parameters as fitted jointly with the extensions. With no extension the
-        base model is kept (model = base).
+        base model is kept (model = base). ``interval`` is the convention diagnosed under.
         """
         flat = {k: v for k, v in base_flat.items() if not k.startswith('provenance.')}
+        flat['interval'] = self.options.interval
         flat['wheel_radius'] = float(self.geometry.wheel_radius)
         flat['track_width'] = float(self.geometry.track_width)
         if not self.final.found:

@@ -16,6 +16,7 @@ Each round, as a recipe:
    is an extension that cannot be told from a simpler one at this wheel sample period
    (``Extension.short_alias``: a first-order lag no longer than one sample is a delay).
 4. **Repeat** from the picked model, at most ``max_extensions`` rounds; stop when none passes.
+   An extension of a ``group`` already in the model (a second lag) is not a candidate.
 
 The fits of a round are independent tasks run on ``jobs`` processes
 (:func:`skidkin_ros.core.parallel.fork_map`); the result does not depend on their number.
@@ -204,7 +205,9 @@ class _Rounds:
                     ) -> tuple[list[RoundScore], dict[str, str]]:
         """Score the candidates of one round (steps 1 and 2); return scores and notes."""
         options = self.options
-        pool = [n for n in options.candidates if n not in current.found]
+        taken = {get_extension(n).group for n in current.extensions} - {''}
+        pool = [n for n in options.candidates
+                if n not in current.found and get_extension(n).group not in taken]
         named = [n for n in pool if not get_extension(n).library]
         library = [n for n in pool if get_extension(n).library]
         thresholds = sorted(set(options.sparse_thresholds))

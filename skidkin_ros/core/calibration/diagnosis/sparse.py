@@ -1,7 +1,7 @@
 """The sparse fallback's start: which library terms explain the residual, by STLSQ.
 
 When no named extension explains the residual, a library extension (``sparse_correction``)
-adds a linear combination of terms of the base twist (v, w, v|v|, ...:
+adds a linear combination of terms of the base twist and its rate (v, w, v|v|, ..., dv, dw:
 :data:`skidkin_ros.core.kinematics.extensions.LIBRARY`). Which terms, and their start values,
 come from sequentially thresholded least squares (STLSQ, as in SINDy) of each per-pose residual
 component on the library: regress, drop the terms whose standardised coefficient is below the
@@ -66,7 +66,7 @@ def library_start(drives: Sequence[Drive], samples: PoseSamples, source: TwistSo
     residual, valid = pose_residuals(drives, samples, source, options)
     if drives_kept is not None:
         valid &= np.isin(samples.drive, drives_kept)
-    features = sparse_features(samples.base_twist)[valid]
+    features = sparse_features(samples.base_twist, samples.base_rate)[valid]
     values = {}
     terms = []
     for c, (out, _) in enumerate(SPARSE_OUTPUTS):

@@ -8,6 +8,11 @@
    scaled by b/2 to metres per second). The best offset is the wheel-to-ground-truth lag: it is
    reported and starts the timing extensions' fits
    (:class:`skidkin_ros.core.kinematics.extensions.FitHints`).
+3. **What is left.** After the selection, the final model's residual is traced again
+   (:func:`residual_leads`): for each component and signal, the share of the whole velocity
+   error (v_x, v_y and omega b/2 squared, summed) that a straight line in the signal explains
+   (r^2 times the component's spread). A share of at least ``UNEXPLAINED_SHARE`` is reported as
+   an unexplained residual, so a miss is said, not silent.
 """
 
 from __future__ import annotations
@@ -27,9 +32,15 @@ from skidkin_ros.core.kinematics.augmented import AugmentedModel
 from skidkin_ros.core.kinematics.models import BoundModel
 from skidkin_ros.core.kinematics.specs import Geometry
 
-__all__ = ['Trace', 'correlations', 'lag_scan']
+__all__ = ['Trace', 'ResidualLead', 'correlations', 'lag_scan', 'residual_leads',
+           'UNEXPLAINED_SHARE']
 
 LAG_STEP_S = 0.01
+# A signal that explains at least this share of the velocity error left is reported.
+UNEXPLAINED_SHARE = 0.1
+# Signals that are the same quantity under another name: one lead per quantity.
+_SAME = {'omega_l': 'wheel', 'omega_r': 'wheel', 'wheel_sum': 'body_speed',
+         'wheel_diff': 'yaw_rate', 'd_wheel_sum': 'd_body_speed', 'd_wheel_diff': 'd_yaw_rate'}
 
 
 @dataclass(frozen=True)
@@ -88,3 +99,45 @@ def lag_scan(drives: Sequence[Drive], samples: PoseSamples, state: ModelState,
         cost[i] = float(np.mean(((residual[valid] * scale) ** 2).sum(axis=1)))
     best = int(np.argmin(cost))
     return float(lags[best]), (lags, cost)
+
+
+@dataclass(frozen=True)
+class ResidualLead:
+    """A signal a residual component still follows: Pearson r and the share of the error."""
+
+    component: str
+    signal: str
+    r: float
+    share: float
+
+
+def residual_leads(residual: np.ndarray, valid: np.ndarray, signals: Mapping[str, np.ndarray],
+                   geometry: Geometry, min_share: float = UNEXPLAINED_SHARE
+                   ) -> tuple[ResidualLead, ...]:
+    """Return the signals that explain at least ``min_share`` of the velocity error (step 3).
+
+    Strongest first, at most one per component and per quantity (``wheel_sum`` and
+    ``body_speed`` are one).
+    """
+    scale = np.array([1.0, 1.0, geometry.track_width / 2])
+    scaled = residual[valid] * scale
+    total = float((scaled ** 2).sum())
+    if scaled.shape[0] < 10 or not total > 0.0:
+        return ()
+    spread = ((scaled - scaled.mean(axis=0)) ** 2).sum(axis=0)
+    leads = []
+    for (component, signal), r in correlations(residual, valid, signals).items():
+        if math.isfinite(r):
+            share = r * r * float(spread[COMPONENTS.index(component)]) / total
+            leads.append(ResidualLead(component, signal, r, share))
+    leads.sort(key=lambda lead: -lead.share)
+    kept: list[ResidualLead] = []
+    for lead in leads:
+        if lead.share < min_share:
+            break
+        quantity = _SAME.get(lead.signal, lead.signal)
+        if any(k.component == lead.component or _SAME.get(k.signal, k.signal) == quantity
+               for k in kept):
+            continue
+        kept.append(lead)
+    return tuple(kept)

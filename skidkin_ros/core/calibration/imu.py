@@ -1,0 +1,265 @@
+"""The gyro against ground truth: its calibration, and every imu.mode scored on segments.
+
+:func:`fit_gyro` fits ``imu.scale``, ``imu.bias`` and ``imu.time_offset`` of the measurement
+model of :mod:`skidkin_ros.core.odometry.gyro`: for every pair of consecutive ground-truth poses
+(a, b) of a drive, dyaw = yaw_b - yaw_a and G = the integral of the linearly interpolated gyro
+over [t_a + offset, t_b + offset] satisfy dyaw = (G - bias dt) / scale, linear in (1 / scale,
+bias / scale) for a fixed offset. Iteratively trimmed least squares (pairs beyond 5 robust sigma
+are ground-truth glitches: dropped, refit, until the kept set is stable); the offset is the one
+with the smallest rms of the kept residuals, on a 5 ms grid over +-0.5 s refined to 1 ms.
+Standard errors: bootstrap over drives.
+
+:func:`evaluate_imu_mode` runs the node's odometer (:meth:`Odometer.predict`, so exactly what the
+node and ``skidkin predict`` do) over the drives in order, the learned gain and bias carried from
+drive to drive, and scores the evaluation segments with the one :func:`relative_errors`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import numpy as np
+
+from skidkin_ros.core.calibration.evaluation import ErrorStats, ModelEvaluation, relative_errors
+from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
+from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.errors import DataError, FitError
+
+__all__ = ['GyroFit', 'fit_gyro', 'gyro_parameters', 'predict_drives',
+           'odometry_segment_errors', 'ModeScore', 'evaluate_imu_mode']
+
+TRIM_SIGMAS = 5.0
+OFFSET_RANGE_S = 0.5
+MIN_PAIRS = 20
+
+
+@dataclass(frozen=True)
+class GyroFit:
+    """The gyro's calibration and how well it was determined."""
+
+    scale: float
+    bias: float
+    time_offset: float
+    scale_se: float
+    bias_se: float
+    pairs: int
+    trimmed: int
+    residual_rad: float        # rms of the kept residuals (per pose pair)
+    period_s: float            # median gyro sample period
+    at_grid_edge: bool
+
+
+def _cumulative(t_ns: np.ndarray, g: np.ndarray) -> np.ndarray:
+    dt = np.diff(t_ns) * 1e-9
+    return np.concatenate([[0.0], np.cumsum(0.5 * (g[1:] + g[:-1]) * dt)])
+
+
+def _integral_to(t_ns: np.ndarray, g: np.ndarray, cum: np.ndarray, at_ns: np.ndarray
+                 ) -> np.ndarray:
+    """Integral of the piecewise-linear gyro from its first sample up to ``at_ns`` (inside)."""
+    i = np.clip(np.searchsorted(t_ns, at_ns, side='right') - 1, 0, t_ns.size - 2)
+    tau = (at_ns - t_ns[i]) * 1e-9
+    h = (t_ns[i + 1] - t_ns[i]) * 1e-9
+    slope = (g[i + 1] - g[i]) / h
+    return cum[i] + g[i] * tau + 0.5 * slope * tau * tau
+
+
+def _pairs(drives: Sequence[Drive]) -> list[tuple[np.ndarray, ...]]:
+    """Per drive with a gyro: (gyro t, g, cum, t_a, t_b, dyaw) of consecutive valid poses."""
+    out = []
+    for drive in drives:
+        imu, truth = drive.imu, drive.truth
+        if imu is None or truth is None or len(truth) < 2 or len(imu.t_ns) < 3:
+            continue
+        t = np.asarray(imu.t_ns, dtype=np.int64)
+        g = np.asarray(imu.yaw_rate, dtype=float)
+        keep = np.isfinite(g)
+        t, g = t[keep], g[keep]
+        if t.size < 3 or np.any(np.diff(t) <= 0):
+            continue
+        ok = truth.valid[:-1] & truth.valid[1:]
+        t_a, t_b = truth.t_ns[:-1][ok], truth.t_ns[1:][ok]
+        dyaw = (truth.yaw[1:] - truth.yaw[:-1])[ok]
+        margin = int(OFFSET_RANGE_S * 1e9)
+        inside = (t_a - margin >= t[0]) & (t_b + margin <= t[-1])
+        if inside.sum() == 0:
+            inside = (t_a >= t[0]) & (t_b <= t[-1])
+        if inside.sum():
+            out.append((t, g, _cumulative(t, g), t_a[inside], t_b[inside], dyaw[inside]))
+    return out
+
+
+def _design(pairs, offset_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    off = int(round(offset_s * 1e9))
+    big_g, dt, dyaw = [], [], []
+    for t, g, cum, t_a, t_b, dy in pairs:
+        a = np.clip(t_a + off, t[0], t[-1])
+        b = np.clip(t_b + off, t[0], t[-1])
+        big_g.append(_integral_to(t, g, cum, b) - _integral_to(t, g, cum, a))
+        dt.append((t_b - t_a) * 1e-9)
+        dyaw.append(dy)
+    return np.concatenate(big_g), np.concatenate(dt), np.concatenate(dyaw)
+
+
+def _robust_sigma(r: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(r - np.median(r))))
+
+
+def _trimmed_fit(big_g: np.ndarray, dt: np.ndarray, dyaw: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    design = np.stack([big_g, dt], axis=1)
+    keep = np.ones(dyaw.size, dtype=bool)
+    for _ in range(10):
+        coef = np.linalg.lstsq(design[keep], dyaw[keep], rcond=None)[0]
+        res = dyaw - design @ coef
+        sigma = max(_robust_sigma(res[keep]), 1e-12)
+        new = np.abs(res) <= TRIM_SIGMAS * sigma
+        if np.array_equal(new, keep) or new.sum() < 3:
+            break
+        keep = new
+    return coef, res, keep
+
+
+def _criterion(pairs, offset_s: float) -> float:
+    _, res, keep = _trimmed_fit(*_design(pairs, offset_s))
+    return float(np.sqrt(np.mean(res[keep] ** 2)))
+
+
+def fit_gyro(drives: Sequence[Drive], bootstrap: int = 100, seed: int = 0) -> GyroFit:
+    """Fit the gyro's scale, bias and time offset against the drives' ground truth.
+
+    Raises DataError when fewer than ``MIN_PAIRS`` pose pairs have gyro samples, FitError when
+    the scale is not that of a yaw-rate gyro in rad/s about +z (|scale| outside [0.5, 2]).
+    """
+    pairs = _pairs(drives)
+    count = sum(p[3].size for p in pairs)
+    if count < MIN_PAIRS:
+        raise DataError(f'{count} ground-truth pose pairs have gyro samples around them; the '
+                        f'gyro calibration needs at least {MIN_PAIRS}')
+    grid = np.round(np.arange(-OFFSET_RANGE_S, OFFSET_RANGE_S + 1e-9, 0.005), 3)
+    coarse = np.array([_criterion(pairs, o) for o in grid])
+    best = float(grid[int(np.argmin(coarse))])
+    fine = np.round(np.arange(best - 0.005, best + 0.0051, 0.001), 3)
+    offset = float(fine[int(np.argmin([_criterion(pairs, o) for o in fine]))])
+    big_g, dt, dyaw = _design(pairs, offset)
+    (a, c), res, keep = _trimmed_fit(big_g, dt, dyaw)
+    if not a > 0 or not 0.5 <= 1.0 / a <= 2.0:
+        scale = 1.0 / a if a != 0 else float('inf')
+        raise FitError(f'the gyro yaw-rate scale fits {scale:.3g}: a yaw-rate gyro in rad/s about '
+                       "the robot's +z has 1. A scale near -1: the IMU z axis points down; near "
+                       '57: the rate is in deg/s. Fix the IMU driver or its frame, then '
+                       'calibrate again')
+    scale, bias = 1.0 / a, -c / a
+    rng = np.random.default_rng(seed)
+    sizes = np.array([p[3].size for p in pairs])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    draws = []
+    for _ in range(bootstrap if len(pairs) > 1 else 0):
+        pick = rng.integers(0, len(pairs), len(pairs))
+        idx = np.concatenate([np.arange(starts[k], starts[k + 1]) for k in pick])
+        (a_b, c_b), _, _ = _trimmed_fit(big_g[idx], dt[idx], dyaw[idx])
+        draws.append((1.0 / a_b, -c_b / a_b))
+    se = np.std(np.array(draws), axis=0) if draws else np.array([np.nan, np.nan])
+    period = float(np.median(np.concatenate([np.diff(p[0]) for p in pairs])) * 1e-9)
+    return GyroFit(float(scale), float(bias), offset, float(se[0]), float(se[1]), int(count),
+                   int((~keep).sum()), float(np.sqrt(np.mean(res[keep] ** 2))), period,
+                   abs(offset) >= OFFSET_RANGE_S - 0.006)
+
+
+def gyro_parameters(fit: GyroFit) -> dict[str, float]:
+    """Return the imu.* values a gyro calibration writes (the mode stays the user's choice)."""
+    return {'imu.scale': fit.scale, 'imu.bias': fit.bias, 'imu.time_offset': fit.time_offset,
+            'imu.max_gap': round(max(0.08, 2.5 * fit.period_s), 4),
+            'imu.timeout': round(max(0.2, 5.0 * fit.period_s), 4),
+            # a wheel sample needs the gyro up to its stamp + offset and two samples more
+            'imu.max_wait': round(min(max(0.05, fit.time_offset + 2.5 * fit.period_s), 0.5), 4),
+            'imu.bias_sigma': float(max(fit.bias_se if np.isfinite(fit.bias_se) else 1e-3,
+                                        1e-4))}
+
+
+def predict_drives(config: OdometryConfig, drives: Sequence[Drive], model: str | None = None,
+                   mode: str | None = None) -> list[np.ndarray]:
+    """Poses at every wheel sample of each drive (started at its first true pose), in order.
+
+    One odometer runs the drives one after the other (``mode`` replaces imu.mode), as one
+    node would: its learned gain and bias carry over; a drive whose stamps restart starts
+    a new gyro history.
+    """
+    if mode is not None:
+        config = replace(config, values={**config.values, 'imu.mode': mode})
+    odometer = Odometer.from_config(config, model)
+    out = []
+    for drive in drives:
+        start = drive.truth.poses[0] if drive.truth is not None else (0.0, 0.0, 0.0)
+        out.append(odometer.predict(drive.wheels, start, drive.imu).poses)
+    return out
+
+
+def odometry_segment_errors(drives: Sequence[Drive], poses: Sequence[np.ndarray],
+                            segments: SegmentSet) -> np.ndarray:
+    """Return the (N, 3) start-frame end errors of odometry poses on the segments.
+
+    ``poses[d]`` holds the odometry's pose at every wheel sample of ``drives[d]``; its relative
+    motion from t_a to t_b (interpolated at the segment ends) is replayed from the segment's
+    true start pose.
+    """
+    errors = np.zeros((len(segments), 3))
+    for k in range(len(segments)):
+        drive = int(segments.drive[k])
+        t, est = drives[drive].wheels.t_ns, poses[drive]
+        a, b = (np.array([np.interp(s, t, est[:, j]) for j in range(3)])
+                for s in (segments.t_a_ns[k], segments.t_b_ns[k]))
+        c, s = np.cos(a[2]), np.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        local = (c * dx + s * dy, -s * dx + c * dy, b[2] - a[2])
+        x0, y0, th0 = segments.start[k]
+        ct, st = np.cos(th0), np.sin(th0)
+        predicted = np.array([[x0 + ct * local[0] - st * local[1],
+                               y0 + st * local[0] + ct * local[1], th0 + local[2]]])
+        errors[k] = segment_frame_error(segments.start[k:k + 1], segments.end[k:k + 1],
+                                        predicted)[0]
+    return errors
+
+
+@dataclass(frozen=True)
+class ModeScore:
+    """One model in one imu mode: segment errors, and the errors at each drive's end."""
+
+    evaluation: ModelEvaluation
+    end_position_m: ErrorStats     # |position error| at the drive's last true pose
+    end_yaw_deg: ErrorStats        # |heading error| there
+
+
+def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet,
+                      model: str, mode: str, min_path_m: float = 0.1) -> ModeScore:
+    """Score ``model`` in imu ``mode`` on ``segments`` (cut on ``drives``), like the node runs.
+
+    The relative motion the odometry predicts from t_a to t_b (poses at the wheel samples,
+    interpolated at the segment ends) is replayed from the segment's true start pose. Each
+    drive's odometry starts at its first true pose; its end error is taken at its last one
+    (for the Husky table: the window-end errors).
+    """
+    if mode != 'off' and not any(d.imu is not None for d in drives):
+        raise DataError(f'imu mode {mode} needs gyro samples; the data has none (a table needs '
+                        'the imu_yaw_rate column, a bag a sensor_msgs/Imu topic)')
+    poses = predict_drives(config, drives, model, mode)
+    errors = odometry_segment_errors(drives, poses, segments)
+    scored = segments.path_m >= min_path_m
+    eps_t, eps_theta = relative_errors(errors, segments.path_m, min_path_m)
+    evaluation = ModelEvaluation(f'{model} ({mode})', errors, scored, eps_t, eps_theta,
+                                 ErrorStats.of(eps_t), ErrorStats.of(eps_theta))
+    end_pos, end_yaw = [], []
+    for drive, est in zip(drives, poses):
+        truth = drive.truth
+        if truth is None or len(truth) < 2:
+            continue
+        t_end = truth.t_ns[-1]
+        at = np.array([np.interp(t_end, drive.wheels.t_ns, est[:, j]) for j in range(3)])
+        end_pos.append(float(np.hypot(at[0] - truth.x[-1], at[1] - truth.y[-1])))
+        end_yaw.append(float(np.degrees(abs((at[2] - truth.yaw[-1] + np.pi) % (2 * np.pi)
+                                            - np.pi))))
+    return ModeScore(evaluation, ErrorStats.of(np.array(end_pos)),
+                     ErrorStats.of(np.array(end_yaw)))
