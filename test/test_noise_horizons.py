@@ -70,8 +70,9 @@ def test_segment_covariance_matches_the_node_propagation_with_constant_and_param
             np.int64)
         wl = np.concatenate([segs.omega_l[i, :width], [0.0]])
         wr = np.concatenate([segs.omega_r[i, :width], [0.0]])
+        # segments hold each interval's speeds from its start: the 'starting' hold replays them
         _, cov = predict((0.0, 0.0, 0.0), np.zeros((3, 3)), t_ns, wl, wr, bound, WITH_CONSTANT,
-                         parameters=params)
+                         parameters=params, interval='starting')
         # the node carries d(pose)/dk step by step to second order in the step, the
         # calibrator differentiates the exact rollout: they agree to a fraction of a percent
         scale = np.sqrt(np.outer(np.diag(expected[i]), np.diag(expected[i])))
