@@ -202,7 +202,7 @@ def test_residual_leads_say_which_signal_holds_how_much_of_the_error():
 def test_an_effect_no_candidate_explains_is_reported_as_unexplained():
     """Acceleration slip with the candidates that could explain it left out: said, not silent."""
     options = DiagnosisOptions(candidates=('time_offset', 'lateral_skid', 'speed_slip'),
-                               max_extensions=1)
+                               max_extensions=1, interval=SIM_INTERVAL)
     result, _, _ = run_case(make_effect('acceleration_slip', 0.2), 60.0, options)
     assert result.extensions == (), result.summary_lines()
     leads = [lead for lead in result.unexplained if lead.component == 'v_x']

@@ -7,6 +7,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from skidkin_ros.cli.common import check_report_dir, say
+from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.report.estimation import write_estimation_figures
 from skidkin_ros.studies.estimation import run_estimation_study, StudyOptions
 
@@ -16,7 +17,7 @@ __all__ = ['add_parser']
 def run(args: argparse.Namespace) -> int:
     check_report_dir(args.out, args.force, '--out')
     options = StudyOptions.quick() if args.quick else StudyOptions()
-    options = replace(options, wheel_stamp_shift_samples=args.stamp_shift,
+    options = replace(options, wheel_stamp_shift_samples=args.stamp_shift, interval=args.interval,
                       parameter_covariance=not args.no_parameter_covariance,
                       truth_noise_m=args.truth_noise[0], truth_noise_rad=args.truth_noise[1])
     study = run_estimation_study(seed=args.seed, options=options)
@@ -49,6 +50,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--stamp-shift', type=float, default=0.0, metavar='SAMPLES',
                         help='move every simulated wheel stamp by this many sample periods '
                         '(-0.5: the midpoint interval convention, no half-sample lag)')
+    parser.add_argument('--interval', choices=INTERVALS, default='midpoint',
+                        help='sample-interval convention of the calibration and the odometry '
+                        "(default midpoint: exact for the simulator's speeds, which are the "
+                        "wheels' at each stamp)")
     parser.add_argument('--truth-noise', type=float, nargs=2, default=(0.0, 0.0),
                         metavar=('M', 'RAD'),
                         help='white noise on the calibration ground truth (ICP-like, e.g. '

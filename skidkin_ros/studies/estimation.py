@@ -57,7 +57,7 @@ from skidkin_ros.core.estimation.nees import (drive_nees, DriveNees, nees, nees_
                                               SegmentNees, summarize_nees)
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.integrator import wrap_angle
-from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, held_wheels
+from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.errors import FitError, ParameterError
@@ -101,8 +101,11 @@ class StudyOptions:
     checkpoint_s: float = 15.0
     parameter_covariance: bool = True
     wheel_stamp_shift_samples: float = 0.0
+    # The simulator reports each wheel speed at its stamp: the trapezoid (midpoint) is exact.
+    interval: str = 'midpoint'
 
     def __post_init__(self) -> None:
+        check_interval(self.interval)
         for name in ('train_s', 'test_s', 'horizon_m', 'fix_period_s',
                      'fix_sigma_m', 'nees_spacing_s', 'wheel_rate_hz', 'initial_sigma_m',
                      'initial_sigma_yaw_rad'):
@@ -238,7 +241,8 @@ class EstimationStudy:
                   else f', yaw sigma {math.degrees(opts.fix_sigma_yaw_rad):.2g} deg'))
         lines = [
             f'model {self.model} (fitted on {opts.train_s:g} s, noise rates on '
-            f'{opts.calib_drives} held-out drives of {opts.test_s:g} s; seed {self.seed})',
+            f'{opts.calib_drives} held-out drives of {opts.test_s:g} s; interval {opts.interval}; '
+            f'seed {self.seed})',
             'noise rates: ' + ', '.join(f'{k} {v:.3g}' for k, v in self.noise.as_dict().items()),
             f'odometry alone, {odo.count} independent {self.odometry.horizon_m:g} m windows of '
             f'{opts.test_drives} test drives: average NEES {odo.mean:.2f}, 95 % band '
@@ -423,7 +427,8 @@ def run_estimation_study(seed: int = 0, quick: bool = False,
                          options.truth_noise_m, options.truth_noise_rad, rng)
             for i in range(options.calib_drives)]
     cal_options = CalibrationOptions(h_e=options.horizon_m, models=options.models,
-                                     n_starts=options.n_starts, seed=seed)
+                                     n_starts=options.n_starts, seed=seed,
+                                     interval=options.interval)
     calibration = calibrate([train], held, geometry, cal_options)
     model = calibration.best
     if model not in calibration.noise:
