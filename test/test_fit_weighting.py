@@ -182,3 +182,15 @@ def test_fixed_weighting_is_still_available_and_differs(skidding_drives):
     assert fixed.values != iterated.values
     assert get_model('edd_symmetric').param_names == tuple(iterated.values)
     assert replace(fixed, weighting='iterated').weighting == 'iterated'
+
+
+def test_one_evaluation_drive_falls_back_to_the_paper_rule_instead_of_failing():
+    """A single evaluation drive has no second half for the likelihood: said, not a crash."""
+    from _calib_synth import GEOMETRY, make_drive
+    from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions
+
+    train = [make_drive('edd_symmetric', duration_s=60.0, seed=s) for s in (1, 2)]
+    evaluate = [make_drive('edd_symmetric', duration_s=60.0, seed=3)]
+    result = calibrate(train, evaluate, GEOMETRY, CalibrationOptions(models=('edd_symmetric',)))
+    assert result.selection_rule == 'paper'
+    assert any('at least 2 drives' in w for w in result.warnings), result.warnings

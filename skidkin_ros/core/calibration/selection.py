@@ -69,6 +69,9 @@ def heldout_nll(name: str, values: Mapping[str, float], geometry: Geometry,
     model = get_model(name)
     errors = segment_errors(model, model.vector(dict(values), geometry), geometry, segments)
     order = np.unique(clusters)
+    if order.size < 2:
+        raise DataError('the held-out likelihood needs evaluation data from at least 2 drives '
+                        'or hold-out groups')
     fold = np.isin(clusters, order[1::2])
     out = np.full(len(segments), np.inf)
     finite = np.all(np.isfinite(errors), axis=1)
@@ -77,15 +80,15 @@ def heldout_nll(name: str, values: Mapping[str, float], geometry: Geometry,
         check_idx = np.nonzero((fold != part) & finite)[0]
         if check_idx.size == 0:
             continue
+        if fit_idx.size == 0:
+            raise DataError('the held-out likelihood needs finite errors in both halves of the '
+                            'evaluation data')
         cov = noise_covariances(name, dict(values), geometry, segments.subset(fit_idx),
                                 errors[fit_idx], segments.subset(check_idx))
         err = errors[check_idx]
         sign, logdet = np.linalg.slogdet(cov)
         maha = np.einsum('ni,nij,nj->n', err, np.linalg.inv(cov), err)
         out[check_idx] = np.where(sign > 0, 0.5 * (logdet + maha + 3 * LOG_2PI), np.inf)
-    if order.size < 2:
-        raise DataError('the held-out likelihood needs evaluation data from at least 2 drives '
-                        'or hold-out groups')
     return out
 
 
