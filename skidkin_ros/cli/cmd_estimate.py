@@ -49,7 +49,7 @@ def add_parser(subparsers) -> None:
                         help="leave the calibration's own uncertainty out of the covariance")
     parser.add_argument('--stamp-shift', type=float, default=0.0, metavar='SAMPLES',
                         help='move every simulated wheel stamp by this many sample periods '
-                        '(-0.5: the midpoint interval convention, no half-sample lag)')
+                        '(-0.5 with --interval starting: what midpoint does, no half-sample lag)')
     parser.add_argument('--interval', choices=INTERVALS, default='midpoint',
                         help='sample-interval convention of the calibration and the odometry '
                         "(default midpoint: exact for the simulator's speeds, which are the "

@@ -41,6 +41,7 @@ from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer, Prediction
 from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
+from skidkin_ros.studies.effects import SIM_INTERVAL
 
 __all__ = ['GEOMETRY', 'MODEL', 'CASES', 'ImuCase', 'run_case', 'run_study', 'TABLE_HEADER']
 
@@ -78,7 +79,9 @@ def calibrated_config(case: str = 'effect-free', seeds: Sequence[int] = (1, 2, 3
                       duration_s: float = 120.0) -> OdometryConfig:
     """Return ``MODEL`` calibrated on drives of one case (with noise rates), as the file says."""
     drives = _drives(case, seeds, duration_s)
-    result = calibrate(drives[:-1], drives[-1:], GEOMETRY, CalibrationOptions(models=(MODEL,)))
+    # the simulator's speeds are the wheels' at each stamp: the trapezoid integrates them exactly
+    result = calibrate(drives[:-1], drives[-1:], GEOMETRY,
+                       CalibrationOptions(models=(MODEL,), interval=SIM_INTERVAL))
     flat = result_to_parameters(result)
     flat['model'] = MODEL
     return OdometryConfig.from_flat(flat)
@@ -147,8 +150,8 @@ def run_case(case: str, config: OdometryConfig, reference: OdometryConfig,
              seeds: Sequence[int] = (11, 12, 13), duration_s: float = 120.0) -> ImuCase:
     """Run one case (module docstring) and return its scores."""
     drives = _drives(case, seeds, duration_s)
-    segments = cut_segments(drives, SegmentOptions(horizon_m=2.0, short_drive='drop'))
-    options = SegmentOptions(horizon_m=2.0, short_drive='drop')
+    options = SegmentOptions(horizon_m=2.0, short_drive='drop', interval=SIM_INTERVAL)
+    segments = cut_segments(drives, options)
     predictions: dict[str, list[Prediction]] = {}
     recovery: list[float] = []
     for mode in MODES:
