@@ -30,6 +30,7 @@ import time
 from typing import Any, Sequence
 
 import numpy as np
+from skidkin_ros.core.parallel import usable_cpus
 
 
 def vlp16() -> Any:
@@ -268,7 +269,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--outdoor-s', type=float, default=300.0)
     parser.add_argument('--drive-s', type=float, default=600.0)
     parser.add_argument('--why-frames', type=int, default=300)
-    parser.add_argument('--jobs', type=int, default=len(os.sched_getaffinity(0)))
+    parser.add_argument('--jobs', type=int, default=usable_cpus())
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix='gt_bench_') as tmp:
         result = run(Path(tmp), args.outdoor_s, args.drive_s, args.why_frames, args.jobs)

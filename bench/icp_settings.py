@@ -74,7 +74,8 @@ def measure(sim: Any, scans: Sequence[Any], changes: dict[str, Any]) -> dict[str
     registration = register_frames(scans, config)
     cpu = (time.process_time() - tic) / len(scans)
     truth = guarded_truth(registration, sim.config.lidar.extrinsic(), config)
-    track = PoseTrack(truth.track.t_ns, truth.track.x, truth.track.y, truth.track.yaw)
+    track = PoseTrack(truth.track.t_ns, truth.track.x, truth.track.y, truth.track.yaw,
+                      truth.track.valid)  # score only what the guard kept
     one = increment_errors(track, sim.pose_at, horizon_s=1.0)
     two = increment_errors(track, sim.pose_at, horizon_m=2.0)
     return {'cpu_ms': 1e3 * cpu, 'voxel_m': registration.voxel_size_m,

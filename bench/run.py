@@ -43,6 +43,7 @@ import node_bench
 import report
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.models import MODEL_NAMES
+from skidkin_ros.core.parallel import usable_cpus
 
 PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis', 'heading')
 
@@ -227,8 +228,7 @@ def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
         print('ground-truth benchmark (outdoor scene, kiss_icp_pipeline, settings)', flush=True)
         with tempfile.TemporaryDirectory(prefix='skidkin_gt_') as folder:
             gt = gt_bench.run(Path(folder), sizes.gt_outdoor_s, sizes.gt_drive_s,
-                              sizes.gt_why_frames, len(os.sched_getaffinity(0))
-                              if hasattr(os, 'sched_getaffinity') else os.cpu_count() or 1)
+                              sizes.gt_why_frames, usable_cpus())
         gt['settings'] = icp_settings.run(sizes.icp_settings_s)
         gt['available'] = True
         results['groundtruth'] = gt

@@ -45,7 +45,6 @@ class Progress:
         self._bar = None
         self._next = step
         self._start = time.monotonic()
-        self._done = 0
 
     def __call__(self, done: int, total: int) -> None:
         """Record that ``done`` of ``total`` are done (both counts from the start)."""

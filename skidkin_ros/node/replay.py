@@ -107,11 +107,15 @@ def _stamp_offset(samples: WheelSamples, stamp_offset_ns: int | None) -> int:
 
 
 def _joint_state(names: list[str], n_left: int, t_ns: int, omega_l: float,
-                 omega_r: float) -> JointState:
+                 omega_r: float, position: tuple[float, float] | None = None) -> JointState:
+    """Return one JointState: each side's speed (and position, if given) on all its joints."""
+    n_right = len(names) - n_left
     msg = JointState()
     msg.header.stamp = ns_to_stamp(t_ns)
     msg.name = names
-    msg.velocity = [float(omega_l)] * n_left + [float(omega_r)] * (len(names) - n_left)
+    msg.velocity = [float(omega_l)] * n_left + [float(omega_r)] * n_right
+    if position is not None:
+        msg.position = [float(position[0])] * n_left + [float(position[1])] * n_right
     return msg
 
 
@@ -238,15 +242,9 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
         while sent < n:
             stop = min(sent + WINDOW, n)
             for i in range(sent, stop):
-                msg = JointState()
-                msg.header.stamp = ns_to_stamp(int(samples.t_ns[i]) + offset_ns)
-                msg.name = names
-                msg.velocity = ([float(samples.omega_l[i])] * len(left)
-                                + [float(samples.omega_r[i])] * len(right))
-                if positions is not None and positions[i] is not None:
-                    msg.position = ([float(positions[i][0])] * len(left)
-                                    + [float(positions[i][1])] * len(right))
-                harness.publisher.publish(msg)
+                harness.publisher.publish(_joint_state(
+                    names, len(left), int(samples.t_ns[i]) + offset_ns, samples.omega_l[i],
+                    samples.omega_r[i], None if positions is None else positions[i]))
             sent = stop
             target = sent
             harness.spin_until(lambda: harness.odom.counters['received'] >= target,

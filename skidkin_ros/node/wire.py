@@ -127,7 +127,7 @@ class JointStateReader:
             if offset > size:
                 raise WireFormatError(f'header.frame_id of {length} bytes runs past the end of '
                                       f'the data ({size} bytes)')
-            offset = (offset + 3) & ~3  # the name count: 4-aligned (the header is 4 bytes)
+            offset = _aligned(offset, 4)  # the name count: 4-aligned (the header is 4 bytes)
             known_order, known, names = self._last_names
             if little == known_order and data.startswith(known, offset):
                 offset += len(known)  # the name list of the last message (the usual case)
@@ -157,7 +157,7 @@ def _names(data: bytes, uint32: Any, offset: int) -> tuple[tuple[str, ...], int]
                               f'takes ({MAX_FAST_NAMES}): left to rclpy')
     names = []
     for i in range(count):
-        offset = (offset + 3) & ~3
+        offset = _aligned(offset, 4)
         (length,) = uint32(data, offset)
         start = offset + 4
         offset = start + length
@@ -177,7 +177,7 @@ def _names(data: bytes, uint32: Any, offset: int) -> tuple[tuple[str, ...], int]
 def _doubles(data: bytes, uint32: Any, order: str, offset: int, field: str, keep: bool
              ) -> tuple[tuple[float, ...], int]:
     """Read a sequence<double> at ``offset``; return its values (if ``keep``) and its end."""
-    offset = (offset + 3) & ~3
+    offset = _aligned(offset, 4)
     (count,) = uint32(data, offset)
     offset += 4
     if not count:  # no alignment padding for an empty sequence (as rclpy reads it)

@@ -395,9 +395,9 @@ def _simulate_drive(name: str, duration_s: float, seed: int, wheel_rate_hz: floa
                     shift_samples: float = 0.0) -> Drive:
     """Simulate a drive; ``shift_samples`` moves every wheel stamp by that many periods.
 
-    A shift of -0.5 makes the integrator's zero-order hold of sample k over [t_k, t_k+1) cover
-    the interval the sample describes, centred on its stamp: the midpoint convention, which
-    removes the half-sample lag (issue 11 item 4) until the integrator offers it itself.
+    Under ``interval: starting``, a shift of -0.5 makes the hold of sample k over [t_k, t_k+1)
+    cover the interval the sample describes, centred on its stamp: what ``interval: midpoint``
+    does in the integrator itself (the study's default).
     """
     config = SimConfig(duration_s=duration_s, seed=seed, wheel_rate_hz=wheel_rate_hz)
     drive = simulate(config).drive(name)

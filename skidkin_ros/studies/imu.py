@@ -88,11 +88,11 @@ def calibrated_config(case: str = 'effect-free', seeds: Sequence[int] = (1, 2, 3
 
 
 def _on_new_ground(case: str, drive: Drive, t_a: int, t_b: int) -> bool:
-    truth = drive.truth
-    inside = (truth.t_ns >= t_a) & (truth.t_ns <= t_b)
     if case == 'ground change':
         return bool(t_a >= _switch_ns(drive))
     if case == 'low-friction patch':
+        truth = drive.truth
+        inside = (truth.t_ns >= t_a) & (truth.t_ns <= t_b)
         return bool(np.all(truth.x[inside] > BOUNDARY_X_M))
     return False
 

@@ -13,6 +13,7 @@ Example (wheel samples at 20 Hz, a fix every second)::
 
     from skidkin_ros.core.estimation.ekf import PlanarEkf, PoseFix
 
+    # calibrated under interval ending or midpoint: samples = held_wheels(samples, interval)
     ekf = PlanarEkf(bound_model, noise, pose=start_pose, cov=np.diag([0.01, 0.01, 0.001]))
     for t_ns, omega_l, omega_r in samples:
         ekf.predict(t_ns, omega_l, omega_r)

@@ -241,7 +241,7 @@ def _acceleration_slip(k, twist, omega_l, omega_r, t_s, rate):
     out = np.array(twist, dtype=float, copy=True)
     v_x = out[..., 0]
     dv = np.asarray(rate, dtype=float)[..., 0]
-    loss = np.where(v_x * dv > 0.0, np.minimum(k[0] * np.abs(dv), np.abs(v_x)), 0.0)
+    loss = np.minimum(k[0] * np.abs(speeding_up(v_x, dv)), np.abs(v_x))
     out[..., 0] = v_x - np.copysign(loss, v_x)
     return out
 

@@ -35,6 +35,8 @@ class DiagnosisOptions(HorizonOptions):
     holdout_block_s: float = 60.0
     holdout_key: str | None = None
     max_dt_s: float = 0.5
+    # Used under interval 'starting' only (the zero-order hold from the stamp): the other
+    # conventions already place the speeds on their interval and need no stamp-convention row.
     stamp_convention: str = 'mid'
     trim: bool = False
 
