@@ -55,7 +55,8 @@ from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
                                                    SegmentSet, usable_segments)
 from skidkin_ros.core.calibration.selection import (choose_by_likelihood, heldout_nll,
-                                                    Likelihood, segment_clusters)
+                                                    Likelihood, paper_scores, paper_ties,
+                                                    segment_clusters)
 from skidkin_ros.core.calibration.weighting import fit_models_weighted, WEIGHTINGS
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
@@ -69,7 +70,6 @@ __all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best'
            'result_to_parameters', 'horizon_study', 'HorizonStudy', 'SELECTIONS']
 
 LOG = logging.getLogger(__name__)
-TIE_TOLERANCE = 0.02
 SELECTIONS = ('likelihood', 'paper')
 
 
@@ -173,14 +173,9 @@ def choose_best(fits: Mapping[str, FitResult],
     if not valid:
         raise FitError('no model produced a valid fit with finite evaluation errors; see the '
                        'warnings')
-    best_t = min(evaluation[m].stats_t.median for m in valid)
-    best_th = min(evaluation[m].stats_theta.median for m in valid)
-    scores = {}
-    for m in valid:
-        scores[m] = (evaluation[m].stats_t.median / max(best_t, 1e-12)
-                     + evaluation[m].stats_theta.median / max(best_th, 1e-12))
-    lowest = min(scores.values())
-    tied = [m for m in valid if scores[m] <= lowest * (1.0 + TIE_TOLERANCE)]
+    scores = paper_scores({m: (evaluation[m].stats_t.median, evaluation[m].stats_theta.median)
+                           for m in valid})
+    tied = paper_ties(scores, valid)
     best = min(tied, key=lambda m: (len(get_model(m).params), scores[m]))
     return best, scores
 
@@ -193,12 +188,8 @@ def choose_interval(errors: Mapping[str, tuple[float, float]]) -> tuple[str, dic
     finite = {k: v for k, v in errors.items() if math.isfinite(v[0]) and math.isfinite(v[1])}
     if not finite:
         raise FitError('no sample-interval convention gave finite held-out errors')
-    best_t = max(min(v[0] for v in finite.values()), 1e-12)
-    best_th = max(min(v[1] for v in finite.values()), 1e-12)
-    scores = {k: v[0] / best_t + v[1] / best_th for k, v in finite.items()}
-    lowest = min(scores.values())
-    tied = [k for k in INTERVALS if k in scores and scores[k] <= lowest * (1.0 + TIE_TOLERANCE)]
-    return tied[0], scores
+    scores = paper_scores(finite)
+    return paper_ties(scores, INTERVALS)[0], scores
 
 
 def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,

@@ -16,6 +16,11 @@ is the reference; for every model, the mean of its paired per-segment difference
 reference and the standard error of that mean, clustered by the same clusters. Every model
 within 2 standard errors of the reference is a tie, and among the ties the one with the fewest
 parameters wins (then the lowest NLL).
+
+The paper's score (:func:`paper_scores`), for the fallback rule and the sample-interval choice:
+median eps_t / (best median eps_t) + median eps_theta / (best median eps_theta); the candidates
+within ``TIE_TOLERANCE`` (2 %) of the lowest score are ties (:func:`paper_ties`), each caller
+breaking them its own way.
 """
 
 from __future__ import annotations
@@ -34,10 +39,12 @@ from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.errors import DataError, FitError
 
-__all__ = ['TIE_STANDARD_ERRORS', 'Likelihood', 'segment_clusters', 'heldout_nll',
-           'clustered_standard_error', 'choose_by_likelihood']
+__all__ = ['TIE_STANDARD_ERRORS', 'TIE_TOLERANCE', 'Likelihood', 'segment_clusters',
+           'heldout_nll', 'clustered_standard_error', 'choose_by_likelihood', 'paper_scores',
+           'paper_ties']
 
 TIE_STANDARD_ERRORS = 2.0
+TIE_TOLERANCE = 0.02
 LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -125,3 +132,21 @@ def choose_by_likelihood(nll: Mapping[str, np.ndarray], clusters: np.ndarray,
             if table[m].delta <= TIE_STANDARD_ERRORS * table[m].standard_error or m == lowest]
     best = min(tied, key=lambda m: (table[m].parameters, table[m].mean_nll))
     return best, table
+
+
+def paper_scores(medians: Mapping[str, tuple[float, float]]) -> dict[str, float]:
+    """Return each candidate's paper score (module docstring) from its held-out medians.
+
+    ``medians``: {candidate: (median eps_t m/m, median eps_theta deg/m)}, the candidates to
+    compare (the caller leaves out those it does not score); a best median below 1e-12 counts
+    as 1e-12.
+    """
+    best_t = max(min(v[0] for v in medians.values()), 1e-12)
+    best_th = max(min(v[1] for v in medians.values()), 1e-12)
+    return {k: v[0] / best_t + v[1] / best_th for k, v in medians.items()}
+
+
+def paper_ties(scores: Mapping[str, float], order: Sequence[str]) -> list[str]:
+    """Return the candidates of ``order`` scored within TIE_TOLERANCE of the lowest score."""
+    lowest = min(scores.values())
+    return [k for k in order if k in scores and scores[k] <= lowest * (1.0 + TIE_TOLERANCE)]
