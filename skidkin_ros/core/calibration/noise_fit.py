@@ -65,7 +65,7 @@ from skidkin_ros.errors import DataError
 
 __all__ = ['SegmentMotion', 'Consistency', 'HorizonCheck', 'NoiseFit', 'segment_motion',
            'segment_covariances', 'parameter_sensitivity', 'fit_noise_model', 'coverage_scale',
-           'consistency', 'calibrate_noise', 'MIN_VARIANCE']
+           'consistency', 'calibrate_noise', 'MIN_VARIANCE', 'mahalanobis']
 
 MIN_VARIANCE = 1e-12
 CHI2_95_3DOF = float(stats.chi2.ppf(0.95, 3))
@@ -242,7 +242,7 @@ def segment_covariances(noise: NoiseModel, motion: SegmentMotion) -> np.ndarray:
     return cov + MIN_VARIANCE * np.eye(3)
 
 
-def _mahalanobis(cov: np.ndarray, errors: np.ndarray) -> np.ndarray:
+def mahalanobis(cov: np.ndarray, errors: np.ndarray) -> np.ndarray:
     """Return the squared Mahalanobis distance of each error (N, d) under its covariance."""
     return np.einsum('ni,nij,nj->n', errors, np.linalg.inv(cov), errors)
 
@@ -302,9 +302,9 @@ def fit_noise_model(errors: np.ndarray, motion: SegmentMotion, constant: bool = 
 def consistency(noise: NoiseModel, errors: np.ndarray, motion: SegmentMotion) -> Consistency:
     """Share of errors inside the predicted 95 % region (3 dof on x, y, yaw; 2 dof position)."""
     cov = segment_covariances(noise, motion)
-    maha3 = _mahalanobis(cov, errors)
+    maha3 = mahalanobis(cov, errors)
     pos = errors[:, :2]
-    maha2 = _mahalanobis(cov[:, :2, :2], pos)
+    maha2 = mahalanobis(cov[:, :2, :2], pos)
     n = errors.shape[0]
     return Consistency(float((maha3 <= CHI2_95_3DOF).mean()) if n else float('nan'),
                        float((maha2 <= CHI2_95_2DOF).mean()) if n else float('nan'), n)
@@ -323,10 +323,10 @@ def coverage_scale(noise: NoiseModel, errors: np.ndarray, motion: SegmentMotion,
 
     def inside(scale: float) -> float:
         cov = segment_covariances(_scaled(noise, scale), motion)
-        return float((_mahalanobis(cov, errors) <= CHI2_95_3DOF).mean())
+        return float((mahalanobis(cov, errors) <= CHI2_95_3DOF).mean())
 
     if motion.fixed is None:
-        maha = _mahalanobis(segment_covariances(noise, motion), errors)
+        maha = mahalanobis(segment_covariances(noise, motion), errors)
         needed = float(np.quantile(maha, target, method='higher')) / CHI2_95_3DOF
         return max(1.0, needed * (1.0 + 1e-9))  # the margin keeps the bound inclusive
     if inside(1.0) >= target:
@@ -361,7 +361,7 @@ def _fit_covering(sets: Sequence[tuple[np.ndarray, SegmentMotion]], constant: bo
 
 
 def _horizon_check(horizon_m: float, errors: np.ndarray, cov: np.ndarray) -> HorizonCheck:
-    values = _mahalanobis(cov, errors)
+    values = mahalanobis(cov, errors)
     n = values.size
     low, high = stats.chi2.ppf([0.025, 0.975], 3 * max(n, 1)) / max(n, 1)
     return HorizonCheck(float(horizon_m), float(values.mean()) if n else float('nan'),

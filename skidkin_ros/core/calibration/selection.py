@@ -32,6 +32,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from skidkin_ros.core.calibration.fitting import segment_errors
+from skidkin_ros.core.calibration.noise_fit import mahalanobis
 from skidkin_ros.core.calibration.segments import SegmentSet
 from skidkin_ros.core.calibration.weighting import noise_covariances
 from skidkin_ros.core.drive import Drive
@@ -94,7 +95,7 @@ def heldout_nll(name: str, values: Mapping[str, float], geometry: Geometry,
                                 errors[fit_idx], segments.subset(check_idx))
         err = errors[check_idx]
         sign, logdet = np.linalg.slogdet(cov)
-        maha = np.einsum('ni,nij,nj->n', err, np.linalg.inv(cov), err)
+        maha = mahalanobis(cov, err)
         out[check_idx] = np.where(sign > 0, 0.5 * (logdet + maha + 3 * LOG_2PI), np.inf)
     return out
 
