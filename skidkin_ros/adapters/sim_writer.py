@@ -15,7 +15,6 @@ Example::
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Mapping
 
@@ -23,6 +22,7 @@ import numpy as np
 
 from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.atomic import atomic_write_text
+from skidkin_ros.core.odometry.integrator import wrap_angle
 from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.lidar import LidarScan
@@ -149,7 +149,7 @@ def _write_small(writer: BagWriter, sim: Simulation, item: tuple[int, str, int, 
         left, right = float(sim.wheels.omega_l[i]), float(sim.wheels.omega_r[i])
         pos_l, pos_r = float(sim.wheel_pos_l[i]), float(sim.wheel_pos_r[i])
         if wrap_positions:
-            pos_l, pos_r = ((pos + math.pi) % (2 * math.pi) - math.pi for pos in (pos_l, pos_r))
+            pos_l, pos_r = (float(wrap_angle(pos)) for pos in (pos_l, pos_r))
         writer.write_joint_state(topic, t_ns, JOINT_NAMES, [left, left, right, right],
                                  positions=[pos_l, pos_l, pos_r, pos_r])
     elif kind == 'imu':

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from skidkin_ros.core.kinematics.models import BoundModel
-from skidkin_ros.core.odometry.integrator import rollout
+from skidkin_ros.core.odometry.integrator import rollout, wrap_angle
 from skidkin_ros.sim.effects import apply_effects, Effect
 
 __all__ = ['COMMAND_KINDS', 'CommandSchedule', 'TruthTrace', 'plan_commands', 'motor_response',
@@ -133,7 +133,7 @@ def _homing_command(model: BoundModel, pose: np.ndarray, max_speed: float,
                     wheel_radius: float, track_width: float) -> tuple[float, float]:
     """Return a wheel-speed pair steering toward the arena centre."""
     bearing = math.atan2(-pose[1], -pose[0]) - pose[2]
-    bearing = (bearing + math.pi) % (2.0 * math.pi) - math.pi
+    bearing = float(wrap_angle(bearing))
     omega = float(np.clip(1.5 * bearing, -1.2, 1.2))
     v = 0.6 * max_speed * wheel_radius * max(0.0, math.cos(bearing))
     left = (v - omega * track_width / 2.0) / wheel_radius

@@ -38,6 +38,7 @@ from typing import Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import Drive, WheelSamples
+from skidkin_ros.core.odometry.integrator import wrap_angle
 from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
 from skidkin_ros.errors import DataError, ParameterError
 
@@ -212,7 +213,7 @@ def segment_frame_error(start: np.ndarray, true_end: np.ndarray,
     dy = true_end[:, 1] - predicted_end[:, 1]
     cos_a = np.cos(start[:, 2])
     sin_a = np.sin(start[:, 2])
-    dyaw = (true_end[:, 2] - predicted_end[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    dyaw = wrap_angle(true_end[:, 2] - predicted_end[:, 2])
     return np.stack([cos_a * dx + sin_a * dy, -sin_a * dx + cos_a * dy, dyaw], axis=-1)
 
 
