@@ -4,7 +4,9 @@ The calibrator uses the ground truth's increments over 2 m segments and the diag
 velocities over fractions of a second, never its global frame, so a ground truth is judged here
 by its increments (relative pose error, as evo's RPE): for each valid pose i, the pose j one
 horizon later (``horizon_s`` in time, or ``horizon_m`` of true path), the estimated motion
-i -> j expressed in pose i's frame against the true one. Position error in m, yaw error in rad.
+i -> j against the true one (:func:`skidkin_ros.core.calibration.evaluation.motion_errors`, the
+calibrator's own comparison: replayed from the true pose i, the error in its frame, yaw
+wrapped). Position error in m, yaw error in rad.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from skidkin_ros.core.calibration.evaluation import motion_errors
 from skidkin_ros.core.drive import PoseTrack
 
 __all__ = ['IncrementErrors', 'increment_errors']
@@ -48,12 +51,6 @@ class IncrementErrors:
                 float(np.percentile(self.yaw_rad, q)))
 
 
-def _relative(poses: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    c, s = np.cos(poses[i, 2]), np.sin(poses[i, 2])
-    dx, dy = poses[j, 0] - poses[i, 0], poses[j, 1] - poses[i, 1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, poses[j, 2] - poses[i, 2]], axis=-1)
-
-
 def increment_errors(track: PoseTrack, truth_at: TruthFn, *, horizon_s: float | None = None,
                      horizon_m: float | None = None, valid_only: bool = True) -> IncrementErrors:
     """Return the errors of the track's increments over one horizon (time or true distance).
@@ -83,5 +80,5 @@ def increment_errors(track: PoseTrack, truth_at: TruthFn, *, horizon_s: float | 
         bad = np.concatenate([[0], np.cumsum(~track.valid)])
         keep = (bad[j + 1] - bad[i]) == 0
         i, j = i[keep], j[keep]
-    err = _relative(est, i, j) - _relative(true, i, j)
+    err = motion_errors(est[i], est[j], true[i], true[j])
     return IncrementErrors(label, np.hypot(err[:, 0], err[:, 1]), np.abs(err[:, 2]))

@@ -11,6 +11,8 @@ dividing by a near-zero path would dominate every statistic.
 :func:`relative_errors` is the one place the two figures are computed: for the calibrated models,
 the diagnosis's before/after table, the studies, and any odometry output against ground truth
 (:func:`relative_pose_errors`, e.g. what the node published in ``skidkin demo``).
+:func:`motion_errors` is the one place an estimated motion is compared with the true one (the
+relative pose errors here, the simulator's ground-truth accuracy).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ __all__ = [
     'evaluate_model',
     'evaluate_models',
     'relative_pose_errors',
+    'motion_errors',
     'WindowEnd',
     'window_end_errors',
 ]
@@ -157,16 +160,26 @@ def relative_pose_errors(t_ns: np.ndarray, estimate: np.ndarray, truth: PoseTrac
     if not starts:
         return np.empty(0), np.empty(0)
     a_idx, b_idx = np.array(starts), np.array(ends)
-    est_a, est_b = estimate[a_idx], estimate[b_idx]
-    # the estimate's motion a -> b, replayed from the true start pose
-    c, s = np.cos(est_a[:, 2]), np.sin(est_a[:, 2])
-    dx, dy = est_b[:, 0] - est_a[:, 0], est_b[:, 1] - est_a[:, 1]
-    local = np.stack([c * dx + s * dy, -s * dx + c * dy, est_b[:, 2] - est_a[:, 2]], axis=-1)
-    start = true[a_idx]
-    ct, st = np.cos(start[:, 2]), np.sin(start[:, 2])
-    predicted = np.stack([start[:, 0] + ct * local[:, 0] - st * local[:, 1],
-                          start[:, 1] + st * local[:, 0] + ct * local[:, 1],
-                          start[:, 2] + local[:, 2]], axis=-1)
-    errors = segment_frame_error(start, true[b_idx], predicted)
+    errors = motion_errors(estimate[a_idx], estimate[b_idx], true[a_idx], true[b_idx])
     # Every window is at least horizon_m > 0 long: none is left out.
     return relative_errors(errors, path[b_idx] - path[a_idx], min_path_m=0.0)
+
+
+def motion_errors(estimate_start: np.ndarray, estimate_end: np.ndarray, true_start: np.ndarray,
+                  true_end: np.ndarray) -> np.ndarray:
+    """Return the (N, 3) errors of estimated motions start -> end against the true ones.
+
+    Poses (N, 3): x, y (m), yaw (rad). The estimate's motion, in its own start frame, is replayed
+    from the true start pose; the error is :func:`segment_frame_error`'s (true - replayed end, in
+    the true start frame: m, m, rad; yaw wrapped).
+    """
+    c, s = np.cos(estimate_start[:, 2]), np.sin(estimate_start[:, 2])
+    dx = estimate_end[:, 0] - estimate_start[:, 0]
+    dy = estimate_end[:, 1] - estimate_start[:, 1]
+    local = np.stack([c * dx + s * dy, -s * dx + c * dy,
+                      estimate_end[:, 2] - estimate_start[:, 2]], axis=-1)
+    ct, st = np.cos(true_start[:, 2]), np.sin(true_start[:, 2])
+    replayed = np.stack([true_start[:, 0] + ct * local[:, 0] - st * local[:, 1],
+                         true_start[:, 1] + st * local[:, 0] + ct * local[:, 1],
+                         true_start[:, 2] + local[:, 2]], axis=-1)
+    return segment_frame_error(true_start, true_end, replayed)
