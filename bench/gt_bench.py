@@ -87,17 +87,13 @@ def _skidkin_command() -> list[str]:
 def _kiss_track(results_dir: Path, bag: Path) -> Any:
     """Return kiss_icp_pipeline's poses as a base_link PoseTrack stamped like our frames."""
     from skidkin_ros.adapters.bag_reader import open_recording
-    from skidkin_ros.adapters.lidar_gt import lidar_to_base, planar_pose
-    from skidkin_ros.core.drive import PoseTrack
 
     poses = np.load(next(results_dir.rglob('*_poses.npy')))
     with open_recording(bag) as rec:
         ends = [f.end_ns for f in rec.iter_lidar('/points')]
         extrinsic = rec.read_extrinsic('base_link', 'lidar')
     n = min(len(ends), poses.shape[0])
-    rows = np.array([planar_pose(lidar_to_base(p, extrinsic)) for p in poses[:n]])
-    return PoseTrack(np.array(ends[:n], dtype=np.int64), rows[:, 0], rows[:, 1],
-                     np.unwrap(rows[:, 2]))
+    return _track_of(poses[:n], ends[:n], extrinsic)
 
 
 def side_by_side(bag: Path, sim: Any, jobs: int, rounds: int = 2) -> dict[str, Any]:
@@ -163,13 +159,14 @@ def _kiss_config(max_range: float, voxel: float, deskew: bool = True,
     return config
 
 
-def _track_of(poses: np.ndarray, frames: Sequence[Any], extrinsic: np.ndarray) -> Any:
-    from skidkin_ros.adapters.lidar_gt import lidar_to_base, planar_pose
+def _track_of(poses: np.ndarray, ends_ns: Sequence[int], extrinsic: np.ndarray) -> Any:
+    """Return lidar poses (N, 4, 4) as a base_link PoseTrack stamped with the frames' ends."""
     from skidkin_ros.core.drive import PoseTrack
+    from skidkin_ros.core.rigid import planar_poses
 
-    rows = np.array([planar_pose(lidar_to_base(p, extrinsic)) for p in poses])
-    return PoseTrack(np.array([f.end_ns for f in frames], dtype=np.int64), rows[:, 0],
-                     rows[:, 1], np.unwrap(rows[:, 2]))
+    rows = planar_poses(poses, extrinsic)
+    return PoseTrack(np.array(ends_ns, dtype=np.int64), rows[:, 0], rows[:, 1],
+                     np.unwrap(rows[:, 2]))
 
 
 def why(bag: Path, sim: Any, n_frames: int) -> dict[str, Any]:
@@ -200,7 +197,7 @@ def why(bag: Path, sim: Any, n_frames: int) -> dict[str, Any]:
         poses = _plain_kiss(frames, config)
         cpu = (time.process_time() - tic) / len(frames)
         row = {'what': label, 'cpu_ms': 1e3 * cpu}
-        row.update(_errors(_track_of(poses, frames, extrinsic), sim))
+        row.update(_errors(_track_of(poses, [f.end_ns for f in frames], extrinsic), sim))
         rows.append(row)
     for label, config in (('skidkin now (auto voxel, range 100 m, convergence 1e-3, quality '
                            'measured)', IcpConfig()),

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from skidkin_ros.adapters.lidar_gt import (check_point_times, IcpConfig, lidar_ground_truth,
-                                           lidar_to_base, planar_pose, register_frames,
-                                           se3_power)
+                                           register_frames)
 from skidkin_ros.core.drive import PoseTrack, WheelSamples
+from skidkin_ros.core.rigid import change_frame, planar_pose, se3_power
 from skidkin_ros.sim import LidarConfig, SimConfig, simulate
 from skidkin_ros.sim.accuracy import increment_errors
 from skidkin_ros.sim.scene import outdoor_scene
@@ -48,7 +48,7 @@ def test_extrinsic_convention_recovers_the_base_motion():
     extrinsic = pose(0.3, 0.1, 0.4, 0.5)
     base_0, base_1 = pose(1.0, 2.0, 0.3), pose(1.5, 2.2, 1.1)
     lidar_motion = (np.linalg.inv(base_0 @ extrinsic) @ (base_1 @ extrinsic))
-    recovered = lidar_to_base(lidar_motion, extrinsic)
+    recovered = change_frame(lidar_motion, extrinsic)
     assert np.allclose(recovered, np.linalg.inv(base_0) @ base_1)
     x, y, yaw, tilt = planar_pose(recovered)
     assert yaw == pytest.approx(0.8) and tilt == pytest.approx(0.0)

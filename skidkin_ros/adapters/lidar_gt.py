@@ -49,12 +49,13 @@ from typing import Any, Callable, Iterable, Protocol
 import numpy as np
 
 from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.core.rigid import planar_poses, se3_power
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['auto_voxel_size', 'BaseTrack', 'FrameGrid', 'FrameLike', 'GroundTruth',
            'guarded_truth', 'IcpConfig', 'Registration', 'REGISTRATION_CODES',
-           'check_point_times', 'lidar_ground_truth', 'lidar_to_base', 'planar_pose',
-           'register_frames', 'registration_quality', 'se3_power', 'track_from_registration']
+           'check_point_times', 'lidar_ground_truth', 'register_frames', 'registration_quality',
+           'track_from_registration']
 
 _LOG = logging.getLogger(__name__)
 
@@ -301,53 +302,6 @@ def check_point_times(t_rel_s: np.ndarray | None, n_points: int,
     return True, ''
 
 
-def lidar_to_base(t_lidar: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
-    """Return the base_link pose E T_lidar E^-1 (E = T_base_lidar), in the first base frame."""
-    return extrinsic @ t_lidar @ np.linalg.inv(extrinsic)
-
-
-def planar_pose(transform: np.ndarray) -> tuple[float, float, float, float]:
-    """Return (x, y, yaw, tilt) of a 4x4 pose; tilt is the angle of its z axis from vertical."""
-    yaw = math.atan2(transform[1, 0], transform[0, 0])
-    tilt = math.acos(max(-1.0, min(1.0, float(transform[2, 2]))))
-    return float(transform[0, 3]), float(transform[1, 3]), yaw, tilt
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(w))
-    k = _skew(w)
-    if theta < 1e-9:
-        return np.eye(3) + k
-    return (np.eye(3) + math.sin(theta) / theta * k
-            + (1.0 - math.cos(theta)) / theta ** 2 * k @ k)
-
-
-def _left_jacobian(w: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(w))
-    k = _skew(w)
-    if theta < 1e-6:
-        return np.eye(3) + 0.5 * k + k @ k / 6.0
-    return (np.eye(3) + (1.0 - math.cos(theta)) / theta ** 2 * k
-            + (theta - math.sin(theta)) / theta ** 3 * k @ k)
-
-
-def se3_power(transform: np.ndarray, fraction: float) -> np.ndarray:
-    """Return exp(fraction log(T)) of a rigid 4x4 transform: the same motion, scaled in time."""
-    from scipy.spatial.transform import Rotation
-
-    rotvec = Rotation.from_matrix(transform[:3, :3]).as_rotvec()
-    rho = np.linalg.solve(_left_jacobian(rotvec), transform[:3, 3])
-    scaled = fraction * rotvec
-    out = np.eye(4)
-    out[:3, :3] = _so3_exp(scaled)
-    out[:3, 3] = _left_jacobian(scaled) @ (fraction * rho)
-    return out
-
-
 class _Odometry:
     """kiss-icp's KissICP with a constant-velocity model in time and the map points kept."""
 
@@ -528,8 +482,7 @@ class BaseTrack:
 def track_from_registration(registration: Registration, extrinsic: np.ndarray) -> BaseTrack:
     """Return the registered poses as planar base_link poses, sorted by time, yaw unwrapped."""
     rows = np.flatnonzero(registration.registered)
-    data = np.array([planar_pose(lidar_to_base(registration.lidar_pose[i], extrinsic))
-                     for i in rows], dtype=float).reshape(-1, 4)
+    data = planar_poses(registration.lidar_pose[rows], extrinsic)
     t_ns = registration.pose_t_ns[rows]
     order = np.argsort(t_ns, kind='stable')
     if np.any(order != np.arange(order.size)):
