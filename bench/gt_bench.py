@@ -147,16 +147,12 @@ def _plain_kiss(frames: Sequence[Any], config: Any) -> np.ndarray:
 
 def _kiss_config(max_range: float, voxel: float, deskew: bool = True,
                  convergence: float = 1e-4) -> Any:
-    from kiss_icp.config import load_config
+    """Return kiss-icp's config of one variant (kiss-icp's defaults otherwise, one thread)."""
+    from skidkin_ros.adapters.lidar_gt import IcpConfig
 
-    config = load_config(None)
-    config.data.max_range = max_range
-    config.data.min_range = 0.5 if max_range == 60.0 else 0.0
-    config.data.deskew = deskew
-    config.mapping.voxel_size = voxel
-    config.registration.convergence_criterion = convergence
-    config.registration.max_num_threads = 1
-    return config
+    return IcpConfig(max_range_m=max_range, min_range_m=0.5 if max_range == 60.0 else 0.0,
+                     voxel_size_m=voxel, deskew=deskew, convergence=convergence,
+                     max_threads=1).kiss_config()
 
 
 def _track_of(poses: np.ndarray, ends_ns: Sequence[int], extrinsic: np.ndarray) -> Any:
