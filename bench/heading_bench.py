@@ -25,6 +25,7 @@ from typing import Any
 from skidkin_ros.adapters.table import read_table
 from skidkin_ros.core.calibration.evaluation import window_end_errors
 from skidkin_ros.core.calibration.fitting import fit_model, FitOptions
+from skidkin_ros.core.calibration.holdout import split_holdout
 from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions
 from skidkin_ros.core.calibration.segments import cut_segments
 from skidkin_ros.core.kinematics.models import get_model
@@ -41,8 +42,7 @@ def run(csv_path: Path = HUSKY_CSV) -> dict[str, Any]:
         return {'available': False, 'reason': f'{csv_path} not found', 'rows': []}
     tic = time.perf_counter()
     drives = read_table(csv_path)
-    train = [d for d in drives if int(d.meta['calib_step']) % 2 == 0]
-    evaluate = [d for d in drives if int(d.meta['calib_step']) % 2 == 1]
+    train, evaluate = split_holdout(drives, every=2, key='calib_step')
     options = CalibrationOptions(holdout_key='calib_step')
     result = calibrate(train, evaluate, HUSKY, options)
     window_options = replace(options.eval_segments(), horizon_s=options.window_s)
