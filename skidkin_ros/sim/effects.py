@@ -27,6 +27,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.signal import lfilter
 
+from skidkin_ros.core.kinematics.extensions import ratio_bump
 from skidkin_ros.errors import ParameterError
 
 __all__ = [
@@ -196,7 +197,8 @@ class Effect:
         if self.name == 'speed_slip':
             twist[:, 0] = v_x * (1.0 - np.minimum(k * np.abs(v_x), _MAX_SPEED_SLIP))
         elif self.name == 'ratio_yaw_slip':
-            twist[:, 2] = omega * (1.0 - k * _ratio_bump(data.omega_l, data.omega_r))
+            bump = ratio_bump(data.omega_l, data.omega_r, _RATIO_PEAK, _RATIO_WIDTH)
+            twist[:, 2] = omega * (1.0 - k * bump)
         elif self.name == 'lateral_skid':
             twist[:, 1] = twist[:, 1] + k * v_x * omega
         elif self.name == 'direction_asymmetry':
@@ -207,15 +209,6 @@ class Effect:
             twist[:, 0] = v_x * scale
             twist[:, 2] = omega * scale
         return twist
-
-
-def _ratio_bump(omega_l: np.ndarray, omega_r: np.ndarray) -> np.ndarray:
-    """Return a bump in [0, 1] peaking when the slower side turns ~half the faster, same sign."""
-    big = np.maximum(np.abs(omega_l), np.abs(omega_r))
-    small = np.minimum(np.abs(omega_l), np.abs(omega_r))
-    same_sign = (omega_l * omega_r) > 0.0
-    ratio = np.where(same_sign & (big > 0.0), small / np.where(big > 0.0, big, 1.0), -1.0)
-    return np.exp(-((ratio - _RATIO_PEAK) / _RATIO_WIDTH) ** 2)
 
 
 def _first_order(signal: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
