@@ -18,7 +18,7 @@ import numpy as np
 
 from skidkin_ros.errors import DataError
 
-__all__ = ['WheelSamples', 'PoseTrack', 'ImuSamples', 'Drive', 'fresh_pose_mask']
+__all__ = ['WheelSamples', 'PoseTrack', 'ImuSamples', 'Drive', 'fresh_pose_mask', 'path_length_m']
 
 
 def _as_time(t_ns, what: str) -> np.ndarray:
@@ -31,6 +31,11 @@ def _as_time(t_ns, what: str) -> np.ndarray:
 def _check_sorted(t: np.ndarray, what: str) -> None:
     if t.size > 1 and np.any(np.diff(t) < 0):
         raise DataError(f'{what}: stamps must be non-decreasing; sort or clean the data first')
+
+
+def path_length_m(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Return the cumulative planar distance (m) along the points (x, y), starting at 0."""
+    return np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
 
 
 def fresh_pose_mask(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
@@ -108,8 +113,7 @@ class PoseTrack:
 
     def path_length(self) -> np.ndarray:
         """Cumulative distance travelled along the track (m), starting at 0."""
-        step = np.hypot(np.diff(self.x), np.diff(self.y))
-        return np.concatenate([[0.0], np.cumsum(step)])
+        return path_length_m(self.x, self.y)
 
     def interpolate(self, t_ns) -> np.ndarray:
         """Poses (..., 3) at the given stamps, linear in x, y and unwrapped yaw."""

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import motion_errors
-from skidkin_ros.core.drive import PoseTrack
+from skidkin_ros.core.drive import path_length_m, PoseTrack
 
 __all__ = ['IncrementErrors', 'increment_errors']
 
@@ -69,8 +69,7 @@ def increment_errors(track: PoseTrack, truth_at: TruthFn, *, horizon_s: float | 
         j = np.searchsorted(t_ns, t_ns + int(round(horizon_s * 1e9)))
         label = f'{horizon_s:g} s'
     else:
-        path = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(true[:, 0]),
-                                                         np.diff(true[:, 1])))])
+        path = path_length_m(true[:, 0], true[:, 1])
         j = np.searchsorted(path, path + horizon_m)
         label = f'{horizon_m:g} m'
     i = np.arange(t_ns.size)

@@ -25,7 +25,7 @@ import numpy as np
 
 from skidkin_ros.core.calibration.fitting import segment_errors
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
-from skidkin_ros.core.drive import PoseTrack
+from skidkin_ros.core.drive import path_length_m, PoseTrack
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.errors import DataError
@@ -146,8 +146,7 @@ def relative_pose_errors(t_ns: np.ndarray, estimate: np.ndarray, truth: PoseTrac
     inside = (t_ns >= truth.t_ns[0]) & (t_ns <= truth.t_ns[-1])
     t_ns, estimate = t_ns[inside], estimate[inside]
     true = truth.interpolate(t_ns)
-    path = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(true[:, 0]),
-                                                     np.diff(true[:, 1])))])
+    path = path_length_m(true[:, 0], true[:, 1])
     starts, ends = [], []
     a = 0
     while a < len(t_ns) - 1:
