@@ -59,6 +59,7 @@ setup(
         'rosbags>=0.11,<0.12',
         'kiss-icp>=1.2,<2',
         'tqdm>=4.60',
+        'threadpoolctl>=3',
     ],
     extras_require={'ros': ROS_WHEELS, 'dev': DEV, 'cluster': CLUSTER},
     zip_safe=True,

@@ -12,8 +12,11 @@ from dataclasses import replace
 import time
 from typing import Any, Sequence
 
+from threadpoolctl import threadpool_limits
+
 from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions
 from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.parallel import usable_cpus
 from skidkin_ros.sim import SimConfig, simulate
 
 
@@ -42,6 +45,19 @@ def first_km(drives: Sequence[Drive], km: float) -> list[Drive]:
         chosen.append(drive)
         travelled_m += float(drive.truth.path_length()[-1])
     return chosen
+
+
+def blas_threads(drives: Sequence[Drive], geometry, options: CalibrationOptions
+                 ) -> dict[str, Any]:
+    """Time one calibration with BLAS on every usable CPU, then on one (core.parallel)."""
+    out: dict[str, Any] = {'threads': usable_cpus()}
+    for key, limit in (('all_threads_s', usable_cpus()), ('one_thread_s', 1)):
+        with threadpool_limits(limits=limit, user_api='blas'):
+            tic = time.perf_counter()
+            calibrate(list(drives), None, geometry, options)
+            out[key] = time.perf_counter() - tic
+    out['ratio'] = out['all_threads_s'] / out['one_thread_s']
+    return out
 
 
 def run(sizes_km: Sequence[float], drive_s: float, holdout_block_s: float = 60.0,
@@ -77,7 +93,9 @@ def run(sizes_km: Sequence[float], drive_s: float, holdout_block_s: float = 60.0
             'best': result.best,
         })
     per_km = [row['s_per_km'] for row in rows]
+    blas = blas_threads(first_km(drives, min(sizes_km)), geometry, options)
     return {
+        'blas': blas,
         'rows': rows, 'simulate_s': simulate_s, 'drive_s': drive_s,
         'holdout_block_s': holdout_block_s, 'n_starts': options.n_starts,
         'per_km_ratio_largest_smallest': per_km[-1] / per_km[0] if per_km else float('nan'),

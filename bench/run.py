@@ -43,7 +43,7 @@ import node_bench
 import report
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.models import MODEL_NAMES
-from skidkin_ros.core.parallel import usable_cpus
+from skidkin_ros.core.parallel import one_blas_thread, usable_cpus
 
 PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis', 'heading')
 
@@ -283,7 +283,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                  ('gt_drive_s', args.drive_s),
                                                  ('icp_settings_s', args.settings_s))
                  if value is not None}
-    results = run_all(args.out, args.smoke, args.only, domain_id, command.strip(), overrides)
+    with one_blas_thread():  # as the CLI runs (core.parallel); calib_bench compares both
+        results = run_all(args.out, args.smoke, args.only, domain_id, command.strip(), overrides)
     print(f'wrote {args.out / "results.md"} in {results["elapsed_s"]:.0f} s')
     return 0
 

@@ -13,6 +13,15 @@ os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
 
+@pytest.fixture(scope='session', autouse=True)
+def _one_blas_thread():
+    """Run every test with BLAS on one thread, as the CLI does (core.parallel.one_blas_thread)."""
+    from skidkin_ros.core.parallel import one_blas_thread
+
+    with one_blas_thread():
+        yield
+
+
 @pytest.fixture
 def make_rig():
     """Build in-process node rigs (real rclpy, real DDS) and close them after the test."""

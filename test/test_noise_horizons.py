@@ -1,5 +1,7 @@
 """Noise at every horizon and the calibration's own uncertainty (issues 11.6 and 17)."""
 
+from dataclasses import replace
+
 from _calib_synth import GEOMETRY, make_drive
 import numpy as np
 import pytest
@@ -60,7 +62,9 @@ def test_segment_covariance_matches_the_node_propagation_with_constant_and_param
     drive = make_drive('edd_symmetric', duration_s=60.0, rate_hz=20.0, truth_every=1, seed=2)
     segs = cut_segments([drive], SegmentOptions(horizon_m=2.0))
     motion = segment_motion('edd_symmetric', VALUES, GEOMETRY, segs, PARAM_COV)
-    expected = segment_covariances(WITH_CONSTANT, motion)
+    # every part of the noise model: rates, constant and the time in motion
+    noise = replace(WITH_CONSTANT, var_x_per_s=3e-4, var_yaw_per_s=2e-4)
+    expected = segment_covariances(noise, motion)
     model = get_model('edd_symmetric')
     bound = model.bind(VALUES, GEOMETRY)
     params = ParameterUncertainty.of_model(model, bound.k, GEOMETRY, PARAM_COV)
@@ -71,7 +75,7 @@ def test_segment_covariance_matches_the_node_propagation_with_constant_and_param
         wl = np.concatenate([segs.omega_l[i, :width], [0.0]])
         wr = np.concatenate([segs.omega_r[i, :width], [0.0]])
         # segments hold each interval's speeds from its start: the 'starting' hold replays them
-        _, cov = predict((0.0, 0.0, 0.0), np.zeros((3, 3)), t_ns, wl, wr, bound, WITH_CONSTANT,
+        _, cov = predict((0.0, 0.0, 0.0), np.zeros((3, 3)), t_ns, wl, wr, bound, noise,
                          parameters=params, interval='starting')
         # the node carries d(pose)/dk step by step to second order in the step, the
         # calibrator differentiates the exact rollout: they agree to a fraction of a percent

@@ -1,6 +1,7 @@
 """Covariance propagation: first-order propagation matches Monte Carlo of the same noise."""
 
 import numpy as np
+import pytest
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.integrator import body_increment, compose, rollout
@@ -120,3 +121,25 @@ def test_predict_runs_a_stateful_model_as_the_node_does():
         if result.status is SampleStatus.INTEGRATED:
             prop.step(result.start_pose, result.step_twist, result.dt_s)
     np.testing.assert_allclose(cov, prop.cov, rtol=1e-12, atol=1e-15)
+
+
+def test_time_in_motion_grows_the_covariance_only_while_the_wheels_turn():
+    """The per-second part adds rate * dt per moving step, nothing at an exact standstill."""
+    timed = NoiseModel(0.0, 0.0, 0.0, 0.0, var_x_per_s=2e-4, var_yaw_per_s=5e-4)
+    model = get_model('ideal_dd').bind({}, GEOM)
+    n = 41
+    t_ns = np.arange(n, dtype=np.int64) * 50_000_000
+    still = np.zeros(n)
+    _, parked = predict([0, 0, 0], np.zeros((3, 3)), t_ns, still, still, model, timed)
+    np.testing.assert_array_equal(parked, np.zeros((3, 3)))
+    # turning on the spot for 2 s: no distance, no per-radian rate; the time part alone
+    spin = np.full(n, 2.0)
+    _, turned = predict([0, 0, 0], np.zeros((3, 3)), t_ns, -spin, spin, model, timed)
+    assert turned[2, 2] == pytest.approx(5e-4 * 2.0, rel=1e-9)
+    assert turned[0, 0] + turned[1, 1] == pytest.approx(2e-4 * 2.0, rel=1e-9)
+    # the published twist variance carries it per sample, and not at a standstill
+    prop = PoseCovariancePropagator(timed, [1] * 6, [2] * 6)
+    moving = prop.twist_covariance_6x6((0.0, 0.0, 1.0), 0.05)
+    resting = prop.twist_covariance_6x6((0.0, 0.0, 0.0), 0.05)
+    assert moving[5, 5] == pytest.approx(5e-4 / 0.05)
+    assert resting[5, 5] < 1e-3 * moving[5, 5]

@@ -86,11 +86,18 @@ def test_calibrate_noise_on_model_residuals():
     drive = make_drive('edd_symmetric', duration_s=300.0, rate_hz=20.0, truth_every=2, seed=2,
                        wheel_noise=0.3, truth_noise_m=0.01, truth_noise_rad=0.005)
     segs = cut_segments([drive], SegmentOptions(horizon_m=2.0))
-    result = calibrate_noise('edd_symmetric', VALUES, GEOMETRY, segs)
+    # several horizons, as the calibrator fits them: one cannot tell a constant from a variance
+    # per second or per metre
+    other = {h: cut_segments([drive], SegmentOptions(horizon_m=h)) for h in (0.5, 1.0, 4.0)}
+    result = calibrate_noise('edd_symmetric', VALUES, GEOMETRY, segs, other)
     assert all(v >= 0 for v in result.noise.as_dict().values())
     # 1 cm of white noise on the truth at both segment ends: about 2e-4 m^2 of length-independent
     # x variance, which the constant term takes (the per-metre x rate of this drive is tiny)
     assert 1e-4 <= result.noise.var_x_const <= 1e-3
+    # 0.3 rad/s of white noise on each wheel at 20 Hz: the forward speed's variance r^2 s^2 / 2
+    # held for 0.05 s per sample adds r^2 s^2 / 2 * 0.05 m^2 per second of motion
+    expected = GEOMETRY.wheel_radius ** 2 * 0.3 ** 2 / 2 * 0.05
+    assert 0.5 * expected <= result.noise.var_x_per_s <= 2.0 * expected
     assert result.noise.var_x_per_m + result.noise.var_x_const > 0
     assert 0.8 <= result.consistency.inside_95_3dof <= 1.0
     assert result.coverage_scale >= 1.0

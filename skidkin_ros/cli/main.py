@@ -14,6 +14,7 @@ from typing import Sequence
 
 from skidkin_ros import __version__
 from skidkin_ros.cli import commands
+from skidkin_ros.core.parallel import one_blas_thread
 from skidkin_ros.errors import SkidkinError
 
 __all__ = ['main', 'build_parser']
@@ -68,7 +69,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     _configure_logging(args.verbose, args.quiet)
     try:
-        return int(args.run(args) or 0)
+        with one_blas_thread():
+            return int(args.run(args) or 0)
     except SkidkinError as err:
         print(f'skidkin {args.command}: error: {_capped(str(err))}', file=sys.stderr)
         return err.exit_code

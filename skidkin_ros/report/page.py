@@ -9,6 +9,7 @@ from pathlib import Path
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.core.calibration.pipeline import CalibrationResult, HorizonStudy
 from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.errors import OutputError
 from skidkin_ros.report import figures
 
@@ -113,8 +114,8 @@ def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
                     + [f'{nf.coverage_scale:.2f}',
                        f'{100 * nf.consistency.inside_95_3dof:.1f} %',
                        f'{100 * nf.consistency.inside_95_position_2dof:.1f} %'])
-    lines += _table(['model', 'var_x_per_m', 'var_y_per_m', 'var_yaw_per_m', 'var_yaw_per_rad',
-                     'coverage scale', 'inside 95 % (3 dof)', 'inside 95 % (2 dof)'], rows)
+    lines += _table(['model'] + [spec.name for spec in NOISE_SPECS]
+                    + ['coverage scale', 'inside 95 % (3 dof)', 'inside 95 % (2 dof)'], rows)
     lines += ['', '## Segments', '', '```', json.dumps(result.counts, indent=1), '```']
     if result.warnings:
         lines += ['', '## Warnings', ''] + [f'- {w}' for w in result.warnings]

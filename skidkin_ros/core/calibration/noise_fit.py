@@ -60,7 +60,7 @@ from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSe
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.integrator import body_increment, rollout_segments
-from skidkin_ros.core.odometry.noise import NoiseModel
+from skidkin_ros.core.odometry.noise import moving_time, NoiseModel
 from skidkin_ros.errors import DataError
 
 __all__ = ['SegmentMotion', 'Consistency', 'HorizonCheck', 'NoiseFit', 'segment_motion',
@@ -79,7 +79,8 @@ class SegmentMotion:
     """Covariance bases of N segments: Sigma_seg = sum of value * basis (+ the fixed term).
 
     ``basis_const`` (3, N, 3, 3): R(dth) e_j e_j^T R(dth)^T for j = x, y, yaw; ``fixed`` (N, 3, 3):
-    a covariance not fitted (the parameter term S Sigma_k S^T), or None.
+    a covariance not fitted (the parameter term S Sigma_k S^T), or None; ``basis_time`` (2, N, 3, 3):
+    the x and yaw bases weighted by each step's time in motion instead of its length.
     """
 
     basis_x: np.ndarray
@@ -88,16 +89,19 @@ class SegmentMotion:
     basis_yaw_rad: np.ndarray
     basis_const: np.ndarray | None = None
     fixed: np.ndarray | None = field(default=None, repr=False)
+    basis_time: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.basis_x.shape[0])
 
     def stack(self) -> np.ndarray:
-        """Return the (7, N, 3, 3) bases in NoiseModel field order (zeros without constants)."""
+        """Return the (9, N, 3, 3) bases in NoiseModel field order (zeros where absent)."""
         const = (self.basis_const if self.basis_const is not None
                  else np.zeros((3,) + self.basis_x.shape))
+        time = (self.basis_time if self.basis_time is not None
+                else np.zeros((2,) + self.basis_x.shape))
         return np.concatenate([np.stack([self.basis_x, self.basis_y, self.basis_yaw_m,
-                                         self.basis_yaw_rad]), const])
+                                         self.basis_yaw_rad]), const, time])
 
     def covariances(self, noise: NoiseModel) -> np.ndarray:
         values = np.array(list(noise.as_dict().values()), dtype=float)
@@ -108,7 +112,8 @@ class SegmentMotion:
         return SegmentMotion(self.basis_x[idx], self.basis_y[idx], self.basis_yaw_m[idx],
                              self.basis_yaw_rad[idx],
                              None if self.basis_const is None else self.basis_const[:, idx],
-                             None if self.fixed is None else self.fixed[idx])
+                             None if self.fixed is None else self.fixed[idx],
+                             None if self.basis_time is None else self.basis_time[:, idx])
 
     @staticmethod
     def concat(parts: Sequence['SegmentMotion']) -> 'SegmentMotion':
@@ -119,7 +124,8 @@ class SegmentMotion:
                 return None
             return np.concatenate(values, axis=axis)
         return SegmentMotion(join('basis_x'), join('basis_y'), join('basis_yaw_m'),
-                             join('basis_yaw_rad'), join('basis_const', axis=1), join('fixed'))
+                             join('basis_yaw_rad'), join('basis_const', axis=1), join('fixed'),
+                             join('basis_time', axis=1))
 
 
 @dataclass(frozen=True)
@@ -195,6 +201,7 @@ def segment_motion(name: str, values: Mapping[str, float], geometry: Geometry,
     dx, dy, dth = body_increment(twist[..., 0], twist[..., 1], twist[..., 2], segments.dt_s)
     ds = np.hypot(dx, dy)
     dth = np.abs(dth)
+    moving = moving_time(twist[..., 0], twist[..., 1], twist[..., 2], segments.dt_s)
     cos_t, sin_t = np.cos(theta), np.sin(theta)
     n = len(segments)
 
@@ -217,6 +224,8 @@ def segment_motion(name: str, values: Mapping[str, float], geometry: Geometry,
     outer = lever[..., :, None] * lever[..., None, :]
     yaw_m = np.einsum('nl,nlij->nij', ds, outer)
     yaw_rad = np.einsum('nl,nlij->nij', dth, outer)
+    time = np.stack([planar(1.0, 0.0, cos_t, sin_t, moving),
+                     np.einsum('nl,nlij->nij', moving, outer)])
     # Length-independent part: body-frame C at the end pose, rotated by the segment's rotation.
     turn = poses[:, -1, 2]
     cos_e, sin_e, one = np.cos(turn), np.sin(turn), np.ones(n)
@@ -229,7 +238,7 @@ def segment_motion(name: str, values: Mapping[str, float], geometry: Geometry,
         sens = parameter_sensitivity(name, values, geometry, segments)
         fixed = np.einsum('nik,kl,njl->nij', sens, np.asarray(parameter_covariance, float), sens)
     return SegmentMotion(planar(1.0, 0.0, cos_t, sin_t, ds), planar(0.0, 1.0, cos_t, sin_t, ds),
-                         yaw_m, yaw_rad, const, fixed)
+                         yaw_m, yaw_rad, const, fixed, time)
 
 
 def segment_covariances(noise: NoiseModel, motion: SegmentMotion) -> np.ndarray:
@@ -248,25 +257,27 @@ def mahalanobis(cov: np.ndarray, errors: np.ndarray) -> np.ndarray:
 
 
 def fit_noise_model(errors: np.ndarray, motion: SegmentMotion, constant: bool = True,
-                    weights: np.ndarray | None = None) -> NoiseModel:
+                    weights: np.ndarray | None = None, time: bool = True) -> NoiseModel:
     """Maximum-likelihood noise values from start-frame errors (N, 3) and their bases.
 
-    ``constant=False`` fits the four rates only (the length-independent part stays zero).
+    ``constant=False`` leaves the length-independent part at zero, ``time=False`` the part per
+    second of motion (both False: the four per-metre and per-radian rates of the classic model).
     ``weights`` (N,): each segment's weight in the (composite) likelihood.
     """
     if errors.shape[0] < 4:
         raise DataError(f'{errors.shape[0]} held-out segments are too few to fit the noise '
                         'model (need at least 4)')
     bases = motion.stack()
-    use = np.ones(7, bool) if constant else np.array([True] * 4 + [False] * 3)
+    use = np.array([True] * 4 + [constant] * 3 + [time and motion.basis_time is not None] * 2)
     mats = bases[use]
     fixed = MIN_VARIANCE * np.eye(3) + (0.0 if motion.fixed is None else motion.fixed)
     dist = max(float(motion.basis_yaw_m[:, 2, 2].mean()), 1e-9)
     turn = max(float(motion.basis_yaw_rad[:, 2, 2].mean()), 1e-9)
     pos = max(float(np.mean(errors[:, :2] ** 2)), 1e-12)
     yaw = max(float(np.mean(errors[:, 2] ** 2)), 1e-12)
+    moving = max(float(bases[8][:, 2, 2].mean()), 1e-9)
     guess = np.array([pos / dist, pos / dist, yaw / dist / 2, yaw / turn / 2,
-                      0.1 * pos, 0.1 * pos, 0.1 * yaw])[use]
+                      0.1 * pos, 0.1 * pos, 0.1 * yaw, pos / moving / 2, yaw / moving / 4])[use]
 
     w = np.ones(errors.shape[0]) if weights is None else np.asarray(weights, dtype=float)
 
@@ -292,7 +303,7 @@ def fit_noise_model(errors: np.ndarray, motion: SegmentMotion, constant: bool = 
                                 options={'maxiter': 3000, 'ftol': 1e-13, 'gtol': 1e-9})
         if best is None or sol.fun < best.fun:
             best = sol
-    values = np.zeros(7)
+    values = np.zeros(use.size)
     values[use] = np.exp(best.x)
     # Values the likelihood drove to its floor are zero, not 1e-11 of the start.
     values[use] = np.where(best.x <= np.array([lo for lo, _ in box]) + 1e-6, 0.0, values[use])
@@ -344,8 +355,8 @@ def _scaled(noise: NoiseModel, scale: float) -> NoiseModel:
     return NoiseModel(*(value * scale for value in noise.as_dict().values()))
 
 
-def _fit_covering(sets: Sequence[tuple[np.ndarray, SegmentMotion]], constant: bool
-                  ) -> tuple[NoiseModel, float]:
+def _fit_covering(sets: Sequence[tuple[np.ndarray, SegmentMotion]], constant: bool,
+                  time: bool = True) -> tuple[NoiseModel, float]:
     """Fit on every horizon's (errors, motion) at once; scale to cover 95 % of the first.
 
     Every horizon weighs the same in the likelihood (its segments by 1 / their count): the
@@ -355,7 +366,7 @@ def _fit_covering(sets: Sequence[tuple[np.ndarray, SegmentMotion]], constant: bo
     motion = SegmentMotion.concat([m for _, m in sets])
     weights = np.concatenate([np.full(len(e), len(sets[0][0]) / max(len(e), 1))
                               for e, _ in sets])
-    noise = fit_noise_model(errors, motion, constant, weights)
+    noise = fit_noise_model(errors, motion, constant, weights, time)
     scale = coverage_scale(noise, *sets[0])
     return _scaled(noise, scale), scale
 
@@ -373,7 +384,8 @@ def calibrate_noise(name: str, values: Mapping[str, float], geometry: Geometry,
                     segments: SegmentSet,
                     other_horizons: Mapping[float, SegmentSet] | None = None,
                     parameter_covariance: np.ndarray | None = None,
-                    horizon_m: float = 2.0, constant: bool = True) -> NoiseFit:
+                    horizon_m: float = 2.0, constant: bool = True,
+                    time: bool = True) -> NoiseFit:
     """Fit a model's noise on held-out segments and scale it to cover 95 % of them.
 
     ``segments`` are cut at the calibration horizon ``horizon_m`` (coverage is counted there);
@@ -391,7 +403,7 @@ def calibrate_noise(name: str, values: Mapping[str, float], geometry: Geometry,
                 segment_motion(name, values, geometry, s, parameter_covariance))
             for h, s in by_horizon.items()}
     ordered = [sets[float(horizon_m)]] + [v for h, v in sets.items() if h != float(horizon_m)]
-    noise, scale = _fit_covering(ordered, constant)
+    noise, scale = _fit_covering(ordered, constant, time)
     halves = {h: (np.arange(0, len(e), 2), np.arange(1, len(e), 2)) for h, (e, _) in sets.items()}
     main_even, main_odd = halves[float(horizon_m)]
     if main_even.size < 4 or main_odd.size < 4:
@@ -404,7 +416,7 @@ def calibrate_noise(name: str, values: Mapping[str, float], geometry: Geometry,
                      for h, (e, m) in [(float(horizon_m), sets[float(horizon_m)])]
                      + [(h, v) for h, v in sets.items() if h != float(horizon_m)]
                      if halves[h][fold].size]
-        part, _ = _fit_covering(part_sets, constant)
+        part, _ = _fit_covering(part_sets, constant, time)
         for h, (e, m) in sets.items():
             idx = halves[h][1 - fold]
             if not idx.size:

@@ -89,6 +89,7 @@ class CalibrationOptions(HorizonOptions):
     holdout_key: str | None = None
     noise_horizon_factors: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0)
     noise_constant: bool = True
+    noise_time: bool = True
     parameter_covariance: bool = True
     weighting: str = 'iterated'
     selection: str = 'likelihood'
@@ -246,7 +247,8 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
         param_cov = fit.covariance if options.parameter_covariance else None
         try:
             noise[name] = calibrate_noise(name, fit.values, geometry, eval_seg, other, param_cov,
-                                          options.h_e, options.noise_constant)
+                                          options.h_e, options.noise_constant,
+                                          options.noise_time)
         except DataError as err:
             warnings.append(f'{name}: noise model not calibrated: {err}')
             continue

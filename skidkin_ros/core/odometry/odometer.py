@@ -45,7 +45,8 @@ from skidkin_ros.core.odometry.gyro import GyroAid, GyroStatus, ImuParams
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, step_scalar,
                                                   StepResult, StreamingIntegrator, TwistSource)
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
-from skidkin_ros.core.odometry.noise import FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL
+from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
+                                             moving_time)
 from skidkin_ros.core.odometry.propagation import (PoseCovariancePropagator,
                                                    TWIST_VARIANCE_FLOOR)
 from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer, WheelSignal
@@ -467,8 +468,9 @@ class Odometer:
             x, y, yaw = result.start_pose
             dx, dy = step_scalar(x, y, yaw, vx, vy, w, dt_s)[3:]
             ds = math.hypot(dx, dy)
-            used = noise.step_variances(ds, w * dt_s)[2]
-            model = noise.step_variances(ds, last.model_yaw_rate * dt_s)[2]
+            used = noise.step_variances(ds, w * dt_s, moving_time(vx, vy, w, dt_s))[2]
+            model = noise.step_variances(ds, last.model_yaw_rate * dt_s, moving_time(
+                vx, vy, last.model_yaw_rate, dt_s))[2]
             extra = (0.0, 0.0, 0.0, 0.0, 0.0, gyro.yaw_step_variance(model) - used)
         self.covariance.step(result.start_pose, result.step_twist, dt_s, extra)
         hx, hy, hw = result.twist

@@ -45,7 +45,7 @@ from skidkin_ros.core.odometry.integrator import (body_increment, IntegratorLimi
                                                   step_scalar, StreamingIntegrator, TwistSource)
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, interval_speed
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
-                                             NoiseModel)
+                                             moving_time, NoiseModel)
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 
 __all__ = [
@@ -139,7 +139,8 @@ def propagate_scalar(x: float, y: float, yaw: float, vx: float, vy: float, w: fl
     new_x, new_y, new_yaw, dx, dy = step_scalar(x, y, yaw, vx, vy, w, dt_s)
     q00 = q01 = q02 = q11 = q12 = q22 = 0.0
     if noise is not None:
-        q00, q11, q22 = noise.step_variances(math.hypot(dx, dy), w * dt_s)
+        q00, q11, q22 = noise.step_variances(math.hypot(dx, dy), w * dt_s,
+                                             moving_time(vx, vy, w, dt_s))
     if extra is not None:
         e00, e01, e02, e11, e12, e22 = extra
         q00, q01, q02, q11, q12, q22 = (q00 + e00, q01 + e01, q02 + e02, q11 + e11,
@@ -375,8 +376,9 @@ class PoseCovariancePropagator:
         if self.noise is None or period_s <= 0.0:
             return list(self._fallback_twist)
         vx, vy, w = twist
-        var_vx, var_vy, var_w = self.noise.twist_variances(math.hypot(vx, vy), float(w),
-                                                           period_s)
+        var_vx, var_vy, var_w = self.noise.twist_variances(
+            math.hypot(vx, vy), float(w), period_s,
+            moving_time(float(vx), float(vy), float(w), 1.0) > 0.0)
         floor = TWIST_VARIANCE_FLOOR
         return _diagonal_flat([max(var_vx, floor[0]), max(var_vy, floor[1]),
                                UNOBSERVED_VARIANCE, UNOBSERVED_VARIANCE, UNOBSERVED_VARIANCE,
