@@ -12,12 +12,11 @@ from dataclasses import replace
 import time
 from typing import Any, Sequence
 
-from threadpoolctl import threadpool_limits
-
 from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.parallel import usable_cpus
 from skidkin_ros.sim import SimConfig, simulate
+from threadpoolctl import threadpool_limits
 
 
 def simulate_drives(total_km: float, drive_s: float, seed: int = 100) -> list[Drive]:

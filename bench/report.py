@@ -125,8 +125,9 @@ def _calib_section(calib: Mapping[str, Any]) -> list[str]:
         lines += [f'Fit time by model at {biggest["km"]:.2f} km: {split}.', '']
     blas = calib.get('blas')
     if blas:
-        lines += [f'BLAS threads (the smallest size, calibrated twice): {blas["all_threads_s"]:.2f} '
-                  f's with {blas["threads"]} BLAS threads, {blas["one_thread_s"]:.2f} s with one '
+        lines += [f'BLAS threads (the smallest size, calibrated twice): '
+                  f'{blas["all_threads_s"]:.2f} s with {blas["threads"]} BLAS threads, '
+                  f'{blas["one_thread_s"]:.2f} s with one '
                   f'(what the CLI uses, `core.parallel.one_blas_thread`): ratio '
                   f'{blas["ratio"]:.2f}.', '']
     return lines

@@ -93,8 +93,12 @@ def test_segment_nees_on_drives_too_short_is_refused():
 @pytest.mark.heavy
 def test_estimation_study_odometry_and_filter_are_consistent_and_the_filter_wins(tmp_path):
     options = StudyOptions(train_s=240.0, calib_drives=4, test_drives=4, test_s=150.0,
-                           other_horizons_m=(), models=('edd_asymmetric',), n_starts=1)
+                           other_horizons_m=(), models=('edd_asymmetric',), n_starts=1,
+                           fix_sweep=((0.1, None),))
     study = run_estimation_study(seed=0, options=options)
+    # the sensitivity runs hold the wheel speeds as the calibration did: odometry alone (which
+    # no fix touches) is the same in every run
+    np.testing.assert_array_equal(study.sweep[(0.1, None)].odom_errors, study.runs.odom_errors)
     odometry = study.odometry_summary
     assert odometry.count > 60
     assert odometry.band[0] <= odometry.mean <= odometry.band[1], study.summary_lines()

@@ -19,6 +19,7 @@ def run(args: argparse.Namespace) -> int:
     options = StudyOptions.quick() if args.quick else StudyOptions()
     options = replace(options, wheel_stamp_shift_samples=args.stamp_shift, interval=args.interval,
                       parameter_covariance=not args.no_parameter_covariance,
+                      noise_time=not args.no_time_noise,
                       truth_noise_m=args.truth_noise[0], truth_noise_rad=args.truth_noise[1])
     study = run_estimation_study(seed=args.seed, options=options)
     figures = write_estimation_figures(args.out, study)
@@ -47,6 +48,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--force', action='store_true', help='overwrite the figures')
     parser.add_argument('--no-parameter-covariance', action='store_true',
                         help="leave the calibration's own uncertainty out of the covariance")
+    parser.add_argument('--no-time-noise', action='store_true',
+                        help='calibrate the noise without its part per second of motion (the '
+                        'model before it existed: per metre, per radian and constant)')
     parser.add_argument('--stamp-shift', type=float, default=0.0, metavar='SAMPLES',
                         help='move every simulated wheel stamp by this many sample periods '
                         '(-0.5 with --interval starting: what midpoint does, no half-sample lag)')

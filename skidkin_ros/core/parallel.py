@@ -23,9 +23,8 @@ import os
 import signal
 from typing import Any, Callable, Iterator, Sequence
 
-from threadpoolctl import threadpool_limits
-
 from skidkin_ros.errors import SkidkinError
+from threadpoolctl import threadpool_limits
 
 __all__ = ['fork_map', 'usable_cpus', 'one_blas_thread']
 

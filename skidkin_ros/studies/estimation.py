@@ -57,7 +57,7 @@ from skidkin_ros.core.estimation.nees import (drive_nees, DriveNees, nees, nees_
                                               SegmentNees, summarize_nees)
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.integrator import wrap_angle
-from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
+from skidkin_ros.core.odometry.interval import check_interval, held_wheels
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.errors import FitError, ParameterError
@@ -103,6 +103,7 @@ class StudyOptions:
     drive_distances_m: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
     checkpoint_s: float = 15.0
     parameter_covariance: bool = True
+    noise_time: bool = True
     wheel_stamp_shift_samples: float = 0.0
     # The simulator reports each wheel speed at its stamp: the trapezoid (midpoint) is exact.
     interval: str = 'midpoint'
@@ -344,12 +345,13 @@ def _world_errors(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
 
 
 def run_filter(drives: Sequence[Drive], source, noise: NoiseModel, options: StudyOptions,
-               rng: np.random.Generator, interval: str = DEFAULT_INTERVAL) -> FilterRuns:
+               rng: np.random.Generator) -> FilterRuns:
     """Run odometry alone and the EKF on each drive from its true start pose.
 
     The filters hold each sample's speeds until the next one; they are fed the speeds the
-    sample-interval convention ``interval`` holds (:func:`held_wheels`, offline: it looks one
-    sample ahead), so they move as the calibrated odometry does.
+    sample-interval convention ``options.interval`` holds (:func:`held_wheels`, offline: it looks
+    one sample ahead), so they move as the calibrated odometry does. The convention comes with
+    the options only: the fix sweep once ran under another one than the calibration's.
 
     Odometry alone starts with a zero covariance (the start is exact); the EKF with the loose
     prior diag(initial_sigma_m^2, initial_sigma_m^2, initial_sigma_yaw_rad^2), forgotten within
@@ -378,7 +380,7 @@ def run_filter(drives: Sequence[Drive], source, noise: NoiseModel, options: Stud
         odom_pose = np.empty((count, 3))
         ekf_pose = np.empty((count, 3))
         run_nis = []
-        wheels = held_wheels(drive.wheels, interval)
+        wheels = held_wheels(drive.wheels, options.interval)
         for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns, wheels.omega_l,
                                                          wheels.omega_r)):
             odom.predict(int(t_ns), omega_l, omega_r)
@@ -431,7 +433,7 @@ def run_estimation_study(seed: int = 0, quick: bool = False,
             for i in range(options.calib_drives)]
     cal_options = CalibrationOptions(h_e=options.horizon_m, models=options.models,
                                      n_starts=options.n_starts, seed=seed,
-                                     interval=options.interval)
+                                     interval=options.interval, noise_time=options.noise_time)
     calibration = calibrate([train], held, geometry, cal_options)
     model = calibration.best
     if model not in calibration.noise:
@@ -464,7 +466,7 @@ def run_estimation_study(seed: int = 0, quick: bool = False,
     whole = drive_nees(tests, source, noise,
                        [d for d in options.drive_distances_m if d < shortest] + [shortest],
                        options.checkpoint_s, parameters, cal_options.interval)
-    runs = run_filter(tests, source, noise, options, rng, cal_options.interval)
+    runs = run_filter(tests, source, noise, options, rng)
     sweep = {}
     for sigma_m, sigma_yaw in options.fix_sweep:
         other = replace(options, fix_sigma_m=sigma_m, fix_sigma_yaw_rad=sigma_yaw)

@@ -12,6 +12,9 @@ lever arm from the pose after step j to the segment end. With A_j = Phi_j R(thet
     Sigma_seg = sum_j A_j C_j A_j^T
 
 which is linear in the four rates: Sigma_seg = sum over rates of rate * basis (SegmentMotion).
+The part per second of motion has the same form with the step's time in motion
+(:func:`skidkin_ros.core.odometry.noise.moving_time`) in place of ds_j: C_j = diag(q_xs dt_j, 0,
+q_ys dt_j).
 The length-independent part C of the noise model adds R(dth) C R(dth)^T, dth the segment's
 predicted rotation (C is body-frame at the end pose, as the node adds it), and the calibration's
 own uncertainty, when given, adds S Sigma_k S^T with S the sensitivity of the predicted end pose to
@@ -24,9 +27,9 @@ filter propagate. (An earlier version accumulated the step covariances without t
 with full propagation it over-predicted the position variance by ~40 % on 2 m segments, and the
 held-out NEES fell below its chi2 band.)
 
-Fit: maximum likelihood of the start-frame errors e_i ~ N(0, Sigma_seg,i) over the seven
-non-negative values (four rates, three constants; log-parameterised, L-BFGS-B with the analytic
-gradient, a few starts). The calibrator fits them on held-out segments of several horizons at once
+Fit: maximum likelihood of the start-frame errors e_i ~ N(0, Sigma_seg,i) over the nine
+non-negative values (four rates, three constants, two per second; log-parameterised, L-BFGS-B
+with the analytic gradient, a few starts). The calibrator fits them on held-out segments of several horizons at once
 (0.5, 1, 2 and 4 m by default: a composite likelihood, the segments of one horizon overlap those
 of another): one horizon cannot tell a variance per metre from a constant, several can. The
 rates alone, fitted at 2 m, gave an average NEES of 3.9 at 1 m and 2.0 at 4 m on simulated drives
@@ -34,7 +37,7 @@ rates alone, fitted at 2 m, gave an average NEES of 3.9 at 1 m and 2.0 at 4 m on
 
 Coverage: real skid errors have heavier tails than a Gaussian, so the maximum-likelihood rates
 put fewer than 95 % of the errors inside the predicted 95 % region (about 90 % on the Husky data).
-:func:`calibrate_noise` therefore multiplies all four rates by one factor, the smallest >= 1 that
+:func:`calibrate_noise` therefore multiplies all the values by one factor, the smallest >= 1 that
 puts 95 % of the errors they were fitted on inside that region (:func:`coverage_scale`). It never
 shrinks the rates: where the Gaussian model already covers (simulated noise), the factor is 1 or
 close to it. The published covariance is then right where a filter's gating looks (the 95 %
@@ -79,8 +82,8 @@ class SegmentMotion:
     """Covariance bases of N segments: Sigma_seg = sum of value * basis (+ the fixed term).
 
     ``basis_const`` (3, N, 3, 3): R(dth) e_j e_j^T R(dth)^T for j = x, y, yaw; ``fixed`` (N, 3, 3):
-    a covariance not fitted (the parameter term S Sigma_k S^T), or None; ``basis_time`` (2, N, 3, 3):
-    the x and yaw bases weighted by each step's time in motion instead of its length.
+    a covariance not fitted (the parameter term S Sigma_k S^T), or None; ``basis_time``
+    (2, N, 3, 3): the x and yaw bases weighted by each step's time in motion instead of its length.
     """
 
     basis_x: np.ndarray

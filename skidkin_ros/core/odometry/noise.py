@@ -28,10 +28,10 @@ metre alone can match the error at one horizon only: on the Husky data the rates
 2 m gave an average NEES of 3.9 at 1 m and 2.0 at 4 m. The constant is added at the pose (rotated
 by its heading), never accumulated: it is the same after 1 m as after 100 m.
 
-The calibrator fits the seven values from held-out segment residuals over several horizons; the
+The calibrator fits the nine values from held-out segment residuals over several horizons; the
 node and the prediction API use them to grow the pose covariance and to publish a twist covariance
-consistent with the errors actually observed. Files written before the constant existed load with
-it at zero (the old model).
+consistent with the errors actually observed. Files written before the constant or the time part
+existed load with them at zero (the old model).
 """
 
 from __future__ import annotations
@@ -86,6 +86,7 @@ def moving_time(vx, vy, w, dt_s):
         return dt_s if (vx != 0.0 or vy != 0.0 or w != 0.0) else 0.0
     moving = (np.asarray(vx) != 0.0) | (np.asarray(vy) != 0.0) | (np.asarray(w) != 0.0)
     return np.where(moving, dt_s, 0.0)
+
 
 # Used when no calibration is loaded: small, never zero (an EKF would trust zeros blindly).
 # Order: x, y, z, roll, pitch, yaw (m^2, rad^2) and vx, vy, vz, wx, wy, wz (m^2/s^2, rad^2/s^2).
