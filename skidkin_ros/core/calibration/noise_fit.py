@@ -29,9 +29,10 @@ held-out NEES fell below its chi2 band.)
 
 Fit: maximum likelihood of the start-frame errors e_i ~ N(0, Sigma_seg,i) over the nine
 non-negative values (four rates, three constants, two per second; log-parameterised, L-BFGS-B
-with the analytic gradient, a few starts). The calibrator fits them on held-out segments of several horizons at once
-(0.5, 1, 2 and 4 m by default: a composite likelihood, the segments of one horizon overlap those
-of another): one horizon cannot tell a variance per metre from a constant, several can. The
+with the analytic gradient, a few starts). The calibrator fits them on held-out segments of
+several horizons at once (0.5, 1, 2 and 4 m by default: a composite likelihood, the segments of
+one horizon overlap those of another): one horizon cannot tell a variance per metre from a
+constant, several can. The
 rates alone, fitted at 2 m, gave an average NEES of 3.9 at 1 m and 2.0 at 4 m on simulated drives
 (``skidkin estimate``).
 
