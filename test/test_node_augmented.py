@@ -191,14 +191,26 @@ CALIBRATED = {
     'models.edd_symmetric.noise.var_yaw_const': 2e-4,
     'models.edd_symmetric.parameter_covariance': [4e-4, 1e-4, 1e-4, 9e-4],
 }
+# ROC is not linear in the wheel speeds: its sensitivity is differentiated at each step's speeds.
+# The per-second noise part is set too, so every part of the noise model goes through the node.
+CALIBRATED_ROC = {
+    'wheel_radius': 0.1651, 'track_width': 0.555, 'robot': 'sim_husky', 'model': 'roc',
+    'models.roc.alpha': 0.9, 'models.roc.beta_1': 0.6, 'models.roc.beta_2': 0.3,
+    'models.roc.noise.calibrated': True,
+    'models.roc.noise.var_x_per_m': 4e-4, 'models.roc.noise.var_y_per_m': 1e-4,
+    'models.roc.noise.var_yaw_per_m': 2e-5, 'models.roc.noise.var_yaw_per_rad': 5e-4,
+    'models.roc.noise.var_x_per_s': 3e-4, 'models.roc.noise.var_yaw_per_s': 2e-4,
+    'models.roc.parameter_covariance': [1e-4, 0.0, 0.0, 0.0, 4e-4, 0.0, 0.0, 0.0, 9e-4],
+}
 
 
-@pytest.mark.parametrize('use', [True, False])
-def test_node_publishes_the_covariance_of_predict_bit_for_bit(tmp_path, use):
+@pytest.mark.parametrize('use,calibrated',
+                         [(True, CALIBRATED), (False, CALIBRATED), (True, CALIBRATED_ROC)])
+def test_node_publishes_the_covariance_of_predict_bit_for_bit(tmp_path, use, calibrated):
     """Length-independent noise and parameter covariance: the node == Odometer.predict."""
     sim = simulate(SimConfig(duration_s=8.0, seed=7))
     wheels = sim.wheels
-    flat = dict(CALIBRATED, use_parameter_covariance=use)
+    flat = dict(calibrated, use_parameter_covariance=use)
     path = write_params_file(tmp_path / 'calibrated.yaml', flat, {'source': 'test'})
     config = OdometryConfig.from_file(path)
     assert (config.active_parameter_uncertainty is not None) == use

@@ -227,3 +227,33 @@ def test_predict_cli_writes_the_published_covariance_and_the_switch_changes_it(t
     on, off = outputs[''], outputs['--no-parameter-covariance']
     assert on['cov_xx'][-1] > 2.0 * off['cov_xx'][-1]
     np.testing.assert_array_equal(on['x'], off['x'])
+
+
+def test_roc_parameter_covariance_is_carried_by_the_node_propagation():
+    """The node's S Sigma_k S^T for ROC is the calibrator's (noise_fit.parameter_sensitivity).
+
+    ROC is not linear in the wheel speeds: the node differentiates its twist at each step's.
+    """
+    values = {'alpha': 0.9, 'beta_1': 0.6, 'beta_2': 0.3}
+    cov_k = np.diag([1e-4, 4e-4, 9e-4])
+    drive = make_drive('roc', duration_s=40.0, rate_hz=20.0, truth_every=1, seed=3)
+    segs = cut_segments([drive], SegmentOptions(horizon_m=2.0))
+    expected = segment_motion('roc', values, GEOMETRY, segs, cov_k).fixed
+    model = get_model('roc')
+    bound = model.bind(values, GEOMETRY)
+    params = ParameterUncertainty.of_model(model, bound.k, GEOMETRY, cov_k)
+    assert params is not None and params.size == 3
+    zero = NoiseModel(0.0, 0.0, 0.0, 0.0)
+    checked = 0
+    for i in range(0, len(segs), max(len(segs) // 5, 1)):
+        width = int((segs.dt_s[i] > 0).sum())
+        t_ns = np.concatenate([[0], np.cumsum(np.round(segs.dt_s[i, :width] * 1e9))]).astype(
+            np.int64)
+        wl = np.concatenate([segs.omega_l[i, :width], [0.0]])
+        wr = np.concatenate([segs.omega_r[i, :width], [0.0]])
+        _, cov = predict((0.0, 0.0, 0.0), np.zeros((3, 3)), t_ns, wl, wr, bound, zero,
+                         parameters=params, interval='starting')
+        np.testing.assert_allclose(np.diag(cov), np.diag(expected[i]), rtol=0.01)
+        assert np.diag(cov).max() > 1e-8  # not the zero of a sensitivity never carried
+        checked += 1
+    assert checked >= 3

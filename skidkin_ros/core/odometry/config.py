@@ -370,9 +370,8 @@ class OdometryConfig:
         """Return the parameter covariance to propagate (None: off, unknown or not possible).
 
         Off when ``use_parameter_covariance`` is false, when the file holds none (all zeros, or
-        a file written before it existed), for a model not linear in the wheel speeds (roc) and
-        for an augmented model (its extensions change the twist's dependence on the base
-        parameters).
+        a file written before it existed), and for an augmented model (its extensions change the
+        twist's dependence on the base parameters).
         """
         if self.model == AUGMENTED_NAME or not self.values.get('use_parameter_covariance', True):
             return None

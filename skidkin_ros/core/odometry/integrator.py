@@ -317,6 +317,7 @@ class StepResult:
     detail: str = ''
     start_pose: Triple | None = None
     step_twist: Triple | None = None
+    step_wheels: tuple[float, float] | None = None  # the speeds integrated (stateless sources)
 
 
 class StreamingIntegrator:
@@ -508,13 +509,17 @@ class StreamingIntegrator:
             return self._result(SampleStatus.NON_FINITE_STATE, dt_s,
                                 'integration produced a non-finite pose; kept the last finite one')
         self._pose = (x, y, theta)
+        wheels = None
         if self._stateful:
             self.state = new_state
             self._restart = False
+        else:
+            wheels = (interval_speed(held_l, omega_l, self.interval),
+                      interval_speed(held_r, omega_r, self.interval))
         self._hold(t_ns, omega_l, omega_r, twist=(
             step_twist if self.interval == 'ending' and not self._stateful else None))
         return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
-                          step_twist)
+                          step_twist, wheels)
 
     def _yaw_rate(self, omega_l: float, omega_r: float) -> float:
         return _scalar_twist(self._source, omega_l, omega_r)[2]

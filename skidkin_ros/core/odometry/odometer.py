@@ -441,7 +441,8 @@ class Odometer:
         if status is SampleStatus.INTEGRATED:
             gyro = self.gyro
             if gyro is None:
-                self.covariance.step(result.start_pose, result.step_twist, result.dt_s)
+                self.covariance.step(result.start_pose, result.step_twist, result.dt_s,
+                                     wheels=result.step_wheels)
             else:
                 result = self._aided(gyro, result)
             self.period_s = result.dt_s
@@ -472,7 +473,8 @@ class Odometer:
             model = noise.step_variances(ds, last.model_yaw_rate * dt_s, moving_time(
                 vx, vy, last.model_yaw_rate, dt_s))[2]
             extra = (0.0, 0.0, 0.0, 0.0, 0.0, gyro.yaw_step_variance(model) - used)
-        self.covariance.step(result.start_pose, result.step_twist, dt_s, extra)
+        self.covariance.step(result.start_pose, result.step_twist, dt_s, extra,
+                             result.step_wheels)
         hx, hy, hw = result.twist
         published = w if last.yaw_from_gyro else gyro.filter.gain * hw
         return replace(result, twist=(hx, hy, published))

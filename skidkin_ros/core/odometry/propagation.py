@@ -231,7 +231,8 @@ def predict_track(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
                           interval_speed(held[1], right, interval))
                 jac_in = increment_input_jacobian(source, *speeds, result.dt_s)
                 extra = _upper_of(input_variance * jac_in @ jac_in.T)
-            propagator.step(result.start_pose, result.step_twist, result.dt_s, extra)
+            propagator.step(result.start_pose, result.step_twist, result.dt_s, extra,
+                            result.step_wheels)
             state = np.asarray(result.pose)
             current = propagator.total_cov()
         poses[i] = state
@@ -337,10 +338,13 @@ class PoseCovariancePropagator:
         self._sens = [(0.0, 0.0, 0.0)] * size
 
     def step(self, pose_before: Sequence[float], twist: Sequence[float], dt_s: float,
-             extra: Sequence[float] | None = None) -> None:
+             extra: Sequence[float] | None = None,
+             wheels: tuple[float, float] | None = None) -> None:
         """Propagate over one held step from ``pose_before`` (x, y, yaw) with ``twist``.
 
-        ``extra``: an additional body-frame step noise, upper triangle (the input noise).
+        ``extra``: an additional body-frame step noise, upper triangle (the input noise);
+        ``wheels``: the wheel speeds integrated over the step (a model not linear in them needs
+        them to carry the parameter sensitivity).
         """
         if self.noise is None and extra is None and not self.carry_uncalibrated:
             return  # the fallback diagonals are published: nothing to propagate
@@ -349,8 +353,9 @@ class PoseCovariancePropagator:
         *_, new_yaw, self._upper = propagate_scalar(x, y, yaw, vx, vy, w, dt_s, self._upper,
                                                     self.noise, extra)
         if self._sens:
-            self._sens = _propagate_sensitivity(self._sens, self.parameters, yaw, vx, vy, w,
-                                                dt_s)
+            jacobian = self.parameters.twist_jacobian(vx, vy, w, wheels)
+            if jacobian is not None:
+                self._sens = _propagate_sensitivity(self._sens, jacobian, yaw, vx, vy, w, dt_s)
         self._yaw = new_yaw
 
     def total_upper(self) -> tuple[float, ...]:
@@ -392,8 +397,8 @@ class PoseCovariancePropagator:
 
 
 def _propagate_sensitivity(sens: Sequence[tuple[float, float, float]],
-                           parameters: ParameterUncertainty, yaw: float, vx: float, vy: float,
-                           w: float, dt_s: float) -> list[tuple[float, float, float]]:
+                           jacobian: Sequence[tuple[float, float, float]], yaw: float, vx: float,
+                           vy: float, w: float, dt_s: float) -> list[tuple[float, float, float]]:
     """One step of S' = F S + G d(increment)/dk (uncertainty module docstring), on floats.
 
     The increment's derivative is taken to second order in the step: a speed change acts along
@@ -409,7 +414,7 @@ def _propagate_sensitivity(sens: Sequence[tuple[float, float, float]],
     b = cos_t * dx - sin_t * dy   # F[1, 2]
     half = 0.5 * dt_s
     out = []
-    for (sx, sy, syaw), (dvx, dvy, dw) in zip(sens, parameters.twist_jacobian(vx, vy, w)):
+    for (sx, sy, syaw), (dvx, dvy, dw) in zip(sens, jacobian):
         out.append((sx + a * syaw + dt_s * (cos_m * dvx - sin_m * dvy) + half * dw * a,
                     sy + b * syaw + dt_s * (sin_m * dvx + cos_m * dvy) + half * dw * b,
                     syaw + dt_s * dw))

@@ -17,14 +17,16 @@ and d(twist)/dk is taken at the twist of the step. For a model linear in the whe
 R^+ the pseudo-inverse (the twist lies in the range of R, so R^+ twist recovers w exactly). The
 matrices M_j = dR/dk_j R^+ are computed once per model (:class:`ParameterUncertainty`), so a
 step costs a few dozen multiplications and does not depend on which wheel sample the integrator
-holds over the step. The ROC model is not linear in the wheel speeds: its parameter covariance
-is not propagated (the calibrator still writes it).
+holds over the step. A model not linear in the wheel speeds (ROC) needs the speeds integrated over
+the step: d(twist)/dk is then a central difference of the model's twist at them, two twist
+evaluations per parameter and step (the integrator reports the speeds for stateless sources;
+for a stateful one, an augmented model, the sensitivity is not carried).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -56,13 +58,15 @@ class ParameterUncertainty:
 
     covariance: np.ndarray              # (p, p)
     sensitivity: tuple[tuple[float, ...], ...]  # p rows of 9 floats: M_j row-major
+    # A model not linear in the wheel speeds: (model, k, geometry, rel_step); sensitivity is ().
+    nonlinear: tuple[Any, tuple[float, ...], Any, float] | None = None
 
     @classmethod
     def of_model(cls, model, k: np.ndarray, geometry, covariance: np.ndarray,
                  rel_step: float = 1e-6) -> 'ParameterUncertainty | None':
         """Return the uncertainty of ``model`` at ``k``; None when it cannot be propagated.
 
-        None: no parameter, an all-zero covariance, or a model not linear in the wheel speeds.
+        None: no parameter or an all-zero covariance.
         """
         k = np.asarray(k, dtype=float)
         covariance = np.asarray(covariance, dtype=float)
@@ -70,7 +74,7 @@ class ParameterUncertainty:
             return None
         rows = model.rows(k, geometry)
         if rows is None:
-            return None
+            return cls(covariance, (), (model, tuple(float(v) for v in k), geometry, rel_step))
         pinv = np.linalg.pinv(np.asarray(rows, dtype=float))
         mats = []
         for j in range(k.size):
@@ -85,14 +89,37 @@ class ParameterUncertainty:
 
     @property
     def size(self) -> int:
-        return len(self.sensitivity)
+        return len(self.nonlinear[1]) if self.nonlinear is not None else len(self.sensitivity)
 
-    def twist_jacobian(self, vx: float, vy: float, w: float) -> list[tuple[float, float, float]]:
-        """Return d(twist)/dk_j for every j as (d vx, d vy, d w) triples."""
+    def twist_jacobian(self, vx: float, vy: float, w: float,
+                       wheels: tuple[float, float] | None = None
+                       ) -> list[tuple[float, float, float]] | None:
+        """Return d(twist)/dk_j for every j as (d vx, d vy, d w) triples.
+
+        A model not linear in the wheel speeds needs ``wheels`` (the speeds integrated over the
+        step); without them it returns None (nothing can be carried).
+        """
+        if self.nonlinear is not None:
+            return None if wheels is None else self._wheel_jacobian(*wheels)
         out = []
         for m0, m1, m2, m3, m4, m5, m6, m7, m8 in self.sensitivity:
             out.append((m0 * vx + m1 * vy + m2 * w, m3 * vx + m4 * vy + m5 * w,
                         m6 * vx + m7 * vy + m8 * w))
+        return out
+
+    def _wheel_jacobian(self, omega_l: float, omega_r: float
+                        ) -> list[tuple[float, float, float]]:
+        model, k, geometry, rel_step = self.nonlinear
+        base = np.asarray(k, dtype=float)
+        out = []
+        for j, value in enumerate(k):
+            step = rel_step * max(abs(value), 1.0)
+            plus, minus = base.copy(), base.copy()
+            plus[j] += step
+            minus[j] -= step
+            diff = (np.asarray(model.twist(plus, geometry, omega_l, omega_r), dtype=float)
+                    - np.asarray(model.twist(minus, geometry, omega_l, omega_r), dtype=float))
+            out.append(tuple(float(v) / (2.0 * step) for v in diff.reshape(3)))
         return out
 
     def pose_covariance(self, sens: Sequence[Sequence[float]]) -> tuple[float, ...]:
