@@ -281,3 +281,17 @@ def test_a_device_as_a_source_is_a_data_error_not_a_traceback(tmp_path, capsys):
     assert main(['predict', str(tmp_path / 'p.csv'), '--params', '/dev/zero', '--out',
                  str(tmp_path / 'q.csv')]) == 2
     assert 'not a regular file' in capsys.readouterr().err
+
+
+def test_horizon_study_runs_under_the_interval_the_calibration_used(sim_table, tmp_path,
+                                                                      monkeypatch):
+    # the report's h_t x h_e study cuts its segments under the written interval, not the default
+    from skidkin_ros.cli import cmd_calibrate
+    table, _ = sim_table
+    seen = []
+    monkeypatch.setattr(cmd_calibrate, 'horizon_study',
+                        lambda train, evaluate, geometry, options, *_: seen.append(options))
+    assert main(['calibrate', str(table), '--out', str(tmp_path / 'p.yaml'), '--models',
+                 'edd_symmetric', '--interval', 'midpoint', '--report', str(tmp_path / 'r'),
+                 '--horizon-study']) == 0
+    assert [o.interval for o in seen] == ['midpoint']

@@ -1,5 +1,7 @@
 """Relative errors per metre, hold-out splits and the h_t x h_e study."""
 
+from dataclasses import replace
+
 from _calib_synth import GEOMETRY, make_drive
 import numpy as np
 import pytest
@@ -92,3 +94,34 @@ def test_horizon_study_fills_its_grid():
     assert grid.shape == (2, 3) and np.all(np.isfinite(grid))
     # noise-free data from the same model: every horizon pair fits almost exactly
     assert np.all(grid < 0.02)
+
+
+@pytest.mark.parametrize('interval', ['ending', 'midpoint'])
+def test_horizon_study_cuts_the_segments_the_main_fit_cuts(monkeypatch, interval):
+    # the study must cut its segments as calibrate does (the sample-interval convention
+    # included), changing only the horizon
+    from skidkin_ros.core.calibration import pipeline
+    train = [make_drive('edd_symmetric', duration_s=60.0, rate_hz=20.0, truth_every=2, seed=1)]
+    evaluate = [make_drive('edd_symmetric', duration_s=40.0, rate_hz=20.0, truth_every=2,
+                           seed=2)]
+    options = CalibrationOptions(models=('edd_symmetric',), interval=interval, n_starts=1)
+    cut = []
+
+    def spy(drives, seg_opts):
+        segments = cut_segments(drives, seg_opts)
+        cut.append((seg_opts, segments))
+        return segments
+
+    monkeypatch.setattr(pipeline, 'cut_segments', spy)
+    horizon_study(train, evaluate, GEOMETRY, options, [1.5], [0.5])
+    main_train = replace(options, h_t=1.5).train_segments()
+    main_eval = replace(options, h_e=0.5).eval_segments()
+    assert {c[0] for c in cut} == {main_train, main_eval}
+    for seg_opts, segments in cut:
+        drives = train if seg_opts == main_train else evaluate
+        expected = cut_segments(drives, seg_opts)
+        np.testing.assert_array_equal(segments.omega_l, expected.omega_l)
+        np.testing.assert_array_equal(segments.omega_r, expected.omega_r)
+        # and the convention shows in the held speeds: ending and midpoint differ
+        other = cut_segments(drives, replace(seg_opts, interval='starting'))
+        assert not np.array_equal(segments.omega_l, other.omega_l)

@@ -73,8 +73,9 @@ def run(args: argparse.Namespace) -> int:
         if args.horizon_study:
             drives_t = [d for s in train for d in s.drives]
             drives_e = [d for s in evaluate for d in s.drives] or drives_t
-            study = horizon_study(drives_t, drives_e, geometry, options, (1.0, 2.0, 5.0),
-                                  (0.5, 1.0, 2.0, 5.0))
+            # result.options: the interval the calibration chose, not the default
+            study = horizon_study(drives_t, drives_e, geometry, result.options,
+                                  (1.0, 2.0, 5.0), (0.5, 1.0, 2.0, 5.0))
         page = write_report(result, args.report, force=args.force, study=study)
         say(f'report: {page}')
     invalid = [m for m, f in result.fits.items() if not f.valid and get_model(m).params]

@@ -378,24 +378,20 @@ class HorizonStudy:
 def horizon_study(train: Sequence[Drive], evaluate: Sequence[Drive], geometry: Geometry,
                   options: CalibrationOptions, h_t_values: Sequence[float],
                   h_e_values: Sequence[float]) -> HorizonStudy:
-    """Train at several h_t and evaluate at several h_e (the paper's horizon figure)."""
+    """Train at several h_t and evaluate at several h_e (the paper's horizon figure).
+
+    The segments are cut as :func:`calibrate` cuts them (``options.train_segments()`` and
+    ``eval_segments()``, the sample-interval convention included), only the horizon changes.
+    """
     models = tuple(m for m in options.models if get_model(m).params) or ('ideal_dd',)
     shape = (len(h_t_values), len(h_e_values))
     median = {m: np.full(shape, np.nan) for m in models}
     iqr = {m: np.full(shape, np.nan) for m in models}
-    eval_sets = []
-    for h_e in h_e_values:
-        seg_opts = SegmentOptions(horizon_m=h_e, short_drive=options.short_drive,
-                                  min_motion_m=options.min_motion_m,
-                                  min_rotation_rad=options.min_rotation_rad,
-                                  max_gap_s=options.max_gap_s)
-        eval_sets.append(cut_segments(evaluate, seg_opts))
+    eval_sets = [cut_segments(evaluate, replace(options.eval_segments(), horizon_m=h_e))
+                 for h_e in h_e_values]
     for i, h_t in enumerate(h_t_values):
-        seg_opts = SegmentOptions(horizon_m=h_t, horizon_rad=options.h_t_rad,
-                                  short_drive=options.short_drive,
-                                  min_motion_m=options.min_motion_m,
-                                  min_rotation_rad=options.min_rotation_rad,
-                                  max_gap_s=options.max_gap_s)
+        # the main fit's segment options (interval included), at this horizon
+        seg_opts = replace(options.train_segments(), horizon_m=h_t)
         train_seg = cut_segments(train, seg_opts)
         if len(train_seg) < 8:
             LOG.warning('h_t = %g m leaves %d training segments: skipped', h_t, len(train_seg))
