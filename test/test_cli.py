@@ -283,8 +283,8 @@ def test_a_device_as_a_source_is_a_data_error_not_a_traceback(tmp_path, capsys):
     assert 'not a regular file' in capsys.readouterr().err
 
 
-def test_horizon_study_runs_under_the_interval_the_calibration_used(sim_table, tmp_path,
-                                                                      monkeypatch):
+def test_horizon_study_runs_under_the_interval_the_calibration_used(
+        sim_table, tmp_path, monkeypatch):
     # the report's h_t x h_e study cuts its segments under the written interval, not the default
     from skidkin_ros.cli import cmd_calibrate
     table, _ = sim_table
