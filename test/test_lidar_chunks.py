@@ -16,8 +16,9 @@ import pytest
 
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.lidar_chunks import (bag_ground_truth, bag_identity, ChunkOptions,
-                                               join_chunks, plan_chunks, run_chunks)
-from skidkin_ros.adapters.lidar_gt import IcpConfig, lidar_ground_truth
+                                               ChunkOutcome, join_chunks, plan_chunks,
+                                               run_chunks)
+from skidkin_ros.adapters.lidar_gt import IcpConfig, lidar_ground_truth, Registration
 from skidkin_ros.adapters.sim_writer import write_bag
 from skidkin_ros.core.drive import WheelSamples
 from skidkin_ros.sim import LidarConfig, SimConfig, simulate
@@ -152,3 +153,33 @@ def test_an_unreachable_cluster_is_a_clear_error(drive):
     _, bag = drive
     with pytest.raises(DataError, match='Dask scheduler'):
         ground_truth(bag, dataclasses.replace(CHUNKS, cluster='tcp://127.0.0.1:9'))
+
+
+def _synthetic_outcome(task, scale=1.0):
+    """Return a chunk that registered every frame of its window, driving along x at 1 m/s."""
+    receive = np.arange(0, 25_000_000_000, 100_000_000, dtype=np.int64)
+    inside = (receive >= (task.start_ns or 0)) & (receive < (task.stop_ns or receive[-1] + 1))
+    t_s = receive[inside] * 1e-9
+    poses = np.repeat(np.eye(4)[None], t_s.size, axis=0)
+    poses[:, 0, 3] = (t_s - t_s[0]) * scale  # each chunk in the frame of its first cloud
+    n = t_s.size
+    reg = Registration(receive[inside], ('ok',) * n, receive[inside], poses, np.ones(n),
+                       np.zeros(n), np.ones(n), receive[inside])
+    return ChunkOutcome(task, reg)
+
+
+def test_the_seam_note_counts_tested_and_untested_cuts_apart():
+    # chunk 1 disagrees with chunk 0 (tested, cut); chunk 2 fails, so the seam before chunk 3
+    # is cut untested; chunk 4 agrees with chunk 3 (tested, kept): 2 tested, 1 of them cut, 1
+    # cut untested (before: '2 seam(s) tested, 2 cut', as if both tests had failed)
+    tasks = plan_chunks('drive', '/points', 0, 10**8, 250, 0, ICP, CHUNKS)
+    assert len(tasks) == 5
+    outcomes = [_synthetic_outcome(tasks[0]), _synthetic_outcome(tasks[1], scale=1.5),
+                ChunkOutcome(tasks[2], None, 'RecordingError: unreadable'),
+                _synthetic_outcome(tasks[3]), _synthetic_outcome(tasks[4])]
+    joined = join_chunks(outcomes, CHUNKS)
+    assert len(joined.cut_frames) == 2
+    assert (joined.seams_tested, joined.seams_failed, joined.seams_untested) == (2, 1, 1)
+    assert joined.seams_cut == 2
+    note = joined.seams_note(len(tasks), CHUNKS)
+    assert '2 seam(s) tested, 1 of them cut; 1 cut untested (after a failed chunk' in note

@@ -401,13 +401,34 @@ def run_chunks(tasks: Sequence[ChunkTask], options: ChunkOptions, *,
 # -- joining ------------------------------------------------------------------------------------
 @dataclass
 class Joined:
-    """The joined registration, the frames that start behind a cut seam, and what happened."""
+    """The joined registration, the frames that start behind a cut seam, and what happened.
+
+    ``seams_tested``: seams whose overlap was compared; ``seams_failed``: those of them that
+    disagreed (cut); ``seams_untested``: seams cut without a test (after a failed chunk, or no
+    frame registered by both chunks). ``seams_cut`` is their sum (a cut seam with no frame after
+    it is not counted: there is nothing to cut).
+    """
 
     registration: Registration
     cut_frames: list[int]
     notes: list[str]
     seams_tested: int = 0
-    seams_cut: int = 0
+    seams_failed: int = 0
+    seams_untested: int = 0
+
+    @property
+    def seams_cut(self) -> int:
+        return self.seams_failed + self.seams_untested
+
+    def seams_note(self, chunks: int, options: ChunkOptions) -> str:
+        """Return the one-line summary of the chunks and their seams."""
+        note = (f'lidar registered in {chunks} chunks of {options.chunk_s:g} s '
+                f'({options.overlap_s:g} s overlap): {self.seams_tested} seam(s) tested, '
+                f'{self.seams_failed} of them cut')
+        if self.seams_untested:
+            note += (f'; {self.seams_untested} cut untested (after a failed chunk or without a '
+                     'frame both chunks registered)')
+        return note
 
 
 def _motion(pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
@@ -441,7 +462,7 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
     parts: list[Registration] = []
     cut: list[int] = []
     notes: list[str] = []
-    tested = 0
+    tested = failed = untested = 0
     offset = 0
     previous: Registration | None = None  # the previous chunk, poses in the joined frame
     window_ns = int(options.overlap_s / 2 * 1e9)
@@ -461,7 +482,8 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
         if parts:
             transform, agrees = (None, False) if previous is None else _anchor(
                 previous, reg, window_ns, options)
-            if transform is not None:
+            anchored = transform is not None
+            if anchored:
                 tested += 1
                 if not agrees:
                     notes.append(f'lidar chunk {task.index}: its overlap with chunk '
@@ -474,6 +496,10 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
             poses = np.einsum('ij,njk->nik', transform, poses)
             if not agrees and first_own.size:
                 cut.append(offset + int(np.count_nonzero(own[:first_own[0]])))
+                if anchored:
+                    failed += 1
+                else:
+                    untested += 1
         previous = Registration(reg.end_ns, reg.status, reg.pose_t_ns, poses,
                                 reg.inlier_fraction, reg.residual_m, reg.degeneracy, receive)
         part = _select(previous, own)
@@ -481,7 +507,7 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
         offset += len(part)
     if not parts:
         raise DataError('every lidar chunk failed; no ground truth: ' + '; '.join(notes))
-    return Joined(_concatenate(parts), cut, notes, tested, len(cut))
+    return Joined(_concatenate(parts), cut, notes, tested, failed, untested)
 
 
 def _continue_from(parts: Sequence[Registration], reg: Registration,
@@ -573,9 +599,7 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     joined = join_chunks(outcomes, options)
     notes = list(dict.fromkeys(joined.notes))
     if len(tasks) > 1:
-        notes.append(f'lidar registered in {len(tasks)} chunks of {options.chunk_s:g} s '
-                     f'({options.overlap_s:g} s overlap): {joined.seams_tested} seam(s) tested, '
-                     f'{joined.seams_cut} cut')
+        notes.append(joined.seams_note(len(tasks), options))
     cached = sum(1 for o in outcomes if o.cached)
     if cached:
         notes.append(f'ground truth: {cached} of {len(tasks)} chunk(s) read from the cache '
