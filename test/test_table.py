@@ -130,13 +130,31 @@ def test_times_that_cannot_be_seconds_say_so(tmp_path, t0, needle):
     ('x', '1_0', 'not a number'), ('wheel_left', '١٠', 'not a number'),
     ('y', '0x10', 'not a number'), ('x', '1e300', 'beyond any plausible x'),
     ('wheel_right', '-2e4', 'beyond any plausible wheel_right'),
-    ('yaw', '-1e10', 'beyond any plausible yaw'), ('t', 'Infinity', 'not finite')])
+    ('yaw', '-1e10', 'beyond 4.5e.09 rad'), ('yaw', 'nan', 'not finite'),
+    ('t', 'Infinity', 'not finite')])
 def test_numbers_are_plain_decimals_within_physical_bounds(tmp_path, column, value, match):
     """Issue 12 item 13 (C26): '1_0' read as 10; a row of 1e300 passed (overflow warnings)."""
     lines = _with([HEADER] + _rows(0, 0), 3, column, value)
     with pytest.raises(RecordingError, match=match) as info:
         read_table(_write(tmp_path / 'bad.csv', lines))
     assert f"line 4, column '{column}'" in str(info.value)
+
+
+def test_yaw_is_bounded_as_an_angle_float64_resolves_not_in_metres(tmp_path):
+    """An unwrapped yaw may grow: refused only where float64 stops resolving 1e-6 rad."""
+    # 2e9 rad (3 rad/s for 21 years) is still an angle float64 holds to 2.4e-7 rad: read
+    lines = [HEADER] + _rows(0, 0)
+    for k in range(1, len(lines)):
+        _with(lines, k, 'yaw', f'{2e9 + 0.01 * k:.2f}')
+    drive = read_table(_write(tmp_path / 'spun.csv', lines))[0]
+    assert np.all(np.abs(drive.truth.poses[:, 2] - 2e9) < 1.0)
+    # 5e9 rad: neighbouring floats are 9.5e-7 rad apart; the error says why and what to do
+    bad = _with([HEADER] + _rows(0, 0), 3, 'yaw', '5e9')
+    with pytest.raises(RecordingError) as info:
+        read_table(_write(tmp_path / 'far.csv', bad))
+    text = str(info.value)
+    assert "line 4, column 'yaw': yaw = 5e+09 rad is beyond 4.5e+09 rad" in text
+    assert 'no longer resolves 1e-06 rad' in text and 'angle in radians' in text
 
 
 def test_byte_order_mark_and_repeated_columns(tmp_path):

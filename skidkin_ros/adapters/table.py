@@ -11,8 +11,10 @@ skipped):
 
 Values are plain decimal numbers (``1.5``, ``-2e-3``; not ``1_0``, not other scripts' digits)
 within physical bounds (:data:`VALUE_LIMITS`: a position of 1e300 m is a corrupt row, and would
-overflow every sum it enters); ``t`` must be seconds: a time beyond the int64 nanosecond range
-(about 9.2e9 s) is refused with the unit it looks like (milliseconds since 1970, ...).
+overflow every sum it enters; an unwrapped yaw may grow with every turn, so its bound is where
+float64 stops resolving 1e-6 rad, about 4.5e9 rad); ``t`` must be seconds: a time beyond the
+int64 nanosecond range (about 9.2e9 s) is refused with the unit it looks like (milliseconds
+since 1970, ...).
 
 Sample-and-held ground truth. Lidar/ICP poses often come slower than the wheel samples and are
 held onto the table's time grid (the DRIVE Husky table: ICP at ~10 Hz held onto 20 Hz rows), so
@@ -39,7 +41,7 @@ import numpy as np
 
 from skidkin_ros.core.drive import Drive, fresh_pose_mask, ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.odometry.config import NODE_SPECS
-from skidkin_ros.core.odometry.odometer import POSE_LIMIT_M
+from skidkin_ros.core.odometry.odometer import POSE_LIMIT_M, YAW_LIMIT_RAD, YAW_RESOLUTION_RAD
 from skidkin_ros.errors import RecordingError
 
 __all__ = ['REQUIRED_COLUMNS', 'META_COLUMNS', 'read_table']
@@ -60,7 +62,7 @@ VALUE_LIMITS: dict[str, tuple[float, str]] = {
     'wheel_left': (_WHEEL_LIMIT, 'rad/s'), 'wheel_right': (_WHEEL_LIMIT, 'rad/s'),
     'cmd_left': (_WHEEL_LIMIT, 'rad/s'), 'cmd_right': (_WHEEL_LIMIT, 'rad/s'),
     'imu_yaw_rate': (_WHEEL_LIMIT, 'rad/s'), 'x': (POSE_LIMIT_M, 'm'), 'y': (POSE_LIMIT_M, 'm'),
-    'yaw': (POSE_LIMIT_M, 'rad'), 't': (MAX_TIME_S, 's')}
+    'yaw': (YAW_LIMIT_RAD, 'rad'), 't': (MAX_TIME_S, 's')}
 
 
 def _read_rows(path: Path) -> tuple[list[str], list[list[str]]]:
@@ -124,6 +126,12 @@ def _number(path: Path, line: int, name: str, text: str) -> float:
             raise RecordingError(f'{where}: t = {number:.6g} cannot be seconds (beyond '
                                  f'{MAX_TIME_S:.3g} s, the year 2262 since 1970); it looks like '
                                  f'{_time_unit(number)}: convert t to seconds')
+        if name == 'yaw':
+            raise RecordingError(
+                f'{where}: yaw = {number:.6g} rad is beyond {YAW_LIMIT_RAD:.3g} rad (about '
+                f'{YAW_LIMIT_RAD / (2 * math.pi):.2g} turns), where float64 no longer resolves '
+                f'{YAW_RESOLUTION_RAD:g} rad; yaw is an angle in radians (unwrapped is fine): '
+                'check the column and remove or repair the row')
         raise RecordingError(f'{where}: value {number:.6g} is beyond any plausible {name} '
                              f'(|{name}| <= {limit:g} {unit}); remove or repair the row')
     return number

@@ -52,13 +52,19 @@ from skidkin_ros.core.odometry.propagation import (PoseCovariancePropagator,
 from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer, WheelSignal
 
 __all__ = ['SampleRules', 'Estimate', 'Odometer', 'Prediction', 'predict_wheels',
-           'check_pose', 'check_covariance', 'POSE_LIMIT_M', 'VARIANCE_LIMIT',
+           'check_pose', 'check_covariance', 'POSE_LIMIT_M', 'YAW_LIMIT_RAD',
+           'YAW_RESOLUTION_RAD', 'VARIANCE_LIMIT',
            'STEP_BACK_CONFIRM']
 
 NS_PER_S = 1_000_000_000
 # A pose set from outside is refused beyond this (m): a step from 1e308 m cannot stay finite, and
 # no odometry frame is a million kilometres wide.
 POSE_LIMIT_M = 1e9
+# An unwrapped yaw grows with every turn, so no physical bound fits it (3 rad/s for ten years is
+# 1e9 rad); the honest limit is where float64 stops resolving the angle: beyond YAW_LIMIT_RAD
+# (about 4.5e9 rad, 7e8 turns) two neighbouring floats are more than YAW_RESOLUTION_RAD apart.
+YAW_RESOLUTION_RAD = 1e-6
+YAW_LIMIT_RAD = YAW_RESOLUTION_RAD / float(np.finfo(float).eps)
 # Largest variance (m^2, rad^2) a set covariance may hold: beyond it, propagation overflows.
 VARIANCE_LIMIT = 1e12
 # Samples in a row that confirm a stepped-back input clock (one corrupt stamp is not a restart).
@@ -109,13 +115,15 @@ def _ignore(*args: object, **kwargs: object) -> None:
 def check_pose(pose: Sequence[float]) -> tuple[float, float, float]:
     """Return (x, y, yaw) as floats, or raise ValueError for a pose the odometry cannot hold.
 
-    x and y must be finite and within ``POSE_LIMIT_M``, yaw finite and within the same bound in
-    radians: from further out, the next step could not stay finite (or exact).
+    x and y must be finite and within ``POSE_LIMIT_M``, yaw finite and within ``YAW_LIMIT_RAD``:
+    from further out, the next step could not stay finite (or exact).
     """
     x, y, yaw = (float(v) for v in pose)
-    if not all(math.isfinite(v) and abs(v) <= POSE_LIMIT_M for v in (x, y, yaw)):
+    if not (all(math.isfinite(v) and abs(v) <= POSE_LIMIT_M for v in (x, y))
+            and math.isfinite(yaw) and abs(yaw) <= YAW_LIMIT_RAD):
         raise ValueError(f'pose (x {x:g} m, y {y:g} m, yaw {yaw:g} rad) is not finite or beyond '
-                         f'{POSE_LIMIT_M:g} m (rad); expected finite values within it')
+                         f'{POSE_LIMIT_M:g} m (x, y) or {YAW_LIMIT_RAD:.3g} rad (yaw); expected '
+                         'finite values within them')
     return x, y, yaw
 
 
