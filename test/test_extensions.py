@@ -16,7 +16,9 @@ from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig, parameter_schema, parse_extensions
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, rollout, rollout_stream,
-                                                  SampleStatus, StreamingIntegrator)
+                                                  SampleStatus, step_scalar,
+                                                  StreamingIntegrator)
+from skidkin_ros.core.odometry.interval import interval_speed
 from skidkin_ros.core.odometry.odometer import predict_wheels
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.effects import EFFECT_NAMES
@@ -405,3 +407,35 @@ def test_the_rate_is_the_backward_difference_of_the_base_twist():
         BASE.twist(5.0, 5.0), np.array([accel, 0.0, 0.0]))))
     assert features['dv'] == features['dv_up'] == pytest.approx(accel)
     assert features['dw'] == 0.0
+
+
+@pytest.mark.parametrize('interval', ['ending', 'midpoint'])
+@pytest.mark.parametrize('values', [
+    {'acceleration_slip': {'tau_s': 0.12}},
+    {'sparse_correction': {'vx_dv': -0.1, 'vx_dv_up': -0.05, 'wz_dw': 0.03}},
+], ids=['acceleration_slip', 'sparse_derivatives'])
+def test_the_published_twist_of_a_rate_model_is_the_one_the_pose_integrates(interval, values):
+    # Without a lag the twist is constant over each interval: the published twist times dt is
+    # the pose increment, the rate term included (before: the rate term was left out).
+    model = augmented(values)
+    stream = StreamingIntegrator(model, interval=interval)
+    t_ns = np.arange(80, dtype=np.int64) * 50_000_000
+    ramp = np.concatenate([np.linspace(0.5, 6.0, 40), np.linspace(6.0, 0.5, 40)])
+    wl, wr = ramp, ramp * (1.0 + 0.3 * np.sin(np.arange(80) / 7.0))
+    rate_terms = 0
+    for t, left, right in zip(t_ns, wl, wr):
+        before = stream.held_speeds
+        result = stream.step(int(t), float(left), float(right))
+        if result.status is not SampleStatus.INTEGRATED:
+            continue
+        vx, vy, w = result.twist
+        x, y, yaw = result.start_pose
+        moved = step_scalar(x, y, yaw, vx, vy, w, result.dt_s)[:3]
+        assert moved == result.pose
+        assert result.twist == result.step_twist
+        # the twist of the interval's speeds without the rate term
+        held = [interval_speed(a, b, interval) for a, b in zip(before, (left, right))]
+        steady = model.scalar_memoryless(*held, 0.0)
+        rate_terms += abs(vx - steady[0]) > 1e-3 or abs(w - steady[2]) > 1e-3
+    # the rate terms are there to be seen (acceleration slip: only while speeding up)
+    assert rate_terms >= 35

@@ -224,6 +224,10 @@ class BoundAugmented:
             held, mean = (h0, h1, h2), (m0, m1, m2)
         return AugmentedState(state.t0_ns, state.x, held, state.t_ns, state.b), mean
 
+    def published(self, state: AugmentedState) -> Triple:
+        """Return the body twist held at the end of an advanced interval (y; x without lag)."""
+        return state.y
+
     # ---------------------------------------------------------------- batch form
     def intervals(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
                   dt_s: np.ndarray, restart: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

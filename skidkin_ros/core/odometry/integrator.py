@@ -186,6 +186,8 @@ class StatefulTwistSource(Protocol):
     ``begin(state, t_ns, omega_l, omega_r, restart)`` takes a new sample (state None: the first
     sample; restart: after a gap, the dynamics restart) and returns (state, twist published now);
     ``advance(state, dt_s)`` returns (state at the end of the held interval, mean twist over it);
+    ``published(state)`` the body twist at the end of an advanced interval (what the streaming
+    integrator publishes after integrating it under ``ending`` or ``midpoint``);
     ``intervals(t_ns, omega_l, omega_r, dt_s, restart)`` is the batch form over (D, L) arrays and
     returns (published twists, mean twists), both (D, L, 3); ``output_offset_ns`` is added to the
     stamps of what is published (the true motion lags the wheel stamps by it).
@@ -202,6 +204,9 @@ class StatefulTwistSource(Protocol):
         ...
 
     def advance(self, state: Any, dt_s: float) -> tuple[Any, np.ndarray]:
+        ...
+
+    def published(self, state: Any) -> tuple[float, float, float]:
         ...
 
     def intervals(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
@@ -333,7 +338,10 @@ class StreamingIntegrator:
     A stateful source under ``ending`` or ``midpoint`` takes each interval's speeds when the
     sample that ends it arrives (``begin`` at the interval's start stamp, then ``advance``), as
     the batch form does with the held speeds; between samples its state is the one at the last
-    stamp, and the published twist is what ``begin`` would give for the newest sample.
+    stamp, and the published twist is the one the pose integrated at the end of that interval
+    (``published``: the rate terms and the lag included; without a lag, the step's twist, so
+    twist x dt is the pose increment). Only a first sample, a restart after a gap or a repeated
+    stamp (nothing integrated) publishes what ``begin`` gives for the newest sample, at rate 0.
     """
 
     def __init__(self, source: TwistSource, limits: IntegratorLimits | None = None,
@@ -423,7 +431,8 @@ class StreamingIntegrator:
         if self._deferred:
             # The state stays at this stamp; begin runs when the next sample ends the interval.
             self._restart = self._restart or restart
-            _, twist = self.source.begin(self.state, t_ns, omega_l, omega_r, self._restart)
+            if twist is None:  # nothing integrated up to here: the newest sample's, at rate 0
+                _, twist = self.source.begin(self.state, t_ns, omega_l, omega_r, self._restart)
             self._twist = _triple(twist)
             return
         if self._stateful:
@@ -516,8 +525,13 @@ class StreamingIntegrator:
         else:
             wheels = (interval_speed(held_l, omega_l, self.interval),
                       interval_speed(held_r, omega_r, self.interval))
-        self._hold(t_ns, omega_l, omega_r, twist=(
-            step_twist if self.interval == 'ending' and not self._stateful else None))
+        if self._deferred:  # the twist the interval ended with (its rate terms included)
+            published = self.source.published(new_state)
+        elif self.interval == 'ending' and not self._stateful:
+            published = step_twist  # these very speeds' twist: not computed twice
+        else:
+            published = None
+        self._hold(t_ns, omega_l, omega_r, twist=published)
         return StepResult(SampleStatus.INTEGRATED, self._pose, self._twist, dt_s, '', start,
                           step_twist, wheels)
 
