@@ -229,7 +229,7 @@ def calibrate_drive(bag: Path, duration_s: float, jobs: int) -> dict[str, Any]:
         out = Path(tmp) / 'params.yaml'
         seconds, code, err = _timed(_skidkin_command() + [
             'calibrate', str(bag), '--out', str(out), '--no-cache', '--jobs', str(jobs),
-            '--no-progress', '--accept-invalid'])
+            '--no-progress'])
         written = out.is_file()
     return {'duration_s': duration_s, 'seconds': seconds, 'exit_code': code,
             'written': written, 'error': None if code in (0, 4) else err}

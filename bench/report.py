@@ -207,7 +207,7 @@ def _gt_section(gt: Mapping[str, Any]) -> list[str]:
     state = ('parameters written' if calib['written']
              else f'no parameters file: {calib["error"] or "see the exit code"}')
     lines += ['', f'A {calib["duration_s"]:g} s outdoor drive from bag to parameters file '
-              f'(`skidkin calibrate BAG --no-cache --accept-invalid --jobs {gt["jobs"]}`): '
+              f'(`skidkin calibrate BAG --no-cache --jobs {gt["jobs"]}`): '
               f'**{calib["seconds"]:.0f} s** (goal < {GT_DRIVE_GOAL_S:g} s for 600 s), '
               f'exit code {calib["exit_code"]}, {state}.', '',
               '### kiss-icp settings: speed and accuracy', '',

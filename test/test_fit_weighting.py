@@ -154,8 +154,12 @@ def test_an_invalid_model_that_was_not_selected_is_a_warning_unless_strict(
     strict = tmp_path / 'strict.yaml'
     assert _calibrate(roc_invalid_table, strict, '--strict') == 4
     assert 'roc' in capsys.readouterr().err
+    # the deprecated --accept-invalid still undoes --strict (scripts keep working) and says so
     assert _calibrate(roc_invalid_table, tmp_path / 'accept.yaml', '--strict',
                       '--accept-invalid') == 0
+    assert '--accept-invalid is deprecated (it undoes --strict' in capsys.readouterr().err
+    assert _calibrate(roc_invalid_table, tmp_path / 'plain.yaml', '--accept-invalid') == 0
+    assert '--accept-invalid is deprecated (it does nothing' in capsys.readouterr().err
 
 
 def test_evaluate_refuses_a_model_the_file_does_not_hold(roc_invalid_table, tmp_path, capsys):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+import sys
 
 from skidkin_ros.adapters.sources import load_sources
 from skidkin_ros.atomic import check_writable
@@ -21,6 +22,16 @@ from skidkin_ros.errors import FitError
 from skidkin_ros.report.page import write_report
 
 __all__ = ['add_parser']
+
+
+def _deprecations(args: argparse.Namespace) -> None:
+    """Say what the deprecated --accept-invalid does now (it still undoes --strict)."""
+    if not args.accept_invalid:
+        return
+    undo = 'it undoes --strict; drop both' if args.strict else 'it does nothing; drop it'
+    print(f'note: --accept-invalid is deprecated ({undo}): an invalid fit that was not selected '
+          'is a warning by default, and is never written', file=sys.stderr, flush=True)
+    args.strict = False
 
 
 def _options(args: argparse.Namespace) -> CalibrationOptions:
@@ -45,6 +56,7 @@ def _print_interval(result) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    _deprecations(args)
     check_writable(args.out, args.force)
     check_report_dir(args.report, args.force)
     options = _options(args)
@@ -79,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         page = write_report(result, args.report, force=args.force, study=study)
         say(f'report: {page}')
     invalid = [m for m, f in result.fits.items() if not f.valid and get_model(m).params]
-    if invalid and args.strict and not args.accept_invalid:
+    if invalid and args.strict:
         raise FitError(f'fit(s) of {", ".join(invalid)} are invalid (not converged, on a bound '
                        'or not observable; see the warnings) and were not written; the other '
                        'models were. Without --strict this is a warning.')
@@ -128,9 +140,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--strict', action='store_true',
                         help='exit 4 when any fit is invalid, even one that was not selected '
                         '(default: a warning; the written model is always a valid fit)')
-    parser.add_argument('--accept-invalid', action='store_true',
-                        help='exit 0 even with --strict when a fit is invalid (it is still not '
-                        'written)')
+    # Deprecated: an invalid fit that was not selected is a warning by default (issue 11), so
+    # the flag only undid --strict. Still taken (scripts keep working), with a note; not in --help.
+    parser.add_argument('--accept-invalid', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--weighting', choices=WEIGHTINGS, default='iterated',
                         help='loss weights: iterated (each segment by the covariance the noise '
                         'model predicts for it, refitted until the parameters settle) or fixed '

@@ -26,10 +26,6 @@ def run(args: argparse.Namespace) -> int:
     figure_lines = [f'figure {name}: {path}' for name, path in figures.items()]
     for line in study.summary_lines() + figure_lines:
         say(line)
-    # The figures are listed twice, as before the study returned data only: the output stays
-    # identical to what the README shows until it is next regenerated.
-    for name, path in sorted(figures.items()):
-        say(f'figure {name}: {path}')
     return 0
 
 

@@ -10,11 +10,13 @@ import numpy as np
 
 from skidkin_ros.adapters.sources import load_source
 from skidkin_ros.atomic import atomic_write_text, check_writable
-from skidkin_ros.cli.common import (add_geometry_args, add_source_args, print_notes, say,
-                                    source_options)
+from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
 from skidkin_ros.core.drive import PoseTrack
+from skidkin_ros.errors import ConfigError
 
 __all__ = ['add_parser', 'track_csv', 'track_tum']
+
+_NO_GEOMETRY = ('--wheel-radius', '--track-width')
 
 
 def track_csv(track: PoseTrack) -> str:
@@ -36,12 +38,14 @@ def track_tum(track: PoseTrack) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    given = [name for name in _NO_GEOMETRY if getattr(args, name[2:].replace('-', '_'))]
+    if given:
+        raise ConfigError(f'skidkin groundtruth takes no robot geometry ({", ".join(given)}): '
+                          "the ground truth's wheel check scales the wheels against ICP itself; "
+                          'drop the option (calibrate and predict take it)')
     check_writable(args.out, args.force)
     if args.tum:
         check_writable(args.tum, args.force)
-    if args.wheel_radius is not None or args.track_width is not None:
-        say("note: --wheel-radius/--track-width are not used: the ground truth's wheel check "
-            'scales the wheels against ICP itself and needs no geometry')
     loaded = load_source(args.bag, source_options(args), need_truth=True)
     print_notes([loaded])
     track = loaded.drives[0].truth
@@ -74,5 +78,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--tum', type=Path, help='also write the TUM format (for evo)')
     parser.add_argument('--force', action='store_true', help='overwrite existing outputs')
     add_source_args(parser)
-    add_geometry_args(parser)
+    # Not options of this command; kept out of --help, and refused with the reason if given.
+    for name in _NO_GEOMETRY:
+        parser.add_argument(name, help=argparse.SUPPRESS)
     parser.set_defaults(run=run)

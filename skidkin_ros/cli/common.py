@@ -24,7 +24,7 @@ from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.core.parallel import usable_cpus
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
-           'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'RoundBars',
+           'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'stride_arg', 'RoundBars',
            'check_report_dir', 'input_parameters', 'calibration_provenance',
            'print_calibration']
 
@@ -40,16 +40,26 @@ def print_notes(sources: Iterable[LoadedSource]) -> None:
             print(f'  note: {note}', file=sys.stderr, flush=True)
 
 
-def jobs_arg(text: str) -> int:
-    """Parse --jobs: a whole number of processes, at least 1."""
+def _whole_number(text: str, expected: str) -> int:
+    """Return ``text`` as a whole number >= 1, or refuse it saying what was ``expected``."""
     try:
         value = int(text)
     except ValueError:
         value = 0
     if value < 1:
-        raise argparse.ArgumentTypeError(
-            f'expected a whole number of processes >= 1, got {text!r}')
+        raise argparse.ArgumentTypeError(f'expected {expected}, got {text!r}')
     return value
+
+
+def jobs_arg(text: str) -> int:
+    """Parse --jobs: a whole number of processes, at least 1."""
+    return _whole_number(text, 'a whole number of processes >= 1')
+
+
+def stride_arg(text: str) -> int:
+    """Parse --stride: register one lidar scan in K, K a whole number >= 1."""
+    return _whole_number(text, 'a whole number K >= 1 (one lidar scan in K is registered; 1: '
+                         'every scan)')
 
 
 class RoundBars:
@@ -124,7 +134,7 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
                        help=f'kiss-icp maximum range (m, default {icp.max_range_m:g})')
     group.add_argument('--voxel-size', type=float, metavar='M',
                        help='kiss-icp voxel size (m, default max-range/100)')
-    group.add_argument('--stride', type=jobs_arg, default=icp.stride, metavar='K',
+    group.add_argument('--stride', type=stride_arg, default=icp.stride, metavar='K',
                        help=f'register one lidar scan in K (default {icp.stride})')
     group.add_argument('--chunk-s', type=float, default=chunks.chunk_s, metavar='S',
                        help='register the lidar in independent chunks of S seconds (default '
