@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 from pathlib import Path
@@ -100,8 +101,8 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
                         'plain_position_m'):
                 assert _finite(row[key]) and row[key] > 0, key
         assert '| plain window-end fit' in (out / 'results.md').read_text()
-    else:
-        assert 'not found' in heading['reason']
+    else:  # what this path writes is checked by test_heading_bench_without_the_husky_table...
+        assert f"Not run: {heading['reason']}." in (out / 'results.md').read_text()
 
     # The Markdown table names the command and has the expected rows; the plot is a PNG.
     text = (out / 'results.md').read_text()
@@ -112,6 +113,29 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
                    '## Ground truth on the outdoor scene', '### kiss-icp settings'):
         assert needle in text, needle
     assert (out / 'cost_vs_size.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+
+
+def _bench_module(name):
+    spec = importlib.util.spec_from_file_location(f'bench_{name}', ROOT / 'bench' / f'{name}.py')
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(ROOT / 'bench'))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(ROOT / 'bench'))
+    return module
+
+
+def test_heading_bench_without_the_husky_table_says_so_in_the_results(tmp_path):
+    # the smoke run meets the shared Husky table where it exists: this is the other path
+    heading_bench, report = _bench_module('heading_bench'), _bench_module('report')
+    missing = tmp_path / 'drive_husky_windows.csv'
+    heading = heading_bench.run(missing)
+    assert heading == {'available': False, 'reason': f'{missing} not found', 'rows': []}
+    section = report._heading_section(heading)
+    assert section[0].startswith('## Heading at window ends')
+    assert section[2] == f'Not run: {missing} not found.'
+    assert not any(line.startswith('|') for line in section)  # no table of nothing
 
 
 @pytest.mark.ros

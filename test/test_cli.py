@@ -338,3 +338,29 @@ def test_estimate_lists_each_figure_once(tmp_path, capsys, monkeypatch):
     assert lines[0] == 'model edd_symmetric (a summary line)'
     assert [line for line in lines if line.startswith('figure ')] == [
         f'figure {name}: {path}' for name, path in figures.items()]
+
+
+def test_diagnose_runs_under_the_interval_of_the_parameters_file(
+        sim_table, tmp_path, capsys, monkeypatch):
+    # C45: the file's interval (written by calibrate) is the diagnosis's, unless one is given
+    from skidkin_ros.cli import cmd_diagnose
+    from skidkin_ros.errors import FitError
+    table, _ = sim_table
+    params = write_params_file(tmp_path / 'p.yaml', {
+        'wheel_radius': 0.1651, 'track_width': 0.555, 'model': 'edd_symmetric',
+        'models.edd_symmetric.alpha': 0.9, 'models.edd_symmetric.b_hat': 0.85,
+        'interval': 'midpoint'}, {'source': 'test'})
+    seen = []
+
+    def spy(train, evaluate, geometry, values, base, options, **_):
+        seen.append(options)
+        raise FitError('stopped by the test')  # what diagnose does next is tested elsewhere
+
+    monkeypatch.setattr(cmd_diagnose, 'diagnose', spy)
+    for extra, expected in (([], 'midpoint'), (['--interval', 'starting'], 'starting')):
+        assert main(['diagnose', str(table), '--params', str(params), '--out',
+                     str(tmp_path / 'out.yaml'), '--no-progress', *extra]) == 4
+        assert seen[-1].interval == expected
+        assert seen[-1].train_segments().interval == expected
+        out = capsys.readouterr().out
+        assert f'sample interval: {expected}' in out
