@@ -310,7 +310,9 @@ class StepResult:
     """What one sample did. Poses and twists are plain float triples (the node's hot path).
 
     ``pose``: (x, y, yaw) after this sample, yaw unwrapped; ``twist``: the body twist now held
-    (from this sample's speeds, what is published); ``start_pose`` and ``step_twist``: where the
+    (from this sample's speeds, what is published; a stateful source under ``ending`` or
+    ``midpoint``: the one the pose integrated at the end of the interval, see
+    :class:`StreamingIntegrator`); ``start_pose`` and ``step_twist``: where the
     integrated step started and the twist integrated over it (for a stateful source, its mean
     over the interval), equal to ``pose`` and ``twist`` when nothing was integrated.
     """
