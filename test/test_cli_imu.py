@@ -29,6 +29,12 @@ def test_calibrate_writes_the_gyro_and_predict_uses_it(sim_table, tmp_path, caps
     assert flat['imu.scale'] == pytest.approx(1.0, abs=0.01)
     assert abs(flat['imu.time_offset']) <= 0.02
     assert 'imu.mode' not in flat                     # the user switches it on
+    # C102: the gyro modes' noise is this robot's: the table's gyro column is the simulator's
+    # true yaw rate (no white noise; the default is 2e-3 rad/sqrt(s)); the filter's
+    # gyro-minus-model variance is far below the default (0.033 (rad/s)^2, from the Husky)
+    assert 1e-6 <= flat['imu.arw'] < 1e-5
+    assert flat['imu.adapt.r_floor'] < 0.033 / 10
+    assert 0.0 < flat['imu.adapt.yaw_noise_scale'] <= 100.0
     outs = {}
     for mode in ('off', 'fuse', 'adapt'):
         outs[mode] = tmp_path / f'{mode}.csv'

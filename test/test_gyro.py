@@ -276,3 +276,30 @@ def test_old_parameter_files_load_with_the_gyro_off(tmp_path):
     assert config.imu == ImuParams()
     odometer = Odometer.from_config(config)
     assert odometer.gyro is None and odometer.integrator.aid is None
+
+
+def test_evaluate_imu_mode_scores_a_model_with_a_time_offset_at_its_published_stamps():
+    """C101: evaluate --imu-mode compares the pose a model publishes at t + offset with the truth.
+
+    Truth stamped 80 ms late and the true model with time_offset 0.08 s: exact again, as
+    ``skidkin predict`` publishes it (the poses used to be read at the wheel stamps).
+    """
+    from dataclasses import replace
+
+    from skidkin_ros.core.calibration.imu import evaluate_imu_mode
+    from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
+    from skidkin_ros.core.drive import PoseTrack
+    from skidkin_ros.sim.simulate import SimConfig, simulate
+    config = SimConfig(duration_s=40.0, seed=4)
+    drive = simulate(config).drive('g')
+    truth = drive.truth
+    late = replace(drive, truth=PoseTrack(truth.t_ns + 80 * MS, truth.x, truth.y, truth.yaw))
+    flat = {'model': 'augmented', 'augmented.base': config.true_model,
+            'augmented.extensions': 'time_offset', 'augmented.time_offset.offset_s': 0.08,
+            'interval': 'midpoint',
+            **{f'models.{config.true_model}.{k}': v for k, v in config.true_params.items()}}
+    segments = cut_segments([late], SegmentOptions(horizon_m=2.0, interval='midpoint'))
+    score = evaluate_imu_mode(OdometryConfig.from_flat(flat), [late], segments, 'augmented', 'off')
+    assert len(segments) > 5
+    assert score.evaluation.stats_t.median < 0.01
+    assert score.end_position_m.median < 0.05

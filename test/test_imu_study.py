@@ -1,9 +1,10 @@
-"""The gyro study on the simulator (issue 14's goals), sized down: one drive per case.
+"""The gyro study on the simulator (issue 14's goals), sized down: one ground-change drive.
 
-The study calibrates and scores under ``interval: midpoint`` (exact for the simulator's speeds).
+The effect-free case runs the README's three drives (50 segments of 2 m): one drive's 16
+segments cannot resolve the 5 % of the effect-free goal (its medians move by 20 % from drive to
+drive). The study calibrates and scores under ``interval: midpoint`` (exact for the simulator's
+speeds).
 """
-
-import math
 
 import pytest
 from skidkin_ros.studies.imu import calibrated_config, run_case
@@ -13,7 +14,7 @@ from skidkin_ros.studies.imu import calibrated_config, run_case
 def cases():
     config = calibrated_config()
     reference = calibrated_config('new ground')
-    plain = run_case('effect-free', config, config, seeds=(11,), duration_s=120.0)
+    plain = run_case('effect-free', config, config, seeds=(11, 12, 13), duration_s=120.0)
     change = run_case('ground change', config, reference, seeds=(11,), duration_s=120.0)
     return plain, change
 
@@ -30,16 +31,14 @@ def test_adapt_recovers_on_a_new_ground_and_fuse_holds_the_heading(cases):
     assert settled['off'][1].median > 10 * true_theta          # the fixed model is far off
     assert settled['adapt'][1].median <= 1.5 * true_theta      # adapt is within 1.5x
     assert change.recovery_m and max(change.recovery_m) <= 5.0
-    # the NEES at 2 m is finite and not over-confident in either gyro mode
-    for mode in ('adapt', 'fuse'):
+    # the NEES at 2 m is inside the 95 % band in every mode: the gyro modes' noise (imu.arw,
+    # imu.adapt.r_floor / r_rel / yaw_noise_scale) is calibrated on this robot's drives
+    for mode in ('off', 'adapt', 'fuse'):
         mean, band, _ = plain.nees[mode]
-        assert math.isfinite(mean) and mean <= band[1]
+        assert band[0] <= mean <= band[1], (mode, mean, band)
 
 
 @pytest.mark.heavy
-@pytest.mark.xfail(strict=True, reason='known gap (issue 14, open): under the exact midpoint '
-                   'convention adapt costs heading on this effect-free drive (0.131 against '
-                   '0.105 deg/m); its filter constants are not calibrated per robot')
 def test_adapt_costs_nothing_without_a_new_ground(cases):
     plain, _ = cases
     every = plain.groups['all']

@@ -48,6 +48,28 @@ def test_node_with_gyro_reproduces_predict(tmp_path, mode):
     assert abs(off.poses[-1, 2] - result.poses[-1, 2]) > 1e-3
 
 
+def test_replay_with_a_gyro_carries_the_encoder_positions(tmp_path):
+    """N70: the replay harness with both a gyro and positions sends the positions too.
+
+    The velocities sent are zero; with ``wheel_signal: position`` only the positions move the
+    node (they were dropped when a gyro was replayed: every sample refused, no_position).
+    """
+    sim = simulate(SimConfig(duration_s=4.0, seed=3))
+    keep = sim.wheels.t_ns <= sim.imu.t_ns[-1] - 100_000_000
+    wheels = WheelSamples(sim.wheels.t_ns[keep], sim.wheels.omega_l[keep],
+                          sim.wheels.omega_r[keep])
+    still = WheelSamples(wheels.t_ns, np.zeros(len(wheels)), np.zeros(len(wheels)))
+    positions = list(zip(sim.wheel_pos_l[keep].tolist(), sim.wheel_pos_r[keep].tolist()))
+    flat = {**PARAMS, 'imu.mode': 'fuse', 'wheel_signal': 'position', 'interval': 'midpoint'}
+    path = write_params_file(tmp_path / 'imu.yaml', flat, {'source': 'test'})
+    result = replay_through_node(still, params_file=path, imu=sim.imu, positions=positions)
+    assert result.counters.get('no_position', 0) == 0
+    expected = Odometer.from_config(OdometryConfig.from_file(path)).predict(wheels, imu=sim.imu)
+    assert np.hypot(*expected.poses[-1, :2]) > 0.3          # it drove
+    # the first sample has no travel yet: the node's pose follows the true speeds' from there
+    np.testing.assert_allclose(result.poses[-1, :2], expected.poses[-1, :2], atol=0.05)
+
+
 def _yaw(msg):
     return 2 * math.atan2(msg.pose.pose.orientation.z, msg.pose.pose.orientation.w)
 

@@ -131,7 +131,9 @@ def test_times_that_cannot_be_seconds_say_so(tmp_path, t0, needle):
     ('y', '0x10', 'not a number'), ('x', '1e300', 'beyond any plausible x'),
     ('wheel_right', '-2e4', 'beyond any plausible wheel_right'),
     ('yaw', '-1e10', 'beyond 4.5e.09 rad'), ('yaw', 'nan', 'not finite'),
-    ('t', 'Infinity', 'not finite')])
+    ('t', 'Infinity', 'not finite'),
+    # C103: the gyro has its own limit (it was the wheel speeds' 1e4 rad/s)
+    ('imu_yaw_rate', '500', "beyond any gyro's range")])
 def test_numbers_are_plain_decimals_within_physical_bounds(tmp_path, column, value, match):
     """Issue 12 item 13 (C26): '1_0' read as 10; a row of 1e300 passed (overflow warnings)."""
     lines = _with([HEADER] + _rows(0, 0), 3, column, value)
@@ -155,6 +157,13 @@ def test_yaw_is_bounded_as_an_angle_float64_resolves_not_in_metres(tmp_path):
     text = str(info.value)
     assert "line 4, column 'yaw': yaw = 5e+09 rad is beyond 4.5e+09 rad" in text
     assert 'no longer resolves 1e-06 rad' in text and 'angle in radians' in text
+
+
+def test_a_fast_but_real_gyro_rate_is_read(tmp_path):
+    """C103: 300 rad/s is inside the widest gyro range (349 rad/s) and is read."""
+    lines = _with([HEADER] + _rows(0, 0), 3, 'imu_yaw_rate', '-300')
+    drive = read_table(_write(tmp_path / 'fast.csv', lines))[0]
+    assert drive.imu.yaw_rate[2] == -300.0
 
 
 def test_byte_order_mark_and_repeated_columns(tmp_path):

@@ -41,6 +41,7 @@ import numpy as np
 
 from skidkin_ros.core.drive import Drive, fresh_pose_mask, ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.odometry.config import NODE_SPECS
+from skidkin_ros.core.odometry.gyro import GYRO_RATE_LIMIT
 from skidkin_ros.core.odometry.odometer import POSE_LIMIT_M, YAW_LIMIT_RAD, YAW_RESOLUTION_RAD
 from skidkin_ros.errors import RecordingError
 
@@ -61,7 +62,7 @@ _WHEEL_LIMIT = next(spec.upper for spec in NODE_SPECS if spec.name == 'max_wheel
 VALUE_LIMITS: dict[str, tuple[float, str]] = {
     'wheel_left': (_WHEEL_LIMIT, 'rad/s'), 'wheel_right': (_WHEEL_LIMIT, 'rad/s'),
     'cmd_left': (_WHEEL_LIMIT, 'rad/s'), 'cmd_right': (_WHEEL_LIMIT, 'rad/s'),
-    'imu_yaw_rate': (_WHEEL_LIMIT, 'rad/s'), 'x': (POSE_LIMIT_M, 'm'), 'y': (POSE_LIMIT_M, 'm'),
+    'imu_yaw_rate': (GYRO_RATE_LIMIT, 'rad/s'), 'x': (POSE_LIMIT_M, 'm'), 'y': (POSE_LIMIT_M, 'm'),
     'yaw': (YAW_LIMIT_RAD, 'rad'), 't': (MAX_TIME_S, 's')}
 
 
@@ -132,6 +133,11 @@ def _number(path: Path, line: int, name: str, text: str) -> float:
                 f'{YAW_LIMIT_RAD / (2 * math.pi):.2g} turns), where float64 no longer resolves '
                 f'{YAW_RESOLUTION_RAD:g} rad; yaw is an angle in radians (unwrapped is fine): '
                 'check the column and remove or repair the row')
+        if name == 'imu_yaw_rate':
+            raise RecordingError(f"{where}: value {number:.6g} rad/s is beyond any gyro's "
+                                 f'range (|imu_yaw_rate| <= {limit:g} rad/s, about 23 000 '
+                                 'deg/s); the column is the gyro yaw rate in rad/s: remove or '
+                                 'repair the row')
         raise RecordingError(f'{where}: value {number:.6g} is beyond any plausible {name} '
                              f'(|{name}| <= {limit:g} {unit}); remove or repair the row')
     return number

@@ -120,8 +120,13 @@ def _joint_state(names: list[str], n_left: int, t_ns: int, omega_l: float,
 
 
 def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
-                   names: list[str], n_left: int, offset_ns: int, deadline: float) -> None:
-    """Send wheel and gyro samples merged in stamp order, waiting for the node to take each."""
+                   names: list[str], n_left: int, offset_ns: int, deadline: float,
+                   positions: Sequence[tuple[float, float] | None] | None) -> None:
+    """Send wheel and gyro samples merged in stamp order, waiting for the node to take each.
+
+    ``positions`` as :func:`replay_through_node` takes them (fault matrix N70: they were
+    dropped when a gyro was replayed too).
+    """
     harness.spin_until(lambda: harness.imu_publisher.get_subscription_count() > 0,
                        max(deadline - time.monotonic(), 0.0), 'the node to subscribe to imu')
     counters = harness.odom.counters
@@ -144,7 +149,8 @@ def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
             j += 1
         target = counters['received'] + 1
         harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
-                                               samples.omega_l[i], samples.omega_r[i]))
+                                               samples.omega_l[i], samples.omega_r[i],
+                                               None if positions is None else positions[i]))
         harness.spin_until(lambda: counters['received'] >= target,
                            max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
     for k in range(j, gyro_t.size):   # the rest releases the samples still waiting
@@ -237,7 +243,8 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
         sent = 0
         n = len(samples)
         if imu is not None:
-            _send_with_imu(harness, samples, imu, names, len(left), offset_ns, deadline)
+            _send_with_imu(harness, samples, imu, names, len(left), offset_ns, deadline,
+                           positions)
             sent = n
         while sent < n:
             stop = min(sent + WINDOW, n)

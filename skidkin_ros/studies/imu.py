@@ -164,15 +164,13 @@ def run_case(case: str, config: OdometryConfig, reference: OdometryConfig,
             predictions[mode].append(pred)
             if mode == 'adapt' and case == 'ground change':
                 recovery.append(_recovery_m(drive, pred))
-    errors = {mode: odometry_segment_errors(drives, [p.poses for p in predictions[mode]],
-                                            segments) for mode in MODES}
+    errors = {mode: odometry_segment_errors(predictions[mode], segments) for mode in MODES}
     settled = np.array([_settled(case, drives[int(segments.drive[k])], int(segments.t_a_ns[k]),
                                  int(segments.t_b_ns[k])) for k in range(len(segments))],
                        dtype=bool)
     ref_predictions = [Odometer.from_config(reference).predict(d.wheels, d.truth.poses[0])
                        for d in drives]
-    ref_errors = odometry_segment_errors(drives, [p.poses for p in ref_predictions],
-                                         segments)
+    ref_errors = odometry_segment_errors(ref_predictions, segments)
     groups: dict[str, dict[str, tuple[ErrorStats, ErrorStats]]] = {}
     selections = {'all': np.ones(len(segments), dtype=bool)}
     if case != 'effect-free':

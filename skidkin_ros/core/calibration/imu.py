@@ -13,6 +13,18 @@ robust sigma are ground-truth glitches: dropped, refit, until the kept set is st
 Standard errors: bootstrap over blocks of at most ``BLOCK_S`` of each drive (a single drive
 has standard errors too).
 
+The gyro modes' noise, per robot (``imu.arw``, ``imu.adapt.r_floor``, ``imu.adapt.r_rel``; they
+set the covariance of ``fuse`` and ``adapt`` and the filter's trust in the gyro):
+:func:`gyro_white_noise` is the gyro's white noise from its own samples (the robust spread of
+second differences, which cancel a smooth motion), as a density; :func:`fit_filter_noise` runs
+the calibrated model in ``adapt`` through the node's odometer and fits the variance of what the
+filter compares, gyro minus model yaw rate per interval, as ``r_floor + (r_rel w)^2`` by
+maximum likelihood (trimmed at 5 sigma), on the drives the wheel noise is fitted on;
+:func:`fit_adapt_yaw_scale` fits ``imu.adapt.yaw_noise_scale``, the share of the model's yaw
+variance left in ``adapt`` (the gyro removes part of the model's heading error), by maximum
+likelihood of the heading errors of ``adapt`` over the held-out segments, each run as a window
+from its true start pose with a zero covariance (the gain and bias carried on).
+
 The criterion used to be the rms of the trimmed residuals; the kept set then changes with the
 offset, and ground truth whose yaw noise grows with the turning rate (kiss-icp's) lets a wrong
 offset trim the turning pairs away: the demo's simulated drive fitted -405 ms for a gyro
@@ -34,15 +46,19 @@ from skidkin_ros.core.calibration.evaluation import ErrorStats, ModelEvaluation,
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.core.odometry.odometer import Odometer, Prediction
 from skidkin_ros.errors import DataError, FitError
 
-__all__ = ['GyroFit', 'fit_gyro', 'gyro_parameters', 'predict_drives',
+__all__ = ['GyroFit', 'fit_gyro', 'gyro_white_noise', 'fit_filter_noise', 'fit_adapt_yaw_scale',
+           'gyro_parameters',
+           'predict_drives',
            'odometry_segment_errors', 'ModeScore', 'evaluate_imu_mode']
 
 TRIM_SIGMAS = 5.0
 OFFSET_RANGE_S = 0.5
 MIN_PAIRS = 20
+MIN_ARW = 1e-6          # rad/sqrt(s): a navigation-grade gyro's white noise
+MIN_WINDOWS = 10        # held-out windows for the one scale of adapt's heading noise
 HUBER_K = 1.345         # the usual 95 %-efficiency tuning of the Huber loss
 BLOCK_S = 10.0          # bootstrap blocks
 # the offset search: (step s, half-width s) per pass; the first spans the whole range
@@ -63,6 +79,13 @@ class GyroFit:
     residual_rad: float        # rms of the kept residuals (per pose pair)
     period_s: float            # median gyro sample period
     at_grid_edge: bool
+    # the gyro modes' noise, per robot (module docstring); NaN: not calibrated
+    arw: float = float('nan')          # gyro white noise, rad/sqrt(s)
+    r_floor: float = float('nan')      # adapt's measurement variance (rad/s)^2, constant part
+    r_rel: float = float('nan')        # its part relative to the model's yaw rate
+    r_intervals: int = 0               # covered intervals in motion it was fitted on
+    adapt_yaw_scale: float = float('nan')  # imu.adapt.yaw_noise_scale
+    scale_windows: int = 0             # held-out windows it was fitted on
 
 
 def _cumulative(t_ns: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -217,12 +240,146 @@ def fit_gyro(drives: Sequence[Drive], bootstrap: int = 100, seed: int = 0) -> Gy
     period = float(np.median(np.concatenate([np.diff(p[0]) for p in pairs])) * 1e-9)
     return GyroFit(float(scale), float(bias), offset, float(se[0]), float(se[1]), int(count),
                    int((~keep).sum()), float(np.sqrt(np.mean(res[keep] ** 2))), period,
-                   abs(offset) >= OFFSET_RANGE_S - 0.006)
+                   abs(offset) >= OFFSET_RANGE_S - 0.006, gyro_white_noise(drives))
+
+
+def gyro_white_noise(drives: Sequence[Drive]) -> float:
+    """Return the gyro's white noise density (rad/sqrt(s)) from its samples, or NaN.
+
+    Second differences g[k+1] - 2 g[k] + g[k-1] cancel a smooth motion and hold 6 sigma^2 of
+    white noise; their robust spread (their rms when a quantised gyro makes most of them 0),
+    times the square root of the sample period; at least ``MIN_ARW``.
+    """
+    second, periods = [], []
+    for drive in drives:
+        imu = drive.imu
+        if imu is None or len(imu.t_ns) < 5:
+            continue
+        g = np.asarray(imu.yaw_rate, dtype=float)
+        g = g[np.isfinite(g)]
+        second.append(g[2:] - 2.0 * g[1:-1] + g[:-2])
+        periods.append(np.diff(np.asarray(imu.t_ns, dtype=np.int64)) * 1e-9)
+    if not second:
+        return float('nan')
+    d = np.concatenate(second)
+    spread = 1.4826 * float(np.median(np.abs(d)))
+    if spread == 0.0:
+        spread = float(np.sqrt(np.mean(d * d)))
+    density = spread / np.sqrt(6.0) * float(np.sqrt(np.median(np.concatenate(periods))))
+    return max(density, MIN_ARW)
+
+
+def fit_filter_noise(config: OdometryConfig, drives: Sequence[Drive]
+                     ) -> tuple[float, float, int]:
+    """Return (r_floor, r_rel, intervals): adapt's measurement noise on these drives.
+
+    ``config`` holds the calibrated model and gyro; every covered interval in motion gives the
+    filter's residual e = (gyro - learned bias) - w_mid; var(e) = r_floor + (r_rel w_mid)^2 by
+    maximum likelihood, intervals beyond 5 sigma dropped and the fit repeated until stable.
+    Raises DataError with fewer than ``MIN_PAIRS`` such intervals.
+    """
+    from scipy.optimize import minimize
+
+    config = replace(config, values={**config.values, 'imu.mode': 'adapt'})
+    odometer = Odometer.from_config(config)
+    odometer.gyro.record = records = []
+    for drive in drives:
+        if drive.imu is not None:
+            odometer.predict(drive.wheels, (0.0, 0.0, 0.0), drive.imu)
+    if len(records) < MIN_PAIRS:
+        raise DataError(f'{len(records)} wheel intervals in motion are covered by the gyro; '
+                        f"the filter's noise needs at least {MIN_PAIRS}")
+    rec = np.array(records)
+    e2 = (rec[:, 0] - rec[:, 1]) ** 2
+    w2 = rec[:, 1] ** 2
+    keep = np.ones(e2.size, dtype=bool)
+    floor = 1e-10
+
+    def nll(p, e2k, w2k):
+        var = np.exp(p[0]) + np.exp(p[1]) * w2k + floor
+        return float(np.sum(np.log(var) + e2k / var))
+
+    x0 = np.array([np.log(max(float(np.median(e2)), 1e-8)), np.log(1e-2)])
+    for _ in range(10):
+        x0 = minimize(nll, x0, args=(e2[keep], w2[keep]), method='Nelder-Mead',
+                      options={'xatol': 1e-4, 'fatol': 1e-6, 'maxiter': 2000}).x
+        var = np.exp(x0[0]) + np.exp(x0[1]) * w2 + floor
+        new = e2 <= TRIM_SIGMAS ** 2 * var
+        if np.array_equal(new, keep) or new.sum() < MIN_PAIRS:
+            break
+        keep = new
+    return float(np.exp(x0[0]) + floor), float(np.sqrt(np.exp(x0[1]))), int(keep.sum())
+
+
+def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet
+                        ) -> tuple[float, int]:
+    """Return (imu.adapt.yaw_noise_scale, windows) fitted on held-out ``segments`` of ``drives``.
+
+    Each segment that starts and ends on a wheel sample and overlaps no earlier one is a window:
+    the odometer in ``adapt`` restarts there from the true pose with a zero covariance. Its
+    heading variance at the end is k A + B (A: the model's part, B: the gain's; two runs, k = 1
+    and 0); k maximises the likelihood of the heading errors. Raises DataError with fewer than
+    ``MIN_WINDOWS`` windows.
+    """
+    from scipy.optimize import minimize_scalar
+
+    windows: dict[int, list[tuple[int, int, int]]] = {}
+    for k in range(len(segments)):
+        d = int(segments.drive[k])
+        t = drives[d].wheels.t_ns
+        i, j = (int(np.searchsorted(t, s)) for s in (segments.t_a_ns[k], segments.t_b_ns[k]))
+        if j < len(t) and t[i] == segments.t_a_ns[k] and t[j] == segments.t_b_ns[k] and j > i:
+            windows.setdefault(d, []).append((i, j, k))
+    for d, found in windows.items():
+        kept, end = [], -1
+        for i, j, k in sorted(found):
+            if i >= end:
+                kept.append((i, j, k))
+                end = j
+        windows[d] = kept
+    count = sum(len(w) for w in windows.values())
+    if count < MIN_WINDOWS:
+        raise DataError(f'{count} held-out segments start and end on wheel samples; the '
+                        f"scale of adapt's heading noise needs at least {MIN_WINDOWS}")
+    variance, error = {}, np.zeros(count)
+    for share in (1.0, 0.0):
+        values = {**config.values, 'imu.mode': 'adapt', 'imu.adapt.yaw_noise_scale': share}
+        odometer = Odometer.from_config(replace(config, values=values))
+        out = []
+        for d, found in windows.items():
+            drive = drives[d]
+            restarts = {i: segments.start[k] for i, _, k in found}
+            pred = odometer.predict(drive.wheels, drive.truth.poses[0], drive.imu, restarts)
+            for i, j, k in found:
+                out.append(pred.covariances[j][2, 2])
+                if share == 1.0:
+                    error[len(out) - 1] = (pred.poses[j, 2] - segments.end[k, 2] + np.pi) \
+                        % (2 * np.pi) - np.pi
+        variance[share] = np.array(out)
+    b = np.maximum(variance[0.0], 1e-12)
+    a = np.maximum(variance[1.0] - variance[0.0], 0.0)
+    e2 = error ** 2
+
+    def nll(log_k: float) -> float:
+        var = np.exp(log_k) * a + b
+        return float(np.sum(np.log(var) + e2 / var))
+
+    best = minimize_scalar(nll, bounds=(np.log(1e-6), np.log(100.0)), method='bounded')
+    return float(np.exp(best.x)), count
 
 
 def gyro_parameters(fit: GyroFit) -> dict[str, float]:
     """Return the imu.* values a gyro calibration writes (the mode stays the user's choice)."""
-    return {'imu.scale': fit.scale, 'imu.bias': fit.bias, 'imu.time_offset': fit.time_offset,
+    noise = {}
+    if np.isfinite(fit.arw) and fit.arw > 0:
+        noise['imu.arw'] = float(fit.arw)
+    if np.isfinite(fit.r_floor) and np.isfinite(fit.r_rel):
+        noise['imu.adapt.r_floor'] = float(min(max(fit.r_floor, 1e-10), 100.0))
+        noise['imu.adapt.r_rel'] = float(min(fit.r_rel, 10.0))
+    if np.isfinite(fit.adapt_yaw_scale):
+        noise['imu.adapt.yaw_noise_scale'] = float(fit.adapt_yaw_scale)
+    return {**noise, 'imu.scale': fit.scale, 'imu.bias': fit.bias,
+            'imu.time_offset': fit.time_offset,
             'imu.max_gap': round(max(0.08, 2.5 * fit.period_s), 4),
             'imu.timeout': round(max(0.2, 5.0 * fit.period_s), 4),
             # a wheel sample needs the gyro up to its stamp + offset and two samples more
@@ -232,12 +389,13 @@ def gyro_parameters(fit: GyroFit) -> dict[str, float]:
 
 
 def predict_drives(config: OdometryConfig, drives: Sequence[Drive], model: str | None = None,
-                   mode: str | None = None) -> list[np.ndarray]:
-    """Poses at every wheel sample of each drive (started at its first true pose), in order.
+                   mode: str | None = None) -> list[Prediction]:
+    """Return the odometry of each drive (started at its first true pose), in order.
 
-    One odometer runs the drives one after the other (``mode`` replaces imu.mode), as one
-    node would: its learned gain and bias carry over; a drive whose stamps restart starts
-    a new gyro history.
+    Each :class:`Prediction` holds the pose after every wheel sample and the stamp it is
+    published at (the sample's plus a model's time offset: fault matrix C101). One odometer
+    runs the drives one after the other (``mode`` replaces imu.mode), as one node would: its
+    learned gain and bias carry over; a drive whose stamps restart starts a new gyro history.
     """
     if mode is not None:
         config = replace(config, values={**config.values, 'imu.mode': mode})
@@ -245,22 +403,22 @@ def predict_drives(config: OdometryConfig, drives: Sequence[Drive], model: str |
     out = []
     for drive in drives:
         start = drive.truth.poses[0] if drive.truth is not None else (0.0, 0.0, 0.0)
-        out.append(odometer.predict(drive.wheels, start, drive.imu).poses)
+        out.append(odometer.predict(drive.wheels, start, drive.imu))
     return out
 
 
-def odometry_segment_errors(drives: Sequence[Drive], poses: Sequence[np.ndarray],
-                            segments: SegmentSet) -> np.ndarray:
-    """Return the (N, 3) start-frame end errors of odometry poses on the segments.
+def odometry_segment_errors(predictions: Sequence[Prediction], segments: SegmentSet
+                            ) -> np.ndarray:
+    """Return the (N, 3) start-frame end errors of the odometry on the segments.
 
-    ``poses[d]`` holds the odometry's pose at every wheel sample of ``drives[d]``; its relative
-    motion from t_a to t_b (interpolated at the segment ends) is replayed from the segment's
-    true start pose.
+    ``predictions[d]`` is the odometry of the drive ``segments.drive`` numbers d: its poses at
+    its published stamps (a model's time offset included); its relative motion from t_a to t_b
+    (interpolated at the segment ends) is replayed from the segment's true start pose.
     """
     errors = np.zeros((len(segments), 3))
     for k in range(len(segments)):
-        drive = int(segments.drive[k])
-        t, est = drives[drive].wheels.t_ns, poses[drive]
+        pred = predictions[int(segments.drive[k])]
+        t, est = pred.t_ns, pred.poses
         a, b = (np.array([np.interp(s, t, est[:, j]) for j in range(3)])
                 for s in (segments.t_a_ns[k], segments.t_b_ns[k]))
         c, s = np.cos(a[2]), np.sin(a[2])
@@ -296,19 +454,19 @@ def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments:
     if mode != 'off' and not any(d.imu is not None for d in drives):
         raise DataError(f'imu mode {mode} needs gyro samples; the data has none (a table needs '
                         'the imu_yaw_rate column, a bag a sensor_msgs/Imu topic)')
-    poses = predict_drives(config, drives, model, mode)
-    errors = odometry_segment_errors(drives, poses, segments)
+    predictions = predict_drives(config, drives, model, mode)
+    errors = odometry_segment_errors(predictions, segments)
     scored = segments.path_m >= min_path_m
     eps_t, eps_theta = relative_errors(errors, segments.path_m, min_path_m)
     evaluation = ModelEvaluation(f'{model} ({mode})', errors, scored, eps_t, eps_theta,
                                  ErrorStats.of(eps_t), ErrorStats.of(eps_theta))
     end_pos, end_yaw = [], []
-    for drive, est in zip(drives, poses):
+    for drive, pred in zip(drives, predictions):
         truth = drive.truth
         if truth is None or len(truth) < 2:
             continue
         t_end = truth.t_ns[-1]
-        at = np.array([np.interp(t_end, drive.wheels.t_ns, est[:, j]) for j in range(3)])
+        at = np.array([np.interp(t_end, pred.t_ns, pred.poses[:, j]) for j in range(3)])
         end_pos.append(float(np.hypot(at[0] - truth.x[-1], at[1] - truth.y[-1])))
         end_yaw.append(float(np.degrees(abs((at[2] - truth.yaw[-1] + np.pi) % (2 * np.pi)
                                             - np.pi))))

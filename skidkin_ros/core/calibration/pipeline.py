@@ -50,7 +50,8 @@ from skidkin_ros.core.calibration.evaluation import (evaluate_models, ModelEvalu
                                                      window_end_errors, WindowEnd)
 from skidkin_ros.core.calibration.fitting import FitOptions, FitResult
 from skidkin_ros.core.calibration.holdout import resolve_holdout
-from skidkin_ros.core.calibration.imu import fit_gyro, gyro_parameters, GyroFit
+from skidkin_ros.core.calibration.imu import (fit_adapt_yaw_scale, fit_filter_noise, fit_gyro,
+                                              gyro_parameters, GyroFit)
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
                                                    SegmentSet, usable_segments)
@@ -61,6 +62,7 @@ from skidkin_ros.core.calibration.weighting import fit_models_weighted, WEIGHTIN
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.errors import DataError, FitError, ParameterError
@@ -288,9 +290,25 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
                                for name, nf in noise.items()},
     }
     provenance['selection'] = rule
-    return CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
-                             tuple(warnings), train_seg, eval_seg, holdout, provenance,
-                             likelihood, window_end, rule, gyro=gyro)
+    result = CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
+                               tuple(warnings), train_seg, eval_seg, holdout, provenance,
+                               likelihood, window_end, rule, gyro=gyro)
+    if gyro is not None:
+        # adapt's filter noise: the written model and gyro on the drives the wheel noise is
+        # fitted on (the evaluation drives), as the node would run them
+        try:
+            config = OdometryConfig.from_flat(result_to_parameters(result, allow_invalid=True))
+            r_floor, r_rel, count = fit_filter_noise(config, evaluate)
+            gyro = replace(gyro, r_floor=r_floor, r_rel=r_rel, r_intervals=count)
+            config = replace(config, values={**config.values, **gyro_parameters(gyro)})
+            scale, windows = fit_adapt_yaw_scale(config, evaluate, eval_seg)
+            gyro = replace(gyro, adapt_yaw_scale=scale, scale_windows=windows)
+        except (DataError, FitError, ParameterError) as err:
+            result = replace(result, warnings=result.warnings + (
+                f"gyro filter noise not (fully) calibrated (adapt's keeps the defaults it did "
+                f'not fit): {err}',))
+        result = replace(result, gyro=gyro)
+    return result
 
 
 def _choose_by_likelihood(fits: Mapping[str, FitResult], geometry: Geometry,

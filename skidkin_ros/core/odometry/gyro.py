@@ -36,11 +36,15 @@ from typing import Any, Callable, Mapping
 
 from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 
-__all__ = ['IMU_MODES', 'IMU_SPECS', 'ImuParams', 'GyroStatus', 'GyroBuffer', 'GainBiasFilter',
+__all__ = ['IMU_MODES', 'IMU_SPECS', 'GYRO_RATE_LIMIT', 'ImuParams', 'GyroStatus', 'GyroBuffer',
+           'GainBiasFilter',
            'GyroAid', 'AidStep']
 
 IMU_MODES = ('off', 'adapt', 'fuse')
 NS_PER_S = 1_000_000_000
+# |yaw rate| no gyro measures (rad/s): the widest MEMS ranges are +-20 000 deg/s (349 rad/s).
+# A recorded rate beyond it is a corrupt value, not a saturated sample.
+GYRO_RATE_LIMIT = 400.0
 
 # Node parameters imu.<name> (units in the descriptor, not the name; ranges as the node checks).
 IMU_SPECS: tuple[ParamSpec, ...] = (
@@ -91,6 +95,9 @@ IMU_SPECS: tuple[ParamSpec, ...] = (
               lower_open=True),
     ParamSpec('adapt.standstill', 'rad/s', 0.02, 0.0, 100.0,
               'both wheels slower than this: standstill (the bias is learned, fuse turns 0)'),
+    ParamSpec('adapt.yaw_noise_scale', '', 1.0, 0.0, 100.0,
+              "adapt: the model's yaw variance times this (the gyro removes part of the "
+              "model's heading error; calibrated)"),
 )
 _ATTR = {spec.name: spec.name.replace('adapt.', '') for spec in IMU_SPECS}
 
@@ -120,6 +127,7 @@ class ImuParams:
     gain_max: float = 1.5
     fallback_distance: float = 50.0
     standstill: float = 0.02
+    yaw_noise_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if self.mode not in IMU_MODES:
@@ -415,6 +423,9 @@ class GyroAid:
         self.counts: collections.Counter[str] = collections.Counter()
         self.last = AidStep()
         self.last_usable_ns: int | None = None
+        # calibration: a list to collect (gyro rate - learned bias, w_mid) of every covered
+        # interval in motion, the filter's measurement and its model (None: not collected)
+        self.record: list[tuple[float, float]] | None = None
 
     def __call__(self, t0_ns: int, t1_ns: int, dt_s: float,
                  twist: tuple[float, float, float], speeds0: tuple[float, float],
@@ -436,6 +447,8 @@ class GyroAid:
         kf.predict(travel, dt_s, status is GyroStatus.STALE)
         covered = status is GyroStatus.COVERED
         if covered:
+            if self.record is not None and moving:
+                self.record.append((rate - kf.bias, w_mid))
             kf.update(rate, w_mid, moving, dt_s)
         from_gyro = p.mode == 'fuse' and covered
         if from_gyro:
@@ -449,14 +462,21 @@ class GyroAid:
         """Variance of the last interval's heading increment (rad^2), by where it came from.
 
         fuse on the gyro: white noise arw^2 dt plus the bias's P_beta dt^2; otherwise the model's
-        variance scaled by gain^2 plus the gain's (w_model dt)^2 P_gamma. (Per interval: the
-        correlation of the gain and bias errors from interval to interval is not carried.)
+        variance scaled by gain^2 (and by imu.adapt.yaw_noise_scale in adapt: the share of the
+        model's heading noise the gain leaves) plus the gain's (w_model dt)^2 P_gamma. (Per
+        interval: the correlation of the gain and bias errors from interval to interval is not
+        carried.)
         """
         last, kf = self.last, self.filter
         dt = last.dt_s
         if last.yaw_from_gyro:
             return self.params.arw ** 2 * dt + kf.p11 * dt * dt
-        return kf.gain ** 2 * model_variance + (last.model_yaw_rate * dt) ** 2 * kf.p00
+        return (kf.gain ** 2 * self._model_share() * model_variance
+                + (last.model_yaw_rate * dt) ** 2 * kf.p00)
+
+    def _model_share(self) -> float:
+        """Return the model's yaw variance factor: yaw_noise_scale in adapt, 1 in fuse."""
+        return self.params.yaw_noise_scale if self.params.mode == 'adapt' else 1.0
 
     def yaw_rate_variance(self, model_variance: float, period_s: float,
                           model_yaw_rate: float) -> float:
@@ -464,7 +484,8 @@ class GyroAid:
         kf = self.filter
         if self.last.yaw_from_gyro:
             return self.params.arw ** 2 / max(period_s, 1e-9) + kf.p11
-        return kf.gain ** 2 * model_variance + model_yaw_rate ** 2 * kf.p00
+        return (kf.gain ** 2 * self._model_share() * model_variance
+                + model_yaw_rate ** 2 * kf.p00)
 
     def state(self) -> dict[str, float]:
         """Return the filter's state for /diagnostics and reports."""
