@@ -24,7 +24,8 @@ def test_calibrate_writes_the_gyro_and_predict_uses_it(sim_table, tmp_path, caps
     params = tmp_path / 'p.yaml'
     assert main(['calibrate', str(sim_table), '--out', str(params),
                  '--models', 'edd_symmetric']) == 0
-    assert 'gyro (imu.*): scale' in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert 'gyro (imu.*): scale' in out
     flat = read_params_file(params)
     assert flat['imu.scale'] == pytest.approx(1.0, abs=0.01)
     assert abs(flat['imu.time_offset']) <= 0.02
@@ -34,7 +35,9 @@ def test_calibrate_writes_the_gyro_and_predict_uses_it(sim_table, tmp_path, caps
     # gyro-minus-model variance is far below the default (0.033 (rad/s)^2, from the Husky)
     assert 1e-6 <= flat['imu.arw'] < 1e-5
     assert flat['imu.adapt.r_floor'] < 0.033 / 10
-    assert 0.0 < flat['imu.adapt.yaw_noise_scale'] <= 100.0
+    # adapt's heading-noise scale needs 10 held-out windows; this drive has 3: not written, said
+    assert 'imu.adapt.yaw_noise_scale' not in flat
+    assert "the scale of adapt's heading noise needs at least 10" in out
     outs = {}
     for mode in ('off', 'fuse', 'adapt'):
         outs[mode] = tmp_path / f'{mode}.csv'

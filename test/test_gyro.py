@@ -303,3 +303,40 @@ def test_evaluate_imu_mode_scores_a_model_with_a_time_offset_at_its_published_st
     assert len(segments) > 5
     assert score.evaluation.stats_t.median < 0.01
     assert score.end_position_m.median < 0.05
+
+
+def test_the_batch_gyro_rule_is_the_buffers():
+    """C104: usable_gyro + GyroIntegral (calibration, ground-truth guard) = GyroBuffer.mean_rate.
+
+    Spikes, saturated samples, a gap, NaN and a stamp going back: the same intervals are
+    covered and their integrals agree.
+    """
+    from skidkin_ros.core.odometry.gyro import GyroIntegral, usable_gyro
+    rng = np.random.default_rng(3)
+    t = np.arange(400, dtype=np.int64) * 10 * MS + NS_PER_S
+    g = np.sin(np.arange(400) * 0.05) + rng.normal(0.0, 0.01, 400)
+    g[[50, 51, 200]] += [2.0, 2.0, -3.0]        # a pair (not a spike: each has a near neighbour)
+    g[120] = 40.0                               # saturated
+    g[300] = math.nan
+    t[250:] += 150 * MS                         # a 160 ms gap
+    t[330] = t[329]                             # a duplicate stamp
+    params = ImuParams(mode='fuse', timeout=10.0)
+    buffer = GyroBuffer(params, keep_s=100.0)
+    for tk, gk in zip(t.tolist(), g.tolist()):
+        buffer.add(tk, gk)
+    ut, ug, holes = usable_gyro(t, g, params)
+    integral = GyroIntegral(ut, ug)
+    a = rng.integers(t[0], t[-3], 3000)
+    b = a + rng.integers(10 * MS, 200 * MS, 3000)
+    covered = integral.covered(a, b, params.max_gap, holes)
+    between = integral.between(a, b)
+    agree = 0
+    for k in range(3000):
+        status, mean = buffer.mean_rate(int(a[k]), int(b[k]))
+        if b[k] > t[-3]:
+            continue
+        assert (status is GyroStatus.COVERED) == bool(covered[k]), (k, status)
+        if covered[k]:
+            assert mean * (b[k] - a[k]) * 1e-9 == pytest.approx(between[k], abs=1e-12)
+            agree += 1
+    assert agree > 1500 and buffer.counts['spike'] > 0

@@ -125,3 +125,21 @@ def test_guard_limits_reject_nonsense():
         GuardLimits(max_gap_factor=1.0)
     with pytest.raises(ParameterError, match='window_s'):
         GuardLimits(window_s=0.0)
+
+
+def test_a_gyro_spike_does_not_flag_correct_icp_poses():
+    """C104: the guard takes the gyro as the node does (one rule, core/odometry/gyro.py).
+
+    A lone 20 rad/s sample (under the 35 rad/s saturation) is a glitch the node skips (imu.spike);
+    the guard integrated it as held for 10 ms (0.2 rad in every window over it) and flagged
+    correct ICP poses.
+    """
+    t_ns, x, y, yaw = _straight_track()
+    imu = _imu_of(t_ns, yaw)
+    rate = imu.yaw_rate.copy()
+    rate[1000] = 20.0
+    quality = np.tile([0.95, 0.02, 0.3], (t_ns.size, 1))
+    args = (t_ns, x, y, yaw, np.zeros(t_ns.size), quality, list(range(t_ns.size)),
+            ['ok'] * t_ns.size, GuardLimits())
+    reasons, excluded = flag_poses(*args, imu=ImuSamples(imu.t_ns, rate))
+    assert not any(reasons), excluded.by_reason

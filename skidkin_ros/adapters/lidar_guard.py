@@ -13,9 +13,11 @@ Recipe (:func:`flag_poses`), first reason wins for each pose:
    recording is its own reference), or a degenerate geometry (``min_degeneracy``: the planar
    position is not observable, e.g. an open field or a featureless corridor).
 4. **The IMU's yaw rate** (when the recording has an IMU; the gyro does not slip): the ICP yaw
-   increment over the last ``window_s`` against the gyro's integral over the same interval,
-   after removing the gyro bias (the median difference rate); flagged beyond ``imu_abs_rad`` +
-   ``imu_rel`` x the turn.
+   increment over the last ``window_s`` against the gyro's integral over the same interval
+   (the node's rule: :func:`~skidkin_ros.core.odometry.gyro.usable_gyro` and the
+   piecewise-linear :class:`~skidkin_ros.core.odometry.gyro.GyroIntegral`), after removing
+   the gyro bias (the median difference rate); flagged beyond ``imu_abs_rad`` + ``imu_rel`` x
+   the turn.
 5. **Wheels, gross errors only** (C11): the wheels' forward travel (the sum of the two wheel
    angles) over ``window_s``, scaled to metres by a robust fit against ICP itself (the median
    ratio over the moving windows), is compared with ICP's forward increment; flagged beyond
@@ -42,6 +44,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
+from skidkin_ros.core.odometry.gyro import GyroIntegral, usable_gyro
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['GUARD_CODES', 'Exclusions', 'GuardLimits', 'flag_poses']
@@ -254,8 +257,13 @@ def _flag_gaps(t_ns: np.ndarray, pose_frame: Sequence[int], frame_status: Sequen
 
 def _imu_check(imu: ImuSamples, t_ns: np.ndarray, start: np.ndarray, dyaw: np.ndarray,
                span_s: np.ndarray, usable: np.ndarray, limits: GuardLimits, flag) -> str:
-    gyro, covered = _between(_held_integral(imu.t_ns, np.asarray(imu.yaw_rate, dtype=float)),
-                             t_ns[start], t_ns)
+    # the gyro as the node takes it: its sample rules and its piecewise-linear integral
+    rate_t, rate, _ = usable_gyro(imu.t_ns, imu.yaw_rate)
+    if rate_t.size < 2:
+        return 'off: the IMU has fewer than 2 usable samples'
+    integral = GyroIntegral(rate_t, rate)
+    gyro = integral.between(t_ns[start], t_ns)
+    covered = (t_ns[start] >= rate_t[0]) & (t_ns <= rate_t[-1])
     usable = usable & covered
     if np.count_nonzero(usable) < 3:
         return 'off: the IMU does not cover the lidar poses'

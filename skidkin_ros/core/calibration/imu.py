@@ -46,6 +46,7 @@ from skidkin_ros.core.calibration.evaluation import ErrorStats, ModelEvaluation,
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.gyro import GyroIntegral, usable_gyro
 from skidkin_ros.core.odometry.odometer import Odometer, Prediction
 from skidkin_ros.errors import DataError, FitError
 
@@ -88,53 +89,41 @@ class GyroFit:
     scale_windows: int = 0             # held-out windows it was fitted on
 
 
-def _cumulative(t_ns: np.ndarray, g: np.ndarray) -> np.ndarray:
-    dt = np.diff(t_ns) * 1e-9
-    return np.concatenate([[0.0], np.cumsum(0.5 * (g[1:] + g[:-1]) * dt)])
+def _pairs(drives: Sequence[Drive]) -> list[tuple]:
+    """Per drive with a gyro: (GyroIntegral, t_a, t_b, dyaw) of consecutive valid poses.
 
-
-def _integral_to(t_ns: np.ndarray, g: np.ndarray, cum: np.ndarray, at_ns: np.ndarray
-                 ) -> np.ndarray:
-    """Integral of the piecewise-linear gyro from its first sample up to ``at_ns`` (inside)."""
-    i = np.clip(np.searchsorted(t_ns, at_ns, side='right') - 1, 0, t_ns.size - 2)
-    tau = (at_ns - t_ns[i]) * 1e-9
-    h = (t_ns[i + 1] - t_ns[i]) * 1e-9
-    slope = (g[i + 1] - g[i]) / h
-    return cum[i] + g[i] * tau + 0.5 * slope * tau * tau
-
-
-def _pairs(drives: Sequence[Drive]) -> list[tuple[np.ndarray, ...]]:
-    """Per drive with a gyro: (gyro t, g, cum, t_a, t_b, dyaw) of consecutive valid poses."""
+    The gyro under the buffer's sample rules (:func:`usable_gyro`: what the node would use);
+    a pair is kept when the gyro covers it under every searched offset (no gap longer than
+    max(0.08 s, 2.5 periods), no saturated sample), so the criterion's pairs do not change
+    with the offset.
+    """
     out = []
     for drive in drives:
         imu, truth = drive.imu, drive.truth
         if imu is None or truth is None or len(truth) < 2 or len(imu.t_ns) < 3:
             continue
-        t = np.asarray(imu.t_ns, dtype=np.int64)
-        g = np.asarray(imu.yaw_rate, dtype=float)
-        keep = np.isfinite(g)
-        t, g = t[keep], g[keep]
-        if t.size < 3 or np.any(np.diff(t) <= 0):
+        t, g, holes = usable_gyro(imu.t_ns, imu.yaw_rate)
+        if t.size < 3:
             continue
+        gyro = GyroIntegral(t, g)
+        max_gap = max(0.08, 2.5 * float(np.median(np.diff(t))) * 1e-9)
         ok = truth.valid[:-1] & truth.valid[1:]
         t_a, t_b = truth.t_ns[:-1][ok], truth.t_ns[1:][ok]
         dyaw = (truth.yaw[1:] - truth.yaw[:-1])[ok]
         margin = int(OFFSET_RANGE_S * 1e9)
-        inside = (t_a - margin >= t[0]) & (t_b + margin <= t[-1])
+        inside = gyro.covered(t_a - margin, t_b + margin, max_gap, holes)
         if inside.sum() == 0:
-            inside = (t_a >= t[0]) & (t_b <= t[-1])
+            inside = gyro.covered(t_a, t_b, max_gap, holes)
         if inside.sum():
-            out.append((t, g, _cumulative(t, g), t_a[inside], t_b[inside], dyaw[inside]))
+            out.append((gyro, t_a[inside], t_b[inside], dyaw[inside]))
     return out
 
 
 def _design(pairs, offset_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     off = int(round(offset_s * 1e9))
     big_g, dt, dyaw = [], [], []
-    for t, g, cum, t_a, t_b, dy in pairs:
-        a = np.clip(t_a + off, t[0], t[-1])
-        b = np.clip(t_b + off, t[0], t[-1])
-        big_g.append(_integral_to(t, g, cum, b) - _integral_to(t, g, cum, a))
+    for gyro, t_a, t_b, dy in pairs:
+        big_g.append(gyro.between(t_a + off, t_b + off))
         dt.append((t_b - t_a) * 1e-9)
         dyaw.append(dy)
     return np.concatenate(big_g), np.concatenate(dt), np.concatenate(dyaw)
@@ -199,7 +188,7 @@ def _search_offset(pairs) -> float:
 def _blocks(pairs) -> list[np.ndarray]:
     """Return the pair indices (into the stacked design) of each bootstrap block."""
     out, start = [], 0
-    for _, _, _, t_a, _, _ in pairs:
+    for _, t_a, _, _ in pairs:
         label = ((t_a - t_a[0]) // int(BLOCK_S * 1e9)).astype(np.int64)
         for value in np.unique(label):
             out.append(start + np.nonzero(label == value)[0])
@@ -214,7 +203,7 @@ def fit_gyro(drives: Sequence[Drive], bootstrap: int = 100, seed: int = 0) -> Gy
     the scale is not that of a yaw-rate gyro in rad/s about +z (|scale| outside [0.5, 2]).
     """
     pairs = _pairs(drives)
-    count = sum(p[3].size for p in pairs)
+    count = sum(p[1].size for p in pairs)
     if count < MIN_PAIRS:
         raise DataError(f'{count} ground-truth pose pairs have gyro samples around them; the '
                         f'gyro calibration needs at least {MIN_PAIRS}')
@@ -237,7 +226,7 @@ def fit_gyro(drives: Sequence[Drive], bootstrap: int = 100, seed: int = 0) -> Gy
         (a_b, c_b), _, _ = _trimmed_fit(big_g[idx], dt[idx], dyaw[idx])
         draws.append((1.0 / a_b, -c_b / a_b))
     se = np.std(np.array(draws), axis=0) if draws else np.array([np.nan, np.nan])
-    period = float(np.median(np.concatenate([np.diff(p[0]) for p in pairs])) * 1e-9)
+    period = float(np.median(np.concatenate([np.diff(p[0].t) for p in pairs])) * 1e-9)
     return GyroFit(float(scale), float(bias), offset, float(se[0]), float(se[1]), int(count),
                    int((~keep).sum()), float(np.sqrt(np.mean(res[keep] ** 2))), period,
                    abs(offset) >= OFFSET_RANGE_S - 0.006, gyro_white_noise(drives))

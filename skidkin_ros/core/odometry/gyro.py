@@ -34,10 +34,12 @@ import enum
 import math
 from typing import Any, Callable, Mapping
 
+import numpy as np
+
 from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 
 __all__ = ['IMU_MODES', 'IMU_SPECS', 'GYRO_RATE_LIMIT', 'ImuParams', 'GyroStatus', 'GyroBuffer',
-           'GainBiasFilter',
+           'GainBiasFilter', 'usable_gyro', 'GyroIntegral',
            'GyroAid', 'AidStep']
 
 IMU_MODES = ('off', 'adapt', 'fuse')
@@ -288,6 +290,87 @@ class GyroBuffer:
         else:
             mean = _integral(ct, cg, j0, j1, t0, t1) / (t1 - t0)
         return GyroStatus.COVERED, (mean - p.bias) / p.scale
+
+
+def usable_gyro(t_ns: np.ndarray, rate: np.ndarray, params: ImuParams | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (t_ns, rate, holes) of a recorded gyro under :class:`GyroBuffer`'s sample rules.
+
+    The batch form of :meth:`GyroBuffer.add` and the spike rule of :meth:`GyroBuffer.mean_rate`,
+    for the offline tools (the gyro calibration, the ground-truth guard): non-finite samples and
+    stamps not after the newest kept one are dropped; a sample further than imu.spike from both
+    kept neighbours (on the same side; a saturated neighbour is never a reference) is dropped;
+    a saturated sample is dropped and blocks every interval that reaches past the kept samples
+    around it: ``holes`` (K, 2) holds those open spans (previous, next kept stamp).
+    """
+    p = params or ImuParams()
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    g = np.asarray(rate, dtype=float)
+    keep = np.isfinite(g)
+    t_ns, g = t_ns[keep], g[keep]
+    if t_ns.size:
+        newest = np.maximum.accumulate(t_ns)
+        rising = np.concatenate([[True], t_ns[1:] > newest[:-1]])
+        t_ns, g = t_ns[rising], g[rising]
+    saturated = np.abs(g) >= p.saturation
+    spike = np.zeros(g.size, dtype=bool)
+    if g.size >= 3:
+        up, down = g[1:-1] - g[:-2], g[1:-1] - g[2:]
+        spike[1:-1] = (((up > p.spike) & (down > p.spike)) | ((up < -p.spike) & (down < -p.spike)))
+        spike[1:-1] &= ~(saturated[:-2] | saturated[2:])
+        spike &= ~saturated
+    where = np.nonzero(saturated)[0]
+    holes = np.stack([t_ns[np.maximum(where - 1, 0)],
+                      t_ns[np.minimum(where + 1, t_ns.size - 1)]], axis=1)
+    good = ~saturated & ~spike
+    return t_ns[good], g[good], holes.reshape(-1, 2)
+
+
+class GyroIntegral:
+    """The integral of the linearly interpolated gyro, in batch (what ``mean_rate`` integrates).
+
+    ``GyroIntegral(t_ns, rate).between(a_ns, b_ns)`` is the exact integral (rad) of the
+    piecewise-linear rate over each [a, b] inside the samples, the same trapezoids as
+    :meth:`GyroBuffer.mean_rate` (before its bias and scale correction); ``covered(a, b,
+    max_gap_s, holes)`` tells which intervals inside the samples it answers: no gap longer
+    than ``max_gap_s`` and no saturated sample's span (:func:`usable_gyro`) reached.
+    """
+
+    def __init__(self, t_ns: np.ndarray, rate: np.ndarray) -> None:
+        self.t = np.asarray(t_ns, dtype=np.int64)
+        self.g = np.asarray(rate, dtype=float)
+        dt = np.diff(self.t) * 1e-9
+        self.cumulative = np.concatenate([[0.0], np.cumsum(0.5 * (self.g[1:] + self.g[:-1]) * dt)])
+
+    def at(self, t_ns: np.ndarray) -> np.ndarray:
+        """Return the integral from the first sample up to each stamp (clipped to the samples)."""
+        t, g = self.t, self.g
+        at = np.clip(np.asarray(t_ns, dtype=np.int64), t[0], t[-1])
+        i = np.clip(np.searchsorted(t, at, side='right') - 1, 0, t.size - 2)
+        tau = (at - t[i]) * 1e-9
+        slope = (g[i + 1] - g[i]) / ((t[i + 1] - t[i]) * 1e-9)
+        return self.cumulative[i] + g[i] * tau + 0.5 * slope * tau * tau
+
+    def between(self, a_ns: np.ndarray, b_ns: np.ndarray) -> np.ndarray:
+        """Return the integral (rad) over each [a, b]."""
+        return self.at(b_ns) - self.at(a_ns)
+
+    def covered(self, a_ns: np.ndarray, b_ns: np.ndarray, max_gap_s: float,
+                holes: np.ndarray | None = None) -> np.ndarray:
+        """Tell which [a, b] lie inside the samples, with no long gap and no hole reached."""
+        t = self.t
+        a = np.asarray(a_ns, dtype=np.int64)
+        b = np.asarray(b_ns, dtype=np.int64)
+        inside = (a >= t[0]) & (b <= t[-1])
+        long_gap = np.diff(t) > max_gap_s * NS_PER_S
+        count = np.concatenate([[0], np.cumsum(long_gap)])
+        i0 = np.clip(np.searchsorted(t, a, side='right') - 1, 0, t.size - 1)
+        i1 = np.clip(np.searchsorted(t, b, side='left'), 0, t.size - 1)
+        ok = inside & (count[i1] == count[i0])
+        if holes is not None and len(holes):
+            lo, hi = np.asarray(holes, dtype=np.int64).T      # both rise with the hole
+            ok &= np.searchsorted(lo, b, side='left') <= np.searchsorted(hi, a, side='right')
+        return ok
 
 
 def _value_at(ts: list[int], gs: list[float], i: int, t: int) -> float:
