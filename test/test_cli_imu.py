@@ -48,7 +48,7 @@ def test_calibrate_writes_the_gyro_and_predict_uses_it(sim_table, tmp_path, caps
     assert main(['evaluate', str(sim_table), '--params', str(params), '--models',
                  'edd_symmetric', '--imu-mode', 'all']) == 0
     out = capsys.readouterr().out
-    assert 'edd_symmetric fuse' in out and 'end yaw deg' in out
+    assert 'edd_symmetric fuse' in out and 'end yaw deg' in out and 'NEES' in out
 
 
 def test_a_gyro_mode_without_gyro_data_is_a_data_error(sim_table, tmp_path, capsys):

@@ -10,6 +10,7 @@ from skidkin_ros.core.calibration.fitting import FitResult
 from skidkin_ros.core.calibration.imu import ModeScore
 from skidkin_ros.core.calibration.noise_fit import NoiseFit
 from skidkin_ros.core.calibration.selection import Likelihood
+from skidkin_ros.core.estimation.nees import summarize_nees
 from skidkin_ros.core.odometry.config import OdometryConfig
 
 __all__ = ['error_table', 'imu_table', 'parameter_lines']
@@ -91,19 +92,28 @@ def parameter_lines(fits: Mapping[str, FitResult]) -> list[str]:
 
 
 def imu_table(scores: Mapping[str, ModeScore], config: OdometryConfig) -> str:
-    """Return the errors per model and imu mode, with the errors at each drive's end."""
+    """Return the errors per model and imu mode, with the errors at each drive's end and NEES.
+
+    NEES: the mean over the windows (segments run from the true pose with a zero covariance)
+    against the 95 % band of that mean for 3 dof; '-' without a calibrated noise model.
+    """
     imu = config.imu
     lines = [f'gyro: scale {imu.scale:.4f}, bias {imu.bias:+.5f} rad/s, time offset '
              f'{imu.time_offset * 1e3:+.0f} ms (imu.* of the parameters file)',
              f'{"model mode":<22} {"eps_t m/m median / p90":<24}'
              f'{"eps_theta deg/m median / p90":<30}{"end pos m med / p90":<21}'
-             f'{"end yaw deg med / p90":<23}{"segs":>5}']
+             f'{"end yaw deg med / p90":<23}{"segs":>5}  {"NEES [95 % band] (windows)"}']
     lines.append('-' * len(lines[-1]))
     for name, score in scores.items():
         t, th = score.evaluation.stats_t, score.evaluation.stats_theta
         pos, yaw = score.end_position_m, score.end_yaw_deg
+        nees = '-'
+        if score.nees.size:
+            summary = summarize_nees(score.nees, 3)
+            nees = (f'{_f(summary.mean)} [{summary.band[0]:.2f}, {summary.band[1]:.2f}] '
+                    f'({summary.count})')
         lines.append(f'{name:<22} ' + f'{_f(t.median)} / {_f(t.p90)}'.ljust(24)
                      + f'{_f(th.median)} / {_f(th.p90)}'.ljust(30)
                      + f'{_f(pos.median)} / {_f(pos.p90)}'.ljust(21)
-                     + f'{_f(yaw.median)} / {_f(yaw.p90)}'.ljust(23) + f'{t.count:>5}')
+                     + f'{_f(yaw.median)} / {_f(yaw.p90)}'.ljust(23) + f'{t.count:>5}  {nees}')
     return '\n'.join(lines)

@@ -29,13 +29,13 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import ErrorStats, evaluate_model, relative_errors
-from skidkin_ros.core.calibration.imu import odometry_segment_errors
-from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
+from skidkin_ros.core.calibration.imu import (odometry_segment_errors, run_windows,
+                                              segment_windows, window_nees)
 from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
                                                    result_to_parameters)
-from skidkin_ros.core.calibration.segments import cut_segments, segment_frame_error, SegmentOptions
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.estimation.nees import nees, summarize_nees
+from skidkin_ros.core.estimation.nees import summarize_nees
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer, Prediction
@@ -153,15 +153,18 @@ def run_case(case: str, config: OdometryConfig, reference: OdometryConfig,
     options = SegmentOptions(horizon_m=2.0, short_drive='drop', interval=SIM_INTERVAL)
     segments = cut_segments(drives, options)
     predictions: dict[str, list[Prediction]] = {}
+    nees_of: dict[str, list[np.ndarray]] = {}
     recovery: list[float] = []
     for mode in MODES:
         mode_config = replace(config, values={**config.values, 'imu.mode': mode})
-        predictions[mode] = []
-        for drive in drives:
-            restarts = _window_starts(drive, options)
-            pred = Odometer.from_config(mode_config).predict(drive.wheels, drive.truth.poses[0],
-                                                             drive.imu, restarts)
+        predictions[mode], nees_of[mode] = [], []
+        for drive in drives:      # each drive by its own odometer, run in NEES windows
+            own = cut_segments([drive], options)
+            errors, covs, by_drive = run_windows(mode_config, [drive], own,
+                                                 segment_windows([drive], own))
+            pred = by_drive[0]
             predictions[mode].append(pred)
+            nees_of[mode].append(window_nees(errors, covs))
             if mode == 'adapt' and case == 'ground change':
                 recovery.append(_recovery_m(drive, pred))
     errors = {mode: odometry_segment_errors(predictions[mode], segments) for mode in MODES}
@@ -193,43 +196,9 @@ def run_case(case: str, config: OdometryConfig, reference: OdometryConfig,
     nees_values = {}
     if case == 'effect-free':
         for mode in MODES:
-            values = _window_nees(drives, predictions[mode], options)
-            summary = summarize_nees(values, 3)
+            summary = summarize_nees(np.concatenate(nees_of[mode]), 3)
             nees_values[mode] = (summary.mean, summary.band, summary.count)
     return ImuCase(case, groups, tuple(recovery), nees_values)
-
-
-def _window_starts(drive: Drive, options: SegmentOptions) -> dict[int, np.ndarray]:
-    """Return {wheel sample index: true pose} at the start of each NEES window of the drive."""
-    segments = cut_segments([drive], options)
-    starts = {}
-    for k in range(len(segments)):
-        i = int(np.searchsorted(drive.wheels.t_ns, segments.t_a_ns[k]))
-        if i < len(drive.wheels) and drive.wheels.t_ns[i] == segments.t_a_ns[k]:
-            starts[i] = segments.start[k]
-    return starts
-
-
-def _window_nees(drives: Sequence[Drive], predictions: Sequence[Prediction],
-                 options: SegmentOptions) -> np.ndarray:
-    values = []
-    for drive, pred in zip(drives, predictions):
-        segments = cut_segments([drive], options)
-        t = drive.wheels.t_ns
-        for k in range(len(segments)):
-            i = int(np.searchsorted(t, segments.t_a_ns[k]))
-            j = int(np.searchsorted(t, segments.t_b_ns[k]))
-            if i >= len(t) or j >= len(t) or t[i] != segments.t_a_ns[k] \
-                    or t[j] != segments.t_b_ns[k]:
-                continue
-            end = pred.poses[j]
-            error = segment_frame_error(segments.start[k:k + 1], segments.end[k:k + 1],
-                                        end[None])[0]
-            c, s = np.cos(segments.start[k, 2]), np.sin(segments.start[k, 2])
-            rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-            cov = rot @ pred.covariances[j] @ rot.T + MIN_VARIANCE * np.eye(3)
-            values.append(float(nees(error, cov)))
-    return np.array(values)
 
 
 def _recovery_m(drive: Drive, pred: Prediction) -> float:

@@ -37,12 +37,13 @@ drive to drive, and scores the evaluation segments with the one :func:`relative_
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import ErrorStats, ModelEvaluation, relative_errors
+from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.config import OdometryConfig
@@ -51,7 +52,7 @@ from skidkin_ros.core.odometry.odometer import Odometer, Prediction
 from skidkin_ros.errors import DataError, FitError
 
 __all__ = ['GyroFit', 'fit_gyro', 'gyro_white_noise', 'fit_filter_noise', 'fit_adapt_yaw_scale',
-           'gyro_parameters',
+           'segment_windows', 'run_windows', 'window_nees', 'gyro_parameters',
            'predict_drives',
            'odometry_segment_errors', 'ModeScore', 'evaluate_imu_mode']
 
@@ -300,18 +301,14 @@ def fit_filter_noise(config: OdometryConfig, drives: Sequence[Drive]
     return float(np.exp(x0[0]) + floor), float(np.sqrt(np.exp(x0[1]))), int(keep.sum())
 
 
-def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet
-                        ) -> tuple[float, int]:
-    """Return (imu.adapt.yaw_noise_scale, windows) fitted on held-out ``segments`` of ``drives``.
+def segment_windows(drives: Sequence[Drive], segments: SegmentSet
+                    ) -> dict[int, list[tuple[int, int, int]]]:
+    """Return {drive index: [(i, j, k)]}: the segments k that can be run as windows.
 
-    Each segment that starts and ends on a wheel sample and overlaps no earlier one is a window:
-    the odometer in ``adapt`` restarts there from the true pose with a zero covariance. Its
-    heading variance at the end is k A + B (A: the model's part, B: the gain's; two runs, k = 1
-    and 0); k maximises the likelihood of the heading errors. Raises DataError with fewer than
-    ``MIN_WINDOWS`` windows.
+    A window is a segment that starts (wheel sample i) and ends (sample j) on wheel samples and
+    overlaps no earlier one of its drive: the odometer restarts after sample i from the true
+    start pose with a zero covariance (``Odometer.predict``'s ``restarts``) and is read at j.
     """
-    from scipy.optimize import minimize_scalar
-
     windows: dict[int, list[tuple[int, int, int]]] = {}
     for k in range(len(segments)):
         d = int(segments.drive[k])
@@ -326,28 +323,64 @@ def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segment
                 kept.append((i, j, k))
                 end = j
         windows[d] = kept
+    return windows
+
+
+def run_windows(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet,
+                windows: Mapping[int, Sequence[tuple[int, int, int]]]
+                ) -> tuple[np.ndarray, np.ndarray, dict[int, Prediction]]:
+    """Run ``config``'s odometer (one, the drives in order) over the windows of each drive.
+
+    Return the start-frame errors (K, 3) and pose covariances (K, 3, 3) at the window ends, in
+    the order of ``windows``, and the predictions by drive (their poses restart at each window).
+    """
+    odometer = Odometer.from_config(config)
+    errors, covs, predictions = [], [], {}
+    for d, found in windows.items():
+        drive = drives[d]
+        restarts = {i: segments.start[k] for i, _, k in found}
+        pred = odometer.predict(drive.wheels, drive.truth.poses[0], drive.imu, restarts)
+        predictions[d] = pred
+        for _, j, k in found:
+            errors.append(segment_frame_error(segments.start[k:k + 1], segments.end[k:k + 1],
+                                              pred.poses[j][None])[0])
+            c, s = np.cos(segments.start[k, 2]), np.sin(segments.start[k, 2])
+            rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+            covs.append(rot @ pred.covariances[j] @ rot.T)
+    return np.array(errors).reshape(-1, 3), np.array(covs).reshape(-1, 3, 3), predictions
+
+
+def window_nees(errors: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """Return e^T P^-1 e per window (P + MIN_VARIANCE I, as the noise fit checks it)."""
+    covs = np.asarray(covs, dtype=float) + MIN_VARIANCE * np.eye(3)
+    solved = np.linalg.solve(covs, np.asarray(errors, dtype=float)[..., None])[..., 0]
+    return np.einsum('...i,...i->...', errors, solved)
+
+
+def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet
+                        ) -> tuple[float, int]:
+    """Return (imu.adapt.yaw_noise_scale, windows) fitted on held-out ``segments`` of ``drives``.
+
+    Each :func:`segment_windows` window is run in ``adapt``; its heading variance at the end is
+    k A + B (A: the model's part, B: the gain's; two runs, k = 1 and 0); k maximises the
+    likelihood of the heading errors. Raises DataError with fewer than ``MIN_WINDOWS`` windows.
+    """
+    from scipy.optimize import minimize_scalar
+
+    windows = segment_windows(drives, segments)
     count = sum(len(w) for w in windows.values())
     if count < MIN_WINDOWS:
         raise DataError(f'{count} held-out segments start and end on wheel samples; the '
                         f"scale of adapt's heading noise needs at least {MIN_WINDOWS}")
-    variance, error = {}, np.zeros(count)
+    variance = {}
     for share in (1.0, 0.0):
         values = {**config.values, 'imu.mode': 'adapt', 'imu.adapt.yaw_noise_scale': share}
-        odometer = Odometer.from_config(replace(config, values=values))
-        out = []
-        for d, found in windows.items():
-            drive = drives[d]
-            restarts = {i: segments.start[k] for i, _, k in found}
-            pred = odometer.predict(drive.wheels, drive.truth.poses[0], drive.imu, restarts)
-            for i, j, k in found:
-                out.append(pred.covariances[j][2, 2])
-                if share == 1.0:
-                    error[len(out) - 1] = (pred.poses[j, 2] - segments.end[k, 2] + np.pi) \
-                        % (2 * np.pi) - np.pi
-        variance[share] = np.array(out)
+        errors, covs, _ = run_windows(replace(config, values=values), drives, segments, windows)
+        variance[share] = covs[:, 2, 2]
+        if share == 1.0:
+            e2 = errors[:, 2] ** 2
     b = np.maximum(variance[0.0], 1e-12)
     a = np.maximum(variance[1.0] - variance[0.0], 0.0)
-    e2 = error ** 2
 
     def nll(log_k: float) -> float:
         var = np.exp(log_k) * a + b
@@ -429,6 +462,7 @@ class ModeScore:
     evaluation: ModelEvaluation
     end_position_m: ErrorStats     # |position error| at the drive's last true pose
     end_yaw_deg: ErrorStats        # |heading error| there
+    nees: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per window (3 dof)
 
 
 def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet,
@@ -438,7 +472,9 @@ def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments:
     The relative motion the odometry predicts from t_a to t_b (poses at the wheel samples,
     interpolated at the segment ends) is replayed from the segment's true start pose. Each
     drive's odometry starts at its first true pose; its end error is taken at its last one
-    (for the Husky table: the window-end errors).
+    (for the Husky table: the window-end errors). ``nees``: the published pose covariance
+    against the error on every :func:`segment_windows` window (a second run, restarted at each
+    window from its true pose with a zero covariance, the gain and bias carried on).
     """
     if mode != 'off' and not any(d.imu is not None for d in drives):
         raise DataError(f'imu mode {mode} needs gyro samples; the data has none (a table needs '
@@ -459,5 +495,11 @@ def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments:
         end_pos.append(float(np.hypot(at[0] - truth.x[-1], at[1] - truth.y[-1])))
         end_yaw.append(float(np.degrees(abs((at[2] - truth.yaw[-1] + np.pi) % (2 * np.pi)
                                             - np.pi))))
+    nees = np.zeros(0)
+    scored_config = replace(config, model=model, values={**config.values, 'imu.mode': mode})
+    windows = segment_windows(drives, segments)
+    if scored_config.active_noise is not None and windows:
+        errors, covs, _ = run_windows(scored_config, drives, segments, windows)
+        nees = window_nees(errors, covs)
     return ModeScore(evaluation, ErrorStats.of(np.array(end_pos)),
-                     ErrorStats.of(np.array(end_yaw)))
+                     ErrorStats.of(np.array(end_yaw)), nees)
