@@ -7,6 +7,7 @@ here, never from each other (``test/test_layering.py``).
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from pathlib import Path
 import sys
@@ -258,5 +259,14 @@ def print_calibration(result: CalibrationResult) -> None:
             f'{gyro.bias:+.5f} ±{gyro.bias_se:.2g} rad/s, time offset '
             f'{gyro.time_offset * 1e3:+.0f} ms ({gyro.pairs} pose pairs, {gyro.trimmed} trimmed '
             'as ground-truth glitches); imu.mode stays off: set it to fuse or adapt to use it')
+        noise = [f'arw {gyro.arw:.2g} rad/sqrt(s)'] if math.isfinite(gyro.arw) else []
+        if math.isfinite(gyro.r_floor):
+            noise.append(f'adapt r_floor {gyro.r_floor:.2g} (rad/s)^2, r_rel {gyro.r_rel:.2g} '
+                         f'({gyro.r_intervals} intervals)')
+        if math.isfinite(gyro.adapt_yaw_scale):
+            noise.append(f'yaw_noise_scale {gyro.adapt_yaw_scale:.2g} ({gyro.scale_windows} '
+                         'held-out windows)')
+        if noise:
+            say(f"  gyro modes' noise (imu.*): {', '.join(noise)}")
     for warning in result.warnings:
         say(f'  warning: {warning}')

@@ -135,7 +135,7 @@ class ImuCase:
                 cells.append(f'{t.median:.4f} / {th.median:.3g}')
             count = modes['off'][0].count
             recovery = ('-' if not self.recovery_m else
-                        f'{np.median(self.recovery_m):.1f} / {max(self.recovery_m):.1f}')
+                        f'{np.median(self.recovery_m):.2f} / {max(self.recovery_m):.2f}')
             nees_cell = '-'
             if self.nees and group == 'all':
                 band = self.nees['off'][1]
