@@ -13,7 +13,10 @@
    (average NEES against its chi2 band; a warning says when the held-out data are too few to
    support the claim, or disagree with it); measure the errors at the end of held-out windows
    of ``window_s`` (heading drift);
-5. pick the best model by the rule below.
+5. pick the best model by the rule below;
+6. with a gyro in the training data: fit its scale, bias and time offset on the training drives
+   and, with the best model, the gyro modes' noise on the evaluation drives
+   (:mod:`skidkin_ros.core.calibration.imu`).
 
 The fit (step 2) is the iterated one of :mod:`skidkin_ros.core.calibration.weighting` (each
 segment weighted by the covariance the noise model predicts for it) unless ``weighting`` is

@@ -17,6 +17,11 @@ Three pieces, used by :class:`~skidkin_ros.core.odometry.odometer.Odometer`, so 
   bias-corrected yaw rate (the model's translation), ``adapt`` the model's yaw rate times the
   learned gain; an interval without gyro falls back to the learned gain in both.
 
+The offline tools that read a recorded gyro (the gyro calibration, the ground-truth guard) take
+it under the same rules in batch: :func:`usable_gyro` (the buffer's sample rules) and
+:class:`GyroIntegral` (its piecewise-linear integral and which intervals it covers), checked
+against :meth:`GyroBuffer.mean_rate` in ``test_gyro.py``.
+
 Gyro measurement model (``imu.scale``, ``imu.bias``, ``imu.time_offset``)::
 
     g(t_stamp) = scale * omega(t_stamp - time_offset) + bias + noise
