@@ -2,8 +2,8 @@
 
 The effect-free case runs the README's three drives (50 segments of 2 m): one drive's 16
 segments cannot resolve the 5 % of the effect-free goal (the fixed model's median eps_t of seed
-11 alone is 27 % below that of the three). The study calibrates and scores under ``interval: midpoint`` (exact for the simulator's
-speeds).
+11 alone is 27 % below that of the three). The study calibrates and scores under
+``interval: midpoint`` (exact for the simulator's speeds).
 """
 
 import pytest
