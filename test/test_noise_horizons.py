@@ -64,6 +64,20 @@ def test_no_constant_is_invented_when_the_noise_has_none():
         assert getattr(fitted, name) == pytest.approx(getattr(rates, name), rel=0.15), name
 
 
+def _segment_predictions(segs, bound, noise, params):
+    """Yield (index, covariance predict gives) for five segments spread over the set."""
+    for i in range(0, len(segs), max(len(segs) // 5, 1)):
+        width = int((segs.dt_s[i] > 0).sum())
+        t_ns = np.concatenate([[0], np.cumsum(np.round(segs.dt_s[i, :width] * 1e9))]).astype(
+            np.int64)
+        wl = np.concatenate([segs.omega_l[i, :width], [0.0]])
+        wr = np.concatenate([segs.omega_r[i, :width], [0.0]])
+        # segments hold each interval's speeds from its start: the 'starting' hold replays them
+        _, cov = predict((0.0, 0.0, 0.0), np.zeros((3, 3)), t_ns, wl, wr, bound, noise,
+                         parameters=params, interval='starting')
+        yield i, cov
+
+
 def test_segment_covariance_matches_the_node_propagation_with_constant_and_parameters():
     """noise_fit's segment covariance is what predict (the node's propagator) gives."""
     drive = make_drive('edd_symmetric', duration_s=60.0, rate_hz=20.0, truth_every=1, seed=2)
@@ -75,15 +89,7 @@ def test_segment_covariance_matches_the_node_propagation_with_constant_and_param
     model = get_model('edd_symmetric')
     bound = model.bind(VALUES, GEOMETRY)
     params = ParameterUncertainty.of_model(model, bound.k, GEOMETRY, PARAM_COV)
-    for i in range(0, len(segs), max(len(segs) // 5, 1)):
-        width = int((segs.dt_s[i] > 0).sum())
-        t_ns = np.concatenate([[0], np.cumsum(np.round(segs.dt_s[i, :width] * 1e9))]).astype(
-            np.int64)
-        wl = np.concatenate([segs.omega_l[i, :width], [0.0]])
-        wr = np.concatenate([segs.omega_r[i, :width], [0.0]])
-        # segments hold each interval's speeds from its start: the 'starting' hold replays them
-        _, cov = predict((0.0, 0.0, 0.0), np.zeros((3, 3)), t_ns, wl, wr, bound, noise,
-                         parameters=params, interval='starting')
+    for i, cov in _segment_predictions(segs, bound, noise, params):
         # the node carries d(pose)/dk step by step to second order in the step, the
         # calibrator differentiates the exact rollout: they agree to a fraction of a percent
         scale = np.sqrt(np.outer(np.diag(expected[i]), np.diag(expected[i])))
@@ -271,14 +277,7 @@ def test_roc_parameter_covariance_is_carried_by_the_node_propagation():
     assert params is not None and params.size == 3
     zero = NoiseModel(0.0, 0.0, 0.0, 0.0)
     checked = 0
-    for i in range(0, len(segs), max(len(segs) // 5, 1)):
-        width = int((segs.dt_s[i] > 0).sum())
-        t_ns = np.concatenate([[0], np.cumsum(np.round(segs.dt_s[i, :width] * 1e9))]).astype(
-            np.int64)
-        wl = np.concatenate([segs.omega_l[i, :width], [0.0]])
-        wr = np.concatenate([segs.omega_r[i, :width], [0.0]])
-        _, cov = predict((0.0, 0.0, 0.0), np.zeros((3, 3)), t_ns, wl, wr, bound, zero,
-                         parameters=params, interval='starting')
+    for i, cov in _segment_predictions(segs, bound, zero, params):
         np.testing.assert_allclose(np.diag(cov), np.diag(expected[i]), rtol=0.01)
         assert np.diag(cov).max() > 1e-8  # not the zero of a sensitivity never carried
         checked += 1
