@@ -14,8 +14,9 @@ Recipe (:func:`flag_poses`), first reason wins for each pose:
    position is not observable, e.g. an open field or a featureless corridor).
 4. **The IMU's yaw rate** (when the recording has an IMU; the gyro does not slip): the ICP yaw
    increment over the last ``window_s`` against the gyro's integral over the same interval
-   (the node's rule: :func:`~skidkin_ros.core.odometry.gyro.usable_gyro` and the
-   piecewise-linear :class:`~skidkin_ros.core.odometry.gyro.GyroIntegral`), after removing
+   (the node's sample rules, :func:`~skidkin_ros.core.odometry.gyro.usable_gyro`, and its
+   piecewise-linear :class:`~skidkin_ros.core.odometry.gyro.GyroIntegral`; an interval only
+   needs to lie inside the gyro's samples: the node's gap rule is not applied here), after removing
    the gyro bias (the median difference rate); flagged beyond ``imu_abs_rad`` + ``imu_rel`` x
    the turn.
 5. **Wheels, gross errors only** (C11): the wheels' forward travel (the sum of the two wheel

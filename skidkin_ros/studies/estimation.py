@@ -80,7 +80,8 @@ class StudyOptions:
 
     train_s: float = 600.0
     # 14 held-out drives for the noise: fitted on 6, the noise was 8 % below that of the test
-    # drives (window NEES 3.25 at 2 m against 2.93 on the 6 drives themselves); on 14, 3.13.
+    # drives (window NEES 3.25 at 2 m against 2.93 on the 6 drives themselves); on 14, 3.13
+    # (a one-off check with the true model as the odometry, during the change).
     # 20 test drives: a share inside the 95 % region moves in steps of 5 %, not 12.5 %.
     calib_drives: int = 14
     test_drives: int = 20

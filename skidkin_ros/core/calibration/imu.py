@@ -43,7 +43,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import ErrorStats, ModelEvaluation, relative_errors
-from skidkin_ros.core.calibration.noise_fit import MIN_VARIANCE
+from skidkin_ros.core.calibration.noise_fit import mahalanobis, MIN_VARIANCE
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.config import OdometryConfig
@@ -352,9 +352,8 @@ def run_windows(config: OdometryConfig, drives: Sequence[Drive], segments: Segme
 
 def window_nees(errors: np.ndarray, covs: np.ndarray) -> np.ndarray:
     """Return e^T P^-1 e per window (P + MIN_VARIANCE I, as the noise fit checks it)."""
-    covs = np.asarray(covs, dtype=float) + MIN_VARIANCE * np.eye(3)
-    solved = np.linalg.solve(covs, np.asarray(errors, dtype=float)[..., None])[..., 0]
-    return np.einsum('...i,...i->...', errors, solved)
+    covs = np.asarray(covs, dtype=float).reshape(-1, 3, 3) + MIN_VARIANCE * np.eye(3)
+    return mahalanobis(covs, np.asarray(errors, dtype=float).reshape(-1, 3))
 
 
 def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet
@@ -372,13 +371,13 @@ def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segment
     if count < MIN_WINDOWS:
         raise DataError(f'{count} held-out segments start and end on wheel samples; the '
                         f"scale of adapt's heading noise needs at least {MIN_WINDOWS}")
-    variance = {}
+    variance, heading_errors = {}, {}
     for share in (1.0, 0.0):
         values = {**config.values, 'imu.mode': 'adapt', 'imu.adapt.yaw_noise_scale': share}
         errors, covs, _ = run_windows(replace(config, values=values), drives, segments, windows)
         variance[share] = covs[:, 2, 2]
-        if share == 1.0:
-            e2 = errors[:, 2] ** 2
+        heading_errors[share] = errors[:, 2]
+    e2 = heading_errors[1.0] ** 2  # the errors of the run at the calibrated scale 1
     b = np.maximum(variance[0.0], 1e-12)
     a = np.maximum(variance[1.0] - variance[0.0], 0.0)
 

@@ -14,7 +14,7 @@ lever arm from the pose after step j to the segment end. With A_j = Phi_j R(thet
 which is linear in the four rates: Sigma_seg = sum over rates of rate * basis (SegmentMotion).
 The part per second of motion has the same form with the step's time in motion
 (:func:`skidkin_ros.core.odometry.noise.moving_time`) in place of ds_j: C_j = diag(q_xs dt_j, 0,
-q_ys dt_j).
+q_yaws dt_j).
 The length-independent part C of the noise model adds R(dth) C R(dth)^T, dth the segment's
 predicted rotation (C is body-frame at the end pose, as the node adds it), and the calibration's
 own uncertainty, when given, adds S Sigma_k S^T with S the sensitivity of the predicted end pose to

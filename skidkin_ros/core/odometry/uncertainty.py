@@ -52,6 +52,19 @@ def check_parameter_covariance(name: str, values: Sequence[float], size: int) ->
     return matrix
 
 
+def _central_differences(function, k: np.ndarray, rel_step: float) -> list[np.ndarray]:
+    """Return d function / dk_j for every j, central differences of step rel_step max(|k_j|, 1)."""
+    out = []
+    for j in range(k.size):
+        step = rel_step * max(abs(float(k[j])), 1.0)
+        plus, minus = k.copy(), k.copy()
+        plus[j] += step
+        minus[j] -= step
+        out.append((np.asarray(function(plus), dtype=float)
+                    - np.asarray(function(minus), dtype=float)) / (2.0 * step))
+    return out
+
+
 @dataclass(frozen=True)
 class ParameterUncertainty:
     """Sigma_k of one bound linear model and the twist sensitivity matrices M_j (module doc)."""
@@ -76,16 +89,8 @@ class ParameterUncertainty:
         if rows is None:
             return cls(covariance, (), (model, tuple(float(v) for v in k), geometry, rel_step))
         pinv = np.linalg.pinv(np.asarray(rows, dtype=float))
-        mats = []
-        for j in range(k.size):
-            step = rel_step * max(abs(float(k[j])), 1.0)
-            plus, minus = k.copy(), k.copy()
-            plus[j] += step
-            minus[j] -= step
-            d_rows = (np.asarray(model.rows(plus, geometry))
-                      - np.asarray(model.rows(minus, geometry))) / (2.0 * step)
-            mats.append(tuple((d_rows @ pinv).ravel().tolist()))
-        return cls(covariance, tuple(mats))
+        d_rows = _central_differences(lambda kk: model.rows(kk, geometry), k, rel_step)
+        return cls(covariance, tuple(tuple((d @ pinv).ravel().tolist()) for d in d_rows))
 
     @property
     def size(self) -> int:
@@ -110,17 +115,10 @@ class ParameterUncertainty:
     def _wheel_jacobian(self, omega_l: float, omega_r: float
                         ) -> list[tuple[float, float, float]]:
         model, k, geometry, rel_step = self.nonlinear
-        base = np.asarray(k, dtype=float)
-        out = []
-        for j, value in enumerate(k):
-            step = rel_step * max(abs(value), 1.0)
-            plus, minus = base.copy(), base.copy()
-            plus[j] += step
-            minus[j] -= step
-            diff = (np.asarray(model.twist(plus, geometry, omega_l, omega_r), dtype=float)
-                    - np.asarray(model.twist(minus, geometry, omega_l, omega_r), dtype=float))
-            out.append(tuple(float(v) / (2.0 * step) for v in diff.reshape(3)))
-        return out
+        d_twist = _central_differences(
+            lambda kk: model.twist(kk, geometry, omega_l, omega_r), np.asarray(k, dtype=float),
+            rel_step)
+        return [tuple(float(v) for v in d.reshape(3)) for d in d_twist]
 
     def pose_covariance(self, sens: Sequence[Sequence[float]]) -> tuple[float, ...]:
         """Upper triangle of S Sigma_k S^T for S given as p columns (d x, d y, d yaw)/dk_j."""
