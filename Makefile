@@ -4,14 +4,30 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 PYTEST_ARGS ?=
+# Pinned versions of every dependency for a reproducible install (CI, make test, make demo).
+# `make CONSTRAINTS= test` installs today's releases instead; `make constraints` refreshes the file.
+CONSTRAINTS ?= constraints.txt
+PIP_C := $(if $(CONSTRAINTS),PIP_CONSTRAINT=$(abspath $(CONSTRAINTS)),)
 
-.PHONY: demo test test-fast bench bench-smoke lint clean
+.PHONY: demo test test-fast bench bench-smoke lint clean constraints
 
-$(STAMP): setup.py setup.cfg package.xml
+$(STAMP): setup.py setup.cfg package.xml $(CONSTRAINTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[ros,dev]'
+	$(PIP_C) $(PY) -m pip install --quiet -e '.[ros,dev]'
 	touch $(STAMP)
+
+# Refresh constraints.txt from today's releases, in a scratch environment; then run `make test`
+# and commit the file if it passes.
+constraints:
+	rm -rf .venv-constraints
+	$(PYTHON) -m venv .venv-constraints
+	.venv-constraints/bin/python -m pip install --quiet --upgrade pip
+	.venv-constraints/bin/python -m pip install --quiet -e '.[ros,dev]'
+	.venv-constraints/bin/python -m pip freeze --all --exclude-editable \
+	  | grep -v -e '^skidkin' -e '^pip==' > constraints.txt.tmp
+	mv constraints.txt.tmp constraints.txt
+	rm -rf .venv-constraints
 
 demo: $(STAMP)
 	$(VENV)/bin/skidkin demo --out demo_out --force

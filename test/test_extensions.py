@@ -200,7 +200,12 @@ def test_streaming_and_batch_agree_sample_for_sample_with_state(names):
     limits = IntegratorLimits(max_dt_s=0.5)
     streamed = predict_wheels(WheelSamples(t_ns, wl, wr), model, limits)
     batch = rollout_stream(model, t_ns, wl, wr, max_dt_s=0.5)
-    assert np.array_equal(streamed.poses, batch)
+    # Two code paths (the streaming integrator, the batch rollout) sum the same terms in a
+    # different order, so equality is to rounding: a few ulps of the pose's magnitude, not bit
+    # for bit (numpy 2.4 moved the last bit on one sample). The node and predict share one path
+    # and stay equal bit for bit (test_node_augmented).
+    ulps = 8 * np.finfo(float).eps * np.maximum(1.0, np.abs(batch))
+    assert np.all(np.abs(streamed.poses - batch) <= ulps)
     assert streamed.status.count(SampleStatus.GAP) == 1
     assert streamed.status.count(SampleStatus.DUPLICATE_STAMP) == 1
     # the state matters: without it (no lag, no regime) the path differs
