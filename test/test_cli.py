@@ -15,7 +15,7 @@ from skidkin_ros.core.drive import WheelSamples
 from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
 from skidkin_ros.sim.simulate import SimConfig, simulate
 
-HUSKY = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
+HUSKY = Path(__file__).resolve().parents[1] / 'data' / 'husky' / 'drive_husky_windows.csv'
 
 
 @pytest.fixture(scope='module')

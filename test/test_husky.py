@@ -11,7 +11,7 @@ from skidkin_ros.core.calibration.pipeline import (calibrate, calibrate_interval
                                                    result_to_parameters)
 from skidkin_ros.core.kinematics.specs import Geometry
 
-DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
+DATA = Path(__file__).resolve().parents[1] / 'data' / 'husky' / 'drive_husky_windows.csv'
 HUSKY = Geometry(0.1651, 0.555)
 
 

@@ -9,7 +9,7 @@ import pytest
 from skidkin_ros.adapters.table import read_table
 from skidkin_ros.errors import RecordingError
 
-HUSKY = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'drive_husky_windows.csv'
+HUSKY = Path(__file__).resolve().parents[1] / 'data' / 'husky' / 'drive_husky_windows.csv'
 
 HEADER = 'segment,calib_step,t,cmd_left,cmd_right,wheel_left,wheel_right,x,y,yaw,imu_yaw_rate'
 
