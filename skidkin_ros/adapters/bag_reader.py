@@ -73,6 +73,7 @@ from skidkin_ros.core.odometry.wheels import (check_position_count, check_veloci
                                               pair_wheel_streams, positions_at, speeds_at,
                                               WheelSignal)
 from skidkin_ros.core.rotation import quaternion_to_yaw
+from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import DataError, RecordingError
 
 __all__ = [
@@ -109,9 +110,8 @@ DEFAULT_MAX_WHEEL_SPEED_RAD_S = node_default('max_wheel_speed')
 DEFAULT_PAIR_TOLERANCE_S = node_default('pair_tolerance')
 DEFAULT_MAX_WHEEL_ACCELERATION = node_default('max_wheel_acceleration')
 DEFAULT_MAX_DT_S = node_default('max_dt')
-NS_PER_S = 1_000_000_000
 # A damaged storage region is jumped over in doubling steps up to this much bag time.
-_MAX_JUMP_NS = 600 * 10**9
+_MAX_JUMP_NS = 600 * NS_PER_S
 # Header stamps may run on another clock than the bag (sim time), but their offset from the
 # receive time does not jump by more than this between two clouds.
 MAX_STAMP_JUMP_S = 5.0
@@ -159,7 +159,7 @@ class LidarFrame:
 
 
 def _stamp_ns(header: Any) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec)
 
 
 def keep_monotonic(t_ns: np.ndarray) -> np.ndarray:
@@ -854,7 +854,8 @@ class BagRecording:
                     skipped = self._skip(chosen, 'malformed cloud', err, skipped)
                     continue
                 offset = t_ns - stamp
-                if last_offset is not None and abs(offset - last_offset) > MAX_STAMP_JUMP_S * 1e9:
+                if (last_offset is not None
+                        and abs(offset - last_offset) > MAX_STAMP_JUMP_S * NS_PER_S):
                     self._drop(chosen, 'stamp far from receive time')
                     continue
                 if stamp <= last_stamp:

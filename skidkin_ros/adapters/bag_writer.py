@@ -35,6 +35,7 @@ from rosbags.typesys import get_typestore, Stores
 
 from skidkin_ros.adapters.pointcloud import columns_from_mapping, pack_points
 from skidkin_ros.core.rotation import yaw_to_quaternion
+from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import OutputError, RecordingError
 
 __all__ = ['BagWriter', 'TF_STATIC_QOS']
@@ -170,7 +171,7 @@ class BagWriter:
     def _header(self, t_ns: int, stamp_ns: int | None, frame_id: str) -> Any:
         stamp = _check_time(t_ns if stamp_ns is None else stamp_ns, 'header stamp')
         time_type = self._types['builtin_interfaces/msg/Time']
-        time = time_type(sec=stamp // 10**9, nanosec=stamp % 10**9)
+        time = time_type(sec=stamp // NS_PER_S, nanosec=stamp % NS_PER_S)
         return self._types['std_msgs/msg/Header'](stamp=time, frame_id=frame_id)
 
     def _vector3(self, values: Sequence[float]) -> Any:

@@ -53,6 +53,7 @@ from skidkin_ros.adapters.lidar_gt import (FrameGrid, GroundTruth, guarded_truth
                                            register_frames, Registration)
 from skidkin_ros.atomic import atomic_write_bytes
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
+from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['CACHE_VERSION', 'ChunkOptions', 'ChunkTask', 'bag_identity', 'bag_ground_truth',
@@ -151,8 +152,8 @@ def plan_chunks(bag: str, topic: str, first_receive_ns: int, period_ns: int, n_f
     The number of chunks comes from the frame count and period; the last chunk is open-ended,
     so nothing is lost when the estimate is short.
     """
-    chunk_ns = int(options.chunk_s * 1e9)
-    overlap_ns = int(options.overlap_s * 1e9)
+    chunk_ns = s_to_ns(options.chunk_s)
+    overlap_ns = s_to_ns(options.overlap_s)
     span_ns = max(int(n_frames), 1) * max(int(period_ns), 1)
     count = max(1, int(math.ceil(span_ns / chunk_ns - 0.25)))
     grid = (FrameGrid.for_frames(first_end_ns, period_ns, config.stride)
@@ -465,7 +466,7 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
     tested = failed = untested = 0
     offset = 0
     previous: Registration | None = None  # the previous chunk, poses in the joined frame
-    window_ns = int(options.overlap_s / 2 * 1e9)
+    window_ns = s_to_ns(options.overlap_s / 2)
     for outcome in outcomes:
         task, reg = outcome.task, outcome.registration
         if reg is None:
@@ -592,7 +593,7 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     tasks = plan_chunks(str(path), topic, int(first[0].receive_ns), max(period_ns, 1), n_frames,
                         int(first[0].end_ns), config, options)
     identity = bag_identity(path) if cache_dir is not None else None
-    warmup_frames = int(options.overlap_s * 1e9 / max(period_ns, 1))
+    warmup_frames = int(options.overlap_s * NS_PER_S / max(period_ns, 1))
     total = n_frames + warmup_frames * (len(tasks) - 1)
     outcomes = run_chunks(tasks, options, cache_dir=None if cache_dir is None else Path(cache_dir),
                           identity=identity, total_frames=total, on_progress=on_progress)

@@ -50,6 +50,7 @@ import numpy as np
 
 from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.rigid import planar_poses, se3_power
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['auto_voxel_size', 'BaseTrack', 'FrameGrid', 'FrameLike', 'GroundTruth',
@@ -395,7 +396,7 @@ def _prepare(frame: FrameLike, index: int, config: IcpConfig
         if config.deskew:
             _LOG.debug('frame %d at %d ns: %s; registered without deskew', index, end, why)
         return ('no_deskew' if config.deskew else 'ok'), points, np.zeros(0), end, 0
-    spread_ns = int(round(float(np.ptp(times)) * 1e9))
+    spread_ns = s_to_ns(float(np.ptp(times)))
     if not config.deskew:
         return 'ok', points, np.zeros(0), end - spread_ns // 2, spread_ns
     return 'ok', points, np.ascontiguousarray(times, dtype=np.float64), end, spread_ns

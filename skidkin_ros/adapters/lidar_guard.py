@@ -46,6 +46,7 @@ import numpy as np
 
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.odometry.gyro import GyroIntegral, usable_gyro
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['GUARD_CODES', 'Exclusions', 'GuardLimits', 'flag_poses']
@@ -137,7 +138,7 @@ class Exclusions:
 def _increments(t_ns: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
                 window_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Return, per pose j, the window start k and ICP's forward and yaw increments k -> j."""
-    start = np.searchsorted(t_ns, t_ns - int(window_s * 1e9))
+    start = np.searchsorted(t_ns, t_ns - s_to_ns(window_s))
     start = np.minimum(start, np.maximum(np.arange(t_ns.size) - 1, 0))
     dx, dy = x - x[start], y - y[start]
     forward = np.cos(yaw[start]) * dx + np.sin(yaw[start]) * dy

@@ -33,6 +33,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import RecordingError
 
 __all__ = [
@@ -262,14 +263,14 @@ def interpret_point_times(raw: np.ndarray, is_integer: bool, stamp_ns: int
         unit, scale = absolute
         # Subtract before scaling: absolute float64 seconds lose ns precision otherwise.
         t_rel_s = (raw - t_min) * scale
-        end_ns = int(round(t_max * scale * 1e9)) if scale >= 1e-6 else int(t_max)
+        end_ns = s_to_ns(t_max * scale) if scale >= 1e-6 else int(t_max)
         return PointTimes(t_rel_s, end_ns, True, unit)
     relative = _relative_unit(max(abs(t_min), abs(t_max)), is_integer)
     if relative is None:
         return None
     unit, scale = relative
     t_rel_s = (raw - t_min) * scale
-    end_ns = int(stamp_ns) + int(round(t_max * scale * 1e9))
+    end_ns = int(stamp_ns) + s_to_ns(t_max * scale)
     return PointTimes(t_rel_s, end_ns, False, unit)
 
 

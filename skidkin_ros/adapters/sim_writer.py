@@ -24,6 +24,7 @@ from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.odometry.integrator import wrap_angle
 from skidkin_ros.core.rotation import yaw_to_quaternion
+from skidkin_ros.core.timeunits import s_to_ns, s_to_ns_array
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.lidar import LidarScan
 from skidkin_ros.sim.simulate import JOINT_NAMES, Simulation
@@ -70,7 +71,7 @@ def _point_times(scan: LidarScan, convention: str,
     if convention in ('rel_s_f32', 'time_rel_s_f32'):
         return rel_s.astype(np.float32), stamp_ns
     if convention == 'rel_ns_u32':
-        return np.round(rel_s * 1e9).astype(np.uint32), stamp_ns
+        return s_to_ns_array(rel_s).astype(np.uint32), stamp_ns
     if convention == 'abs_s_f64':
         return scan.stamp_ns * 1e-9 + scan.t_rel_s, stamp_ns
     return None, stamp_ns
@@ -107,7 +108,7 @@ def write_bag(sim: Simulation, path: Path, storage: str = 'sqlite3', overwrite: 
     csv_path = Path(truth_csv) if truth_csv else path.parent / f'{path.name}_truth.csv'
     field_name, dtype, _ = POINT_TIME_CONVENTIONS[point_time]
     lidar = sim.config.lidar
-    latency_ns = int(round(lidar_latency_s * 1e9))
+    latency_ns = s_to_ns(lidar_latency_s)
     small = _small_messages(sim, names, truth_topic)
     cursor = 0
     with BagWriter(path, storage=storage, overwrite=overwrite) as writer:

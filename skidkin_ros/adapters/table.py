@@ -43,6 +43,7 @@ from skidkin_ros.core.drive import Drive, fresh_pose_mask, ImuSamples, PoseTrack
 from skidkin_ros.core.odometry.config import NODE_SPECS
 from skidkin_ros.core.odometry.gyro import GYRO_RATE_LIMIT
 from skidkin_ros.core.odometry.odometer import POSE_LIMIT_M, YAW_LIMIT_RAD, YAW_RESOLUTION_RAD
+from skidkin_ros.core.timeunits import s_to_ns_array
 from skidkin_ros.errors import RecordingError
 
 __all__ = ['REQUIRED_COLUMNS', 'META_COLUMNS', 'read_table']
@@ -200,7 +201,7 @@ def read_table(path: str | Path, dedupe_held_truth: bool = True) -> list[Drive]:
     for seg_id in _segment_order(segment):
         rows_idx = np.nonzero(segment == seg_id)[0]
         label = f'segment {seg_id:g}' if 'segment' in cols else 'the table'
-        t_ns = np.round(cols['t'][rows_idx] * 1e9).astype(np.int64)
+        t_ns = s_to_ns_array(cols['t'][rows_idx])
         _check_time(source, t_ns, rows_idx, label)
         x, y, yaw = (cols[name][rows_idx] for name in ('x', 'y', 'yaw'))
         keep = fresh_pose_mask(x, y, yaw) if dedupe_held_truth else np.ones(x.shape, bool)

@@ -13,6 +13,7 @@ from typing import Any, Sequence
 from builtin_interfaces.msg import Time
 import numpy as np
 from skidkin_ros.core.rotation import quaternion_to_yaw
+from skidkin_ros.core.timeunits import NS_PER_S
 
 __all__ = [
     'stamp_to_ns',
@@ -20,8 +21,6 @@ __all__ = [
     'planar_pose_from_msg',
     'planar_covariance_from_msg',
 ]
-
-NS_PER_S = 1_000_000_000
 
 
 def stamp_to_ns(stamp: Any) -> int:

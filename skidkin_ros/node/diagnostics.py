@@ -16,10 +16,9 @@ from typing import Mapping
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.integrator import SampleStatus
+from skidkin_ros.core.timeunits import NS_PER_S
 
 __all__ = ['WARN_CAUSES', 'ERROR_CAUSES', 'StatusReport']
-
-NS_PER_S = 1_000_000_000
 
 # Counter names reported on /diagnostics; which of them make the status WARN or ERROR.
 WARN_CAUSES = ('non_finite', 'implausible', 'wheel_jump', 'older', 'gap', 'zero_stamp',

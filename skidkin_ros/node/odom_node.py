@@ -79,6 +79,7 @@ from skidkin_ros.core.odometry.wheels import (check_position_count, check_veloci
                                               MissingJointError, positions_at, repeated_names,
                                               speeds_at)
 from skidkin_ros.core.rotation import yaw_to_quaternion
+from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_msg,
                                           planar_pose_from_msg, stamp_to_ns)
@@ -93,7 +94,6 @@ from std_srvs.srv import Trigger
 __all__ = ['OdomNode', 'main', 'check_params_files', 'parameter_descriptor', 'NODE_NAME']
 
 NODE_NAME = 'odom_node'
-NS_PER_S = 1_000_000_000
 DIAGNOSTICS_PERIOD_S = 1.0
 WATCHDOG_PERIOD_S = 0.1
 WARN_PERIOD_NS = NS_PER_S
@@ -178,7 +178,7 @@ class OdomNode(Node):
         # One timer for both (each entity in the wait set costs the executor on every message).
         self.timer = self.create_timer(WATCHDOG_PERIOD_S, self._on_timer,
                                        clock=self.steady_clock)
-        self._next_diagnostics_ns = time.monotonic_ns() + int(DIAGNOSTICS_PERIOD_S * NS_PER_S)
+        self._next_diagnostics_ns = time.monotonic_ns() + s_to_ns(DIAGNOSTICS_PERIOD_S)
         self._jump_handle = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
                           on_clock_change=True),
@@ -523,7 +523,7 @@ class OdomNode(Node):
         self._flush_waiting()
         now_ns = time.monotonic_ns()
         if now_ns >= self._next_diagnostics_ns:
-            period_ns = int(DIAGNOSTICS_PERIOD_S * NS_PER_S)
+            period_ns = s_to_ns(DIAGNOSTICS_PERIOD_S)
             # Keep the cadence; after a long stall, restart it instead of catching up.
             self._next_diagnostics_ns = max(self._next_diagnostics_ns + period_ns,
                                             now_ns + period_ns // 2)

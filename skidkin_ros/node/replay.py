@@ -32,13 +32,13 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.rotation import quaternion_to_yaw
+from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import SkidkinError
 from skidkin_ros.node.conversions import ns_to_stamp, stamp_to_ns
 from skidkin_ros.node.odom_node import OdomNode
 
 __all__ = ['ReplayResult', 'ReplayError', 'replay_through_node']
 
-NS_PER_S = 1_000_000_000
 WINDOW = 64            # samples in flight at once; well below the queue depths set below
 QUEUE_DEPTH = 1024
 _instance = itertools.count()

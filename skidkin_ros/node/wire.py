@@ -34,6 +34,8 @@ from __future__ import annotations
 import struct
 from typing import Any, NamedTuple, Sequence
 
+from skidkin_ros.core.timeunits import NS_PER_S
+
 __all__ = ['WireFormatError', 'JointStateFields', 'JointStateReader', 'OdometryWriter',
            'encapsulation_prefix']
 
@@ -140,7 +142,7 @@ class JointStateReader:
             _doubles(data, uint32, order, offset, 'effort', False)
         except struct.error as err:  # a count or a length cut by the end of the data
             raise WireFormatError(f'JointState ends inside a field: {err}') from err
-        return _new_fields(JointStateFields, (sec * 1_000_000_000 + nanosec, names, position,
+        return _new_fields(JointStateFields, (sec * NS_PER_S + nanosec, names, position,
                                               velocity))
 
 
@@ -219,7 +221,7 @@ class OdometryWriter:
              twist_covariance: Sequence[float]) -> bytes:
         """Return the serialized message (t_ns: integer ns, 0 <= t_ns < 2**31 s)."""
         buf = self._buffer
-        _STAMP.pack_into(buf, HEADER_BYTES, *divmod(t_ns, 1_000_000_000))
+        _STAMP.pack_into(buf, HEADER_BYTES, *divmod(t_ns, NS_PER_S))
         # pose.pose: position x y z, orientation x y z w; then pose.covariance; twist.twist:
         # linear x y z, angular x y z; then twist.covariance.
         _BODY.pack_into(buf, self._doubles_at, x, y, 0.0, 0.0, 0.0, qz, qw, *pose_covariance,

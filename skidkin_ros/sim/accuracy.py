@@ -18,6 +18,7 @@ import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import motion_errors
 from skidkin_ros.core.drive import path_length_m, PoseTrack
+from skidkin_ros.core.timeunits import s_to_ns
 
 __all__ = ['IncrementErrors', 'increment_errors']
 
@@ -66,7 +67,7 @@ def increment_errors(track: PoseTrack, truth_at: TruthFn, *, horizon_s: float | 
     true = np.asarray(truth_at(t_ns), dtype=float)
     true[:, 2] = np.unwrap(true[:, 2])
     if horizon_s is not None:
-        j = np.searchsorted(t_ns, t_ns + int(round(horizon_s * 1e9)))
+        j = np.searchsorted(t_ns, t_ns + s_to_ns(horizon_s))
         label = f'{horizon_s:g} s'
     else:
         path = path_length_m(true[:, 0], true[:, 1])

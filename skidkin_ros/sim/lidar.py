@@ -19,6 +19,7 @@ from typing import Callable
 
 import numpy as np
 
+from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.scene import Scene
 
@@ -63,7 +64,7 @@ class LidarConfig:
 
     @property
     def period_ns(self) -> int:
-        return int(round(1e9 / self.rate_hz))
+        return int(round(NS_PER_S / self.rate_hz))
 
     def extrinsic(self) -> np.ndarray:
         """Return T_base_lidar (4x4): the lidar pose in base_link."""

@@ -24,6 +24,7 @@ from scipy.signal import lfilter
 
 from skidkin_ros.core.kinematics.models import BoundModel
 from skidkin_ros.core.odometry.integrator import rollout, wrap_angle
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.sim.effects import apply_effects, Effect
 
 __all__ = ['COMMAND_KINDS', 'CommandSchedule', 'TruthTrace', 'plan_commands', 'motor_response',
@@ -155,8 +156,8 @@ def plan_commands(rng: np.random.Generator, start_ns: int, duration_s: float,
     geometry = true_model.geometry
     times = [int(start_ns)]
     left, right, kinds = [0.0], [0.0], ['rest']
-    t_ns = int(start_ns + round(initial_rest_s * 1e9))
-    end_ns = int(start_ns + round(duration_s * 1e9))
+    t_ns = int(start_ns + s_to_ns(initial_rest_s))
+    end_ns = int(start_ns + s_to_ns(duration_s))
     queue: list[str] = []
     while t_ns < end_ns:
         schedule = CommandSchedule(np.array(times, dtype=np.int64), np.array(left),
@@ -186,7 +187,7 @@ def plan_commands(rng: np.random.Generator, start_ns: int, duration_s: float,
         left.append(chosen[1][0])
         right.append(chosen[1][1])
         kinds.append(chosen[0])
-        t_ns += int(round(hold_s * 1e9))
+        t_ns += s_to_ns(hold_s)
     return CommandSchedule(np.array(times, dtype=np.int64), np.array(left), np.array(right),
                            tuple(kinds))
 
@@ -196,12 +197,12 @@ def scripted_commands(start_ns: int, initial_rest_s: float,
     """Return a schedule from (hold_s, omega_l, omega_r) triples after an initial rest."""
     times = [int(start_ns)]
     left, right, kinds = [0.0], [0.0], ['rest']
-    t_ns = int(start_ns + round(initial_rest_s * 1e9))
+    t_ns = int(start_ns + s_to_ns(initial_rest_s))
     for hold_s, omega_l, omega_r in script:
         times.append(t_ns)
         left.append(float(omega_l))
         right.append(float(omega_r))
         kinds.append('script')
-        t_ns += int(round(hold_s * 1e9))
+        t_ns += s_to_ns(hold_s)
     return CommandSchedule(np.array(times, dtype=np.int64), np.array(left), np.array(right),
                            tuple(kinds))

@@ -18,6 +18,7 @@ import numpy as np
 from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.effects import Effect
 from skidkin_ros.sim.lidar import cast_sweep, LidarConfig, LidarScan
@@ -127,7 +128,7 @@ class SimConfig:
 
 def _sample_times(start_ns: int, duration_s: float, rate_hz: float) -> np.ndarray:
     count = int(math.floor(duration_s * rate_hz + 1e-9)) + 1
-    return start_ns + np.round(np.arange(count) * (1e9 / rate_hz)).astype(np.int64)
+    return start_ns + np.round(np.arange(count) * (NS_PER_S / rate_hz)).astype(np.int64)
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['HOLDOUT_MODES', 'split_holdout', 'resolve_holdout']
@@ -67,7 +68,7 @@ def split_holdout(drives: Sequence[Drive], every: int = 3, mode: str = 'auto',
     if not block_s > 0:
         raise ParameterError(f'block_s must be > 0 s, got {block_s!r}')
     train, evaluate = [], []
-    block_ns = int(block_s * 1e9)
+    block_ns = s_to_ns(block_s)
     for drive in drives:
         if len(drive.wheels) == 0:
             continue

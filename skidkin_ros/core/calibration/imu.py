@@ -49,6 +49,7 @@ from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.gyro import GyroIntegral, usable_gyro
 from skidkin_ros.core.odometry.odometer import Odometer, Prediction
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError, FitError
 
 __all__ = ['GyroFit', 'fit_gyro', 'gyro_white_noise', 'fit_filter_noise', 'fit_adapt_yaw_scale',
@@ -111,7 +112,7 @@ def _pairs(drives: Sequence[Drive]) -> list[tuple]:
         ok = truth.valid[:-1] & truth.valid[1:]
         t_a, t_b = truth.t_ns[:-1][ok], truth.t_ns[1:][ok]
         dyaw = (truth.yaw[1:] - truth.yaw[:-1])[ok]
-        margin = int(OFFSET_RANGE_S * 1e9)
+        margin = s_to_ns(OFFSET_RANGE_S)
         inside = gyro.covered(t_a - margin, t_b + margin, max_gap, holes)
         if inside.sum() == 0:
             inside = gyro.covered(t_a, t_b, max_gap, holes)
@@ -121,7 +122,7 @@ def _pairs(drives: Sequence[Drive]) -> list[tuple]:
 
 
 def _design(pairs, offset_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    off = int(round(offset_s * 1e9))
+    off = s_to_ns(offset_s)
     big_g, dt, dyaw = [], [], []
     for gyro, t_a, t_b, dy in pairs:
         big_g.append(gyro.between(t_a + off, t_b + off))
@@ -190,7 +191,7 @@ def _blocks(pairs) -> list[np.ndarray]:
     """Return the pair indices (into the stacked design) of each bootstrap block."""
     out, start = [], 0
     for _, t_a, _, _ in pairs:
-        label = ((t_a - t_a[0]) // int(BLOCK_S * 1e9)).astype(np.int64)
+        label = ((t_a - t_a[0]) // s_to_ns(BLOCK_S)).astype(np.int64)
         for value in np.unique(label):
             out.append(start + np.nonzero(label == value)[0])
         start += t_a.size

@@ -40,6 +40,7 @@ import numpy as np
 from skidkin_ros.core.drive import Drive, WheelSamples
 from skidkin_ros.core.odometry.integrator import wrap_angle
 from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['SegmentOptions', 'HorizonOptions', 'SegmentCounts', 'SegmentSet', 'cut_segments',
@@ -226,7 +227,7 @@ def _cut_indices(path: np.ndarray, yaw: np.ndarray, t_ns: np.ndarray,
     while a < n - 1:
         # Both path and time are non-decreasing: the end is a binary search away.
         if options.horizon_s is not None:
-            goal = t_ns[a] + int(round(options.horizon_s * 1e9)) - 1
+            goal = t_ns[a] + s_to_ns(options.horizon_s) - 1
             b = int(np.searchsorted(t_ns, goal, side='left'))
         else:
             b = int(np.searchsorted(path, path[a] + options.horizon_m, side='left'))

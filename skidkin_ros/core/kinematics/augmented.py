@@ -38,6 +38,7 @@ from scipy.signal import lfilter
 from skidkin_ros.core.kinematics.extensions import get_extension, ordered
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['AUGMENTED_NAME', 'AugmentedModel', 'AugmentedState', 'BoundAugmented',
@@ -130,7 +131,7 @@ class BoundAugmented:
 
     @property
     def output_offset_ns(self) -> int:
-        return int(round(self.output_offset_s * 1e9))
+        return s_to_ns(self.output_offset_s)
 
     def extension_values(self) -> dict[str, dict[str, float]]:
         """Return {extension: {parameter: value}} in application order."""

@@ -42,13 +42,13 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
+from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 
 __all__ = ['IMU_MODES', 'IMU_SPECS', 'GYRO_RATE_LIMIT', 'ImuParams', 'GyroStatus', 'GyroBuffer',
            'GainBiasFilter', 'usable_gyro', 'GyroIntegral',
            'GyroAid', 'AidStep']
 
 IMU_MODES = ('off', 'adapt', 'fuse')
-NS_PER_S = 1_000_000_000
 # |yaw rate| no gyro measures (rad/s): the widest MEMS ranges are +-20 000 deg/s (349 rad/s).
 # A recorded rate beyond it is a corrupt value, not a saturated sample.
 GYRO_RATE_LIMIT = 400.0
@@ -183,7 +183,7 @@ class GyroBuffer:
         self.params = params
         self._t: list[int] = []
         self._g: list[float] = []   # NaN marks a saturated sample (a hole)
-        self._keep_ns = int(keep_s * NS_PER_S)
+        self._keep_ns = s_to_ns(keep_s)
         self.counts: collections.Counter[str] = collections.Counter()
 
     def clear(self) -> None:
@@ -220,7 +220,7 @@ class GyroBuffer:
         return status
 
     def _offset_ns(self) -> int:
-        return int(round(self.params.time_offset * NS_PER_S))
+        return s_to_ns(self.params.time_offset)
 
     def stale(self, t1_wheel_ns: int) -> bool:
         """Tell whether no sample is within imu.timeout before the (shifted) interval end."""

@@ -33,6 +33,7 @@ import numpy as np
 from skidkin_ros.core.odometry.interval import (check_interval, DEFAULT_INTERVAL, held_speeds,
                                                 interval_speed)
 from skidkin_ros.core.odometry.wheels import jump_limit, jumped_sides
+from skidkin_ros.core.timeunits import ns_to_s
 
 __all__ = [
     'SMALL_ANGLE_RAD',
@@ -486,7 +487,7 @@ class StreamingIntegrator:
         dt_ns = t_ns - self.last_t_ns
         if dt_ns < 0:
             return self._result(SampleStatus.OLDER_STAMP,
-                                detail=f'stamp older than previous by {-dt_ns / 1e9:.6f} s')
+                                detail=f'stamp older than previous by {ns_to_s(-dt_ns):.6f} s')
         dt_s = dt_ns * 1e-9
         if dt_s > self.limits.max_dt_s:
             self._hold(t_ns, omega_l, omega_r, restart=True)

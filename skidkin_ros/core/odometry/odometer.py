@@ -50,13 +50,13 @@ from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TW
 from skidkin_ros.core.odometry.propagation import (PoseCovariancePropagator,
                                                    TWIST_VARIANCE_FLOOR)
 from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer, WheelSignal
+from skidkin_ros.core.timeunits import NS_PER_S
 
 __all__ = ['SampleRules', 'Estimate', 'Odometer', 'Prediction', 'predict_wheels',
            'check_pose', 'check_covariance', 'POSE_LIMIT_M', 'YAW_LIMIT_RAD',
            'YAW_RESOLUTION_RAD', 'VARIANCE_LIMIT',
            'STEP_BACK_CONFIRM']
 
-NS_PER_S = 1_000_000_000
 # A pose set from outside is refused beyond this (m): a step from 1e308 m cannot stay finite, and
 # no odometry frame is a million kilometres wide.
 POSE_LIMIT_M = 1e9
