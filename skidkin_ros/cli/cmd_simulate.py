@@ -8,6 +8,7 @@ from pathlib import Path
 from skidkin_ros.adapters.sim_writer import write_bag
 from skidkin_ros.atomic import check_writable, check_writable_dir
 from skidkin_ros.cli.common import say
+from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY
 from skidkin_ros.errors import OutputError, ParameterError
 from skidkin_ros.sim.effects import EFFECTS, make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
@@ -53,8 +54,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--out', type=Path, required=True, help='bag folder to create')
     parser.add_argument('--duration', type=float, default=120.0, help='seconds of driving')
     parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--wheel-radius', type=float, default=0.1651, metavar='M')
-    parser.add_argument('--track-width', type=float, default=0.555, metavar='M')
+    parser.add_argument('--wheel-radius', type=float, default=DEFAULT_GEOMETRY.wheel_radius,
+                        metavar='M')
+    parser.add_argument('--track-width', type=float, default=DEFAULT_GEOMETRY.track_width,
+                        metavar='M')
     parser.add_argument('--encoder-noise', type=float, default=0.05, metavar='RAD_S')
     parser.add_argument('--effect', action='append', metavar='NAME[=STRENGTH]',
                         help='add an unmodelled effect (repeatable): ' + ', '.join(EFFECTS))

@@ -20,7 +20,7 @@ from skidkin_ros.atomic import check_writable_dir
 from skidkin_ros.cli.progress import Progress
 from skidkin_ros.cli.tables import error_table, parameter_lines
 from skidkin_ros.core.calibration.pipeline import CalibrationResult
-from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY, Geometry
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.core.parallel import usable_cpus
 
@@ -99,9 +99,11 @@ def default_cache_dir() -> Path:
 def add_geometry_args(parser: argparse.ArgumentParser, required: bool = False) -> None:
     group = parser.add_argument_group('robot geometry (measured)')
     group.add_argument('--wheel-radius', type=float, required=required, metavar='M',
-                       help='wheel radius r in m (default: from --params, else 0.1651)')
+                       help='wheel radius r in m (default: from --params, else '
+                            f'{DEFAULT_GEOMETRY.wheel_radius:g})')
     group.add_argument('--track-width', type=float, required=required, metavar='M',
-                       help='track width b in m (default: from --params, else 0.555)')
+                       help='track width b in m (default: from --params, else '
+                            f'{DEFAULT_GEOMETRY.track_width:g})')
 
 
 def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) -> None:
@@ -159,7 +161,7 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
 
 
 def geometry_from_args(args: argparse.Namespace, fallback: Geometry | None = None) -> Geometry:
-    fallback = fallback or Geometry(0.1651, 0.555)
+    fallback = fallback or DEFAULT_GEOMETRY
     return Geometry(args.wheel_radius if args.wheel_radius is not None
                     else fallback.wheel_radius,
                     args.track_width if args.track_width is not None else fallback.track_width)

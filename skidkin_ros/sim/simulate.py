@@ -17,7 +17,7 @@ import numpy as np
 
 from skidkin_ros.core.drive import Drive, ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
-from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY, Geometry
 from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.effects import Effect
@@ -52,8 +52,8 @@ class SimConfig:
 
     duration_s: float = 60.0
     seed: int = 0
-    wheel_radius: float = 0.1651
-    track_width: float = 0.555
+    wheel_radius: float = DEFAULT_GEOMETRY.wheel_radius
+    track_width: float = DEFAULT_GEOMETRY.track_width
     true_model: str = 'edd_asymmetric'
     true_params: Mapping[str, float] = field(
         default_factory=lambda: dict(DEFAULT_TRUE_PARAMS))

@@ -12,9 +12,12 @@ from typing import Callable, Mapping, Union
 
 from skidkin_ros.errors import ParameterError
 
-__all__ = ['Geometry', 'ParamSpec', 'GEOMETRY_SPECS', 'check_value']
+__all__ = ['Geometry', 'ParamSpec', 'GEOMETRY_SPECS', 'DEFAULT_GEOMETRY', 'check_value']
 
 INF = math.inf
+# The default robot, the one home of its numbers: a Clearpath Husky A200 (published geometry).
+DEFAULT_WHEEL_RADIUS_M = 0.1651
+DEFAULT_TRACK_WIDTH_M = 0.555
 
 
 @dataclass(frozen=True)
@@ -125,18 +128,19 @@ def check_value(spec: ParamSpec, value: object, prefix: str = '') -> float:
 
 
 GEOMETRY_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec('wheel_radius', 'm', 0.1651, 0.0, 5.0, 'wheel radius r (measured)',
-              default_doc='0.1651 (Husky A200)', lower_open=True),
-    ParamSpec('track_width', 'm', 0.555, 0.0, 20.0,
+    ParamSpec('wheel_radius', 'm', DEFAULT_WHEEL_RADIUS_M, 0.0, 5.0, 'wheel radius r (measured)',
+              default_doc=f'{DEFAULT_WHEEL_RADIUS_M:g} (Husky A200)', lower_open=True),
+    ParamSpec('track_width', 'm', DEFAULT_TRACK_WIDTH_M, 0.0, 20.0,
               'track width b: distance between left and right wheel centres (measured)',
-              default_doc='0.555 (Husky A200)', lower_open=True),
+              default_doc=f'{DEFAULT_TRACK_WIDTH_M:g} (Husky A200)', lower_open=True),
 )
+DEFAULT_GEOMETRY = Geometry(DEFAULT_WHEEL_RADIUS_M, DEFAULT_TRACK_WIDTH_M)
 
 
 def spec_table(specs: Mapping[str, ParamSpec]) -> list[tuple[str, str, str, str, str]]:
     """Rows (name, unit, default, range, description) for documentation tables."""
     rows = []
     for spec in specs.values():
-        default = spec.default_doc or f'{spec.default_for(Geometry(0.1651, 0.555)):g}'
+        default = spec.default_doc or f'{spec.default_for(DEFAULT_GEOMETRY):g}'
         rows.append((spec.name, spec.unit, default, spec.range_text(), spec.description))
     return rows

@@ -40,6 +40,7 @@ from typing import Callable, Mapping, NamedTuple, Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
+from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY
 from skidkin_ros.core.odometry.config import node_default, OdometryConfig
 from skidkin_ros.core.odometry.gyro import GyroAid, GyroStatus, ImuParams
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, step_scalar,
@@ -160,7 +161,7 @@ class Odometer:
                  covariance: PoseCovariancePropagator | None = None, *,
                  counters: collections.Counter[str] | None = None, warn: Warn | None = None,
                  fresh: Callable[[], None] | None = None, imu: ImuParams | None = None,
-                 wheel_radius_m: float = 0.1651,
+                 wheel_radius_m: float = DEFAULT_GEOMETRY.wheel_radius,
                  interval: str = DEFAULT_INTERVAL, wheel_signal: str = 'velocity',
                  note: Callable[[str], None] | None = None) -> None:
         self.integrator = StreamingIntegrator(source, limits, interval)
@@ -630,7 +631,8 @@ class Prediction:
 def predict_wheels(wheels: WheelSamples, source: TwistSource,
                    limits: IntegratorLimits | None = None,
                    start: Sequence[float] = (0.0, 0.0, 0.0), imu: ImuSamples | None = None,
-                   imu_params: ImuParams | None = None, wheel_radius_m: float = 0.1651,
+                   imu_params: ImuParams | None = None,
+                   wheel_radius_m: float = DEFAULT_GEOMETRY.wheel_radius,
                    interval: str = DEFAULT_INTERVAL) -> Prediction:
     """Run ``source`` over every wheel sample from ``start``, through the node's odometer."""
     return Odometer(source, limits, imu=imu_params, wheel_radius_m=wheel_radius_m,
