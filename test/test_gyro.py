@@ -8,7 +8,7 @@ from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.odometry.gyro import GainBiasFilter, GyroBuffer, GyroStatus, ImuParams
+from skidkin_ros.core.odometry.gyro import GainBiasFilter, GyroBuffer, GyroParams, GyroStatus
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
@@ -20,7 +20,7 @@ GEOMETRY = Geometry(0.1651, 0.555)
 
 
 def _buffer(samples, **kwargs):
-    buffer = GyroBuffer(ImuParams(mode='fuse', **kwargs))
+    buffer = GyroBuffer(GyroParams(mode='fuse', **kwargs))
     for t_ms, rate in samples:
         buffer.add(t_ms * MS, rate)
     return buffer
@@ -84,7 +84,7 @@ def test_a_spike_is_skipped_a_real_ramp_is_not():
 
 
 def test_filter_learns_a_gain_step_and_stays_bounded():
-    params = ImuParams(mode='adapt', r_floor=1e-3, r_rel=0.05, q_gain=0.03)
+    params = GyroParams(mode='adapt', r_floor=1e-3, r_rel=0.05, q_gain=0.03)
     kf = GainBiasFilter(params)
     rng = np.random.default_rng(1)
     for i in range(400):   # 0.05 s intervals at 0.5 m/s: 10 m; the true gain is 0.7
@@ -102,7 +102,7 @@ def test_filter_learns_a_gain_step_and_stays_bounded():
 
 
 def test_filter_learns_the_bias_at_standstill_only():
-    kf = GainBiasFilter(ImuParams(mode='adapt', bias_sigma=0.01))
+    kf = GainBiasFilter(GyroParams(mode='adapt', bias_sigma=0.01))
     for _ in range(100):
         kf.predict(0.0, 0.05, stale=False)
         kf.update(0.004, 0.0, moving=False)
@@ -113,7 +113,7 @@ def test_filter_learns_the_bias_at_standstill_only():
 
 
 def test_stale_gyro_relaxes_the_gain_toward_the_model():
-    kf = GainBiasFilter(ImuParams(mode='adapt', fallback_distance=10.0))
+    kf = GainBiasFilter(GyroParams(mode='adapt', fallback_distance=10.0))
     kf.gain = 0.6
     kf.predict(10.0, 20.0, stale=True)
     assert kf.gain == pytest.approx(1.0 - 0.4 / math.e)
@@ -130,7 +130,7 @@ def _odometer(mode, **imu):
     model = get_model('ideal_dd').bind({}, GEOMETRY)
     noise = NoiseModel(1e-3, 1e-3, 1e-4, 1e-3)
     return Odometer(model, covariance=PoseCovariancePropagator(noise, [1] * 6, [1] * 6),
-                    imu=ImuParams(mode=mode, **imu), wheel_radius_m=GEOMETRY.wheel_radius)
+                    imu=GyroParams(mode=mode, **imu), wheel_radius_m=GEOMETRY.wheel_radius)
 
 
 def _gyro(wheels, rate, hz=100, fault=None):
@@ -208,7 +208,7 @@ def _shifted_gyro(sim, scale, bias, offset_s):
 def test_fit_gyro_recovers_scale_bias_and_time_offset():
     from dataclasses import replace
 
-    from skidkin_ros.core.calibration.imu import fit_gyro
+    from skidkin_ros.core.calibration.gyro_fit import fit_gyro
     from skidkin_ros.sim.simulate import SimConfig, simulate
     sim = simulate(SimConfig(duration_s=40.0, seed=4))
     drive = replace(sim.drive('g'), imu=_shifted_gyro(sim, 1.03, 0.02, -0.08))
@@ -217,8 +217,8 @@ def test_fit_gyro_recovers_scale_bias_and_time_offset():
     assert fit.bias == pytest.approx(0.02, abs=0.002)
     assert fit.time_offset == pytest.approx(-0.08, abs=0.003)
     # the fitted calibration undoes it: the buffer's mean equals the true yaw rate
-    buffer = GyroBuffer(ImuParams(mode='fuse', scale=fit.scale, bias=fit.bias,
-                                  time_offset=fit.time_offset))
+    buffer = GyroBuffer(GyroParams(mode='fuse', scale=fit.scale, bias=fit.bias,
+                                   time_offset=fit.time_offset))
     t0 = int(sim.wheels.t_ns[400])
     for t, g in zip(drive.imu.t_ns, drive.imu.yaw_rate):
         if t <= t0 + NS_PER_S:          # the buffer keeps the last few seconds
@@ -239,7 +239,7 @@ def test_fit_gyro_offset_is_not_fooled_by_truth_noisier_while_turning():
     """
     from dataclasses import replace
 
-    from skidkin_ros.core.calibration.imu import fit_gyro
+    from skidkin_ros.core.calibration.gyro_fit import fit_gyro
     from skidkin_ros.core.drive import PoseTrack
     from skidkin_ros.sim.simulate import SimConfig, simulate
     sim = simulate(SimConfig(duration_s=60.0, seed=5))
@@ -258,7 +258,7 @@ def test_fit_gyro_offset_is_not_fooled_by_truth_noisier_while_turning():
 def test_fit_gyro_refuses_an_upside_down_imu():
     from dataclasses import replace
 
-    from skidkin_ros.core.calibration.imu import fit_gyro
+    from skidkin_ros.core.calibration.gyro_fit import fit_gyro
     from skidkin_ros.errors import FitError
     from skidkin_ros.sim.simulate import SimConfig, simulate
     sim = simulate(SimConfig(duration_s=30.0, seed=4))
@@ -273,7 +273,7 @@ def test_old_parameter_files_load_with_the_gyro_off(tmp_path):
     text = path.read_text()
     assert 'imu' not in text
     config = OdometryConfig.from_file(path)
-    assert config.imu == ImuParams()
+    assert config.imu == GyroParams()
     odometer = Odometer.from_config(config)
     assert odometer.gyro is None and odometer.integrator.aid is None
 
@@ -286,7 +286,7 @@ def test_evaluate_imu_mode_scores_a_model_with_a_time_offset_at_its_published_st
     """
     from dataclasses import replace
 
-    from skidkin_ros.core.calibration.imu import evaluate_imu_mode
+    from skidkin_ros.core.calibration.gyro_fit import evaluate_gyro_mode
     from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
     from skidkin_ros.core.drive import PoseTrack
     from skidkin_ros.sim.simulate import SimConfig, simulate
@@ -299,7 +299,8 @@ def test_evaluate_imu_mode_scores_a_model_with_a_time_offset_at_its_published_st
             'interval': 'midpoint',
             **{f'models.{config.true_model}.{k}': v for k, v in config.true_params.items()}}
     segments = cut_segments([late], SegmentOptions(horizon_m=2.0, interval='midpoint'))
-    score = evaluate_imu_mode(OdometryConfig.from_flat(flat), [late], segments, 'augmented', 'off')
+    score = evaluate_gyro_mode(OdometryConfig.from_flat(flat), [late], segments, 'augmented',
+                               'off')
     assert len(segments) > 5
     assert score.evaluation.stats_t.median < 0.01
     assert score.end_position_m.median < 0.05
@@ -320,7 +321,7 @@ def test_the_batch_gyro_rule_is_the_buffers():
     g[300] = math.nan
     t[250:] += 150 * MS                         # a 160 ms gap
     t[330] = t[329]                             # a duplicate stamp
-    params = ImuParams(mode='fuse', timeout=10.0)
+    params = GyroParams(mode='fuse', timeout=10.0)
     buffer = GyroBuffer(params, keep_s=100.0)
     for tk, gk in zip(t.tolist(), g.tolist()):
         buffer.add(tk, gk)

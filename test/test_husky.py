@@ -67,7 +67,7 @@ def test_the_interval_rule_keeps_ending_within_the_tie_tolerance():
 
 @pytest.mark.skipif(not DATA.is_file(), reason='Husky table not available')
 def test_husky_gyro_calibration_and_fuse():
-    from skidkin_ros.core.calibration.imu import evaluate_imu_mode
+    from skidkin_ros.core.calibration.gyro_fit import evaluate_gyro_mode
     from skidkin_ros.core.calibration.pipeline import result_to_parameters
     from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
     from skidkin_ros.core.odometry.config import OdometryConfig
@@ -82,7 +82,7 @@ def test_husky_gyro_calibration_and_fuse():
     config = OdometryConfig.from_flat(result_to_parameters(result))
     assert config.imu.mode == 'off' and config.imu.time_offset == gyro.time_offset
     segments = cut_segments(evaluate, SegmentOptions(horizon_m=2.0))
-    scores = {mode: evaluate_imu_mode(config, evaluate, segments, 'edd_symmetric', mode)
+    scores = {mode: evaluate_gyro_mode(config, evaluate, segments, 'edd_symmetric', mode)
               for mode in ('off', 'adapt', 'fuse')}
     off, adapt, fuse = (scores[m].evaluation for m in ('off', 'adapt', 'fuse'))
     assert off.stats_theta.median == pytest.approx(

@@ -12,11 +12,11 @@ from skidkin_ros.cli.common import (add_source_args, check_report_dir, print_not
                                     source_options)
 from skidkin_ros.cli.tables import error_table, imu_table
 from skidkin_ros.core.calibration.evaluation import evaluate_models
+from skidkin_ros.core.calibration.gyro_fit import evaluate_gyro_mode
 from skidkin_ros.core.calibration.holdout import split_holdout
-from skidkin_ros.core.calibration.imu import evaluate_imu_mode
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.odometry.gyro import IMU_MODES
+from skidkin_ros.core.odometry.gyro import GYRO_MODES
 from skidkin_ros.errors import DataError, OutputError, ParameterError
 from skidkin_ros.report.figures import error_distributions
 
@@ -44,8 +44,8 @@ def run(args: argparse.Namespace) -> int:
         evaluation = evaluate_models(values, config.geometry, segments)
         table = error_table(evaluation, best=config.model)
     else:
-        modes = IMU_MODES if 'all' in args.imu_mode else tuple(dict.fromkeys(args.imu_mode))
-        scores = {f'{m} {mode}': evaluate_imu_mode(config, drives, segments, m, mode)
+        modes = GYRO_MODES if 'all' in args.imu_mode else tuple(dict.fromkeys(args.imu_mode))
+        scores = {f'{m} {mode}': evaluate_gyro_mode(config, drives, segments, m, mode)
                   for m in models for mode in modes}
         evaluation = {name: score.evaluation for name, score in scores.items()}
         table = imu_table(scores, config)
@@ -106,7 +106,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--split-by', metavar='COLUMN',
                         help='score only the drives with an odd value of COLUMN (the held-out '
                         'half of calibrate --split-by COLUMN)')
-    parser.add_argument('--imu-mode', nargs='+', choices=IMU_MODES + ('all',),
+    parser.add_argument('--imu-mode', nargs='+', choices=GYRO_MODES + ('all',),
                         help="run the node's odometer in these imu modes (off, adapt, fuse, all) "
                         "with the file's imu.* gyro calibration, the learned gain carried from "
                         "drive to drive as in one node; adds the errors at each drive's end")

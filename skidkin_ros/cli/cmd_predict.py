@@ -12,7 +12,7 @@ from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.odometry.gyro import IMU_MODES
+from skidkin_ros.core.odometry.gyro import GYRO_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.errors import DataError, ParameterError
 
@@ -107,7 +107,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument('source', type=Path, help='bag or trajectory table')
     parser.add_argument('--params', type=Path, required=True, help='parameters file')
     parser.add_argument('--model', help="model to use (default: the file's model)")
-    parser.add_argument('--imu-mode', choices=IMU_MODES,
+    parser.add_argument('--imu-mode', choices=GYRO_MODES,
                         help="use the gyro as odom_node's imu.mode does (default: the file's "
                         'imu.mode); a bag needs --imu-topic (or one Imu topic), a table the '
                         'imu_yaw_rate column')

@@ -16,7 +16,7 @@
 5. pick the best model by the rule below;
 6. with a gyro in the training data: fit its scale, bias and time offset on the training drives
    and, with the best model, the gyro modes' noise on the evaluation drives
-   (:mod:`skidkin_ros.core.calibration.imu`).
+   (:mod:`skidkin_ros.core.calibration.gyro_fit`).
 
 The fit (step 2) is the iterated one of :mod:`skidkin_ros.core.calibration.weighting` (each
 segment weighted by the covariance the noise model predicts for it) unless ``weighting`` is
@@ -52,9 +52,9 @@ from skidkin_ros import __version__
 from skidkin_ros.core.calibration.evaluation import (evaluate_models, ModelEvaluation,
                                                      window_end_errors, WindowEnd)
 from skidkin_ros.core.calibration.fitting import FitOptions, FitResult
+from skidkin_ros.core.calibration.gyro_fit import (fit_adapt_yaw_scale, fit_filter_noise,
+                                                   fit_gyro, gyro_parameters, GyroFit)
 from skidkin_ros.core.calibration.holdout import resolve_holdout
-from skidkin_ros.core.calibration.imu import (fit_adapt_yaw_scale, fit_filter_noise, fit_gyro,
-                                              gyro_parameters, GyroFit)
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
 from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
                                                    SegmentSet, usable_segments)

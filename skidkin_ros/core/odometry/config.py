@@ -21,7 +21,7 @@ from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
-from skidkin_ros.core.odometry.gyro import IMU_MODES, IMU_SPECS, ImuParams
+from skidkin_ros.core.odometry.gyro import GYRO_MODES, GYRO_SPECS, GyroParams
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
@@ -240,10 +240,10 @@ def _imu_entries() -> list[SchemaEntry]:
     entries = [SchemaEntry('imu.mode', 'string', 'off',
                            'gyro use: off (wheels only), adapt (model yaw rate x a gain learned '
                            'from the gyro) or fuse (the gyro yaw rate replaces the model one)',
-                           choices=IMU_MODES)]
+                           choices=GYRO_MODES)]
     entries += [SchemaEntry(f'imu.{spec.name}', 'double', spec.default_for(None),
                             f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
-                for spec in IMU_SPECS]
+                for spec in GYRO_SPECS]
     return entries
 
 
@@ -389,9 +389,9 @@ class OdometryConfig:
             np.asarray(flat, dtype=float).reshape(size, size))
 
     @property
-    def imu(self) -> ImuParams:
+    def imu(self) -> GyroParams:
         """Return the gyro parameters (imu.*; mode off unless set)."""
-        return ImuParams.from_values(self.values)
+        return GyroParams.from_values(self.values)
 
     @property
     def active_noise(self) -> NoiseModel | None:

@@ -44,17 +44,17 @@ import numpy as np
 from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 
-__all__ = ['IMU_MODES', 'IMU_SPECS', 'GYRO_RATE_LIMIT', 'ImuParams', 'GyroStatus', 'GyroBuffer',
+__all__ = ['GYRO_MODES', 'GYRO_SPECS', 'GYRO_RATE_LIMIT', 'GyroParams', 'GyroStatus', 'GyroBuffer',
            'GainBiasFilter', 'usable_gyro', 'GyroIntegral',
            'GyroAid', 'AidStep']
 
-IMU_MODES = ('off', 'adapt', 'fuse')
+GYRO_MODES = ('off', 'adapt', 'fuse')
 # |yaw rate| no gyro measures (rad/s): the widest MEMS ranges are +-20 000 deg/s (349 rad/s).
 # A recorded rate beyond it is a corrupt value, not a saturated sample.
 GYRO_RATE_LIMIT = 400.0
 
 # Node parameters imu.<name> (units in the descriptor, not the name; ranges as the node checks).
-IMU_SPECS: tuple[ParamSpec, ...] = (
+GYRO_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('scale', '', 1.0, 0.5, 2.0,
               'gyro yaw-rate scale: g = scale * omega + bias (calibrated; a z-down IMU '
               'would be -1: fix the driver or the frame)'),
@@ -106,12 +106,12 @@ IMU_SPECS: tuple[ParamSpec, ...] = (
               "adapt: the model's yaw variance times this (the gyro removes part of the "
               "model's heading error; calibrated)"),
 )
-_ATTR = {spec.name: spec.name.replace('adapt.', '') for spec in IMU_SPECS}
+_ATTR = {spec.name: spec.name.replace('adapt.', '') for spec in GYRO_SPECS}
 
 
 @dataclass(frozen=True)
-class ImuParams:
-    """The ``imu.*`` parameters (see ``IMU_SPECS`` for units and meanings)."""
+class GyroParams:
+    """The ``imu.*`` parameters (see ``GYRO_SPECS`` for units and meanings)."""
 
     mode: str = 'off'
     scale: float = 1.0
@@ -137,14 +137,14 @@ class ImuParams:
     yaw_noise_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.mode not in IMU_MODES:
-            raise ValueError(f'imu.mode must be one of {", ".join(IMU_MODES)}, got {self.mode!r}')
+        if self.mode not in GYRO_MODES:
+            raise ValueError(f'imu.mode must be one of {", ".join(GYRO_MODES)}, got {self.mode!r}')
 
     @classmethod
-    def from_values(cls, values: Mapping[str, Any], prefix: str = 'imu.') -> 'ImuParams':
+    def from_values(cls, values: Mapping[str, Any], prefix: str = 'imu.') -> 'GyroParams':
         """Return the parameters of a flat mapping (``imu.mode``, ``imu.scale``, ...), checked."""
         kwargs: dict[str, Any] = {'mode': values.get(prefix + 'mode', 'off')}
-        for spec in IMU_SPECS:
+        for spec in GYRO_SPECS:
             if prefix + spec.name in values:
                 kwargs[_ATTR[spec.name]] = check_value(spec, values[prefix + spec.name], prefix)
         return cls(**kwargs)
@@ -152,12 +152,12 @@ class ImuParams:
     def as_values(self, prefix: str = 'imu.') -> dict[str, Any]:
         """Return the flat ``imu.*`` mapping of these parameters (inverse of from_values)."""
         out: dict[str, Any] = {prefix + 'mode': self.mode}
-        for spec in IMU_SPECS:
+        for spec in GYRO_SPECS:
             out[prefix + spec.name] = float(getattr(self, _ATTR[spec.name]))
         return out
 
 
-assert {f.name for f in fields(ImuParams)} == set(_ATTR.values()) | {'mode'}
+assert {f.name for f in fields(GyroParams)} == set(_ATTR.values()) | {'mode'}
 
 
 class GyroStatus(enum.Enum):
@@ -179,7 +179,7 @@ class GyroStatus(enum.Enum):
 class GyroBuffer:
     """Recent gyro samples (about ``keep_s``) and the interval means the odometry asks for."""
 
-    def __init__(self, params: ImuParams, keep_s: float = 3.0) -> None:
+    def __init__(self, params: GyroParams, keep_s: float = 3.0) -> None:
         self.params = params
         self._t: list[int] = []
         self._g: list[float] = []   # NaN marks a saturated sample (a hole)
@@ -297,7 +297,7 @@ class GyroBuffer:
         return GyroStatus.COVERED, (mean - p.bias) / p.scale
 
 
-def usable_gyro(t_ns: np.ndarray, rate: np.ndarray, params: ImuParams | None = None
+def usable_gyro(t_ns: np.ndarray, rate: np.ndarray, params: GyroParams | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (t_ns, rate, holes) of a recorded gyro under :class:`GyroBuffer`'s sample rules.
 
@@ -308,7 +308,7 @@ def usable_gyro(t_ns: np.ndarray, rate: np.ndarray, params: ImuParams | None = N
     a saturated sample is dropped and blocks every interval that reaches past the kept samples
     around it: ``holes`` (K, 2) holds those open spans (previous, next kept stamp).
     """
-    p = params or ImuParams()
+    p = params or GyroParams()
     t_ns = np.asarray(t_ns, dtype=np.int64)
     g = np.asarray(rate, dtype=float)
     keep = np.isfinite(g)
@@ -416,7 +416,7 @@ class GainBiasFilter:
     clamped to [gain_min, gain_max].
     """
 
-    def __init__(self, params: ImuParams) -> None:
+    def __init__(self, params: GyroParams) -> None:
         self.params = params
         self.reset()
 
@@ -501,7 +501,7 @@ class GyroAid:
     samples are counted by the buffer).
     """
 
-    def __init__(self, params: ImuParams, wheel_radius_m: float) -> None:
+    def __init__(self, params: GyroParams, wheel_radius_m: float) -> None:
         if params.mode == 'off':
             raise ValueError('GyroAid needs imu.mode adapt or fuse')
         self.params = params

@@ -42,7 +42,7 @@ import numpy as np
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY
 from skidkin_ros.core.odometry.config import node_default, OdometryConfig
-from skidkin_ros.core.odometry.gyro import GyroAid, GyroStatus, ImuParams
+from skidkin_ros.core.odometry.gyro import GyroAid, GyroParams, GyroStatus
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, step_scalar,
                                                   StepResult, StreamingIntegrator, TwistSource)
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
@@ -160,7 +160,7 @@ class Odometer:
                  rules: SampleRules | None = None,
                  covariance: PoseCovariancePropagator | None = None, *,
                  counters: collections.Counter[str] | None = None, warn: Warn | None = None,
-                 fresh: Callable[[], None] | None = None, imu: ImuParams | None = None,
+                 fresh: Callable[[], None] | None = None, imu: GyroParams | None = None,
                  wheel_radius_m: float = DEFAULT_GEOMETRY.wheel_radius,
                  interval: str = DEFAULT_INTERVAL, wheel_signal: str = 'velocity',
                  note: Callable[[str], None] | None = None) -> None:
@@ -183,7 +183,7 @@ class Odometer:
         # Wheel samples waiting for the gyro samples that cover them: (t_ns, l, r, arrival_ns).
         self._pending: collections.deque[tuple[int, float, float, int]] = collections.deque()
         self.gyro: GyroAid | None = None
-        self.set_imu(imu or ImuParams(), wheel_radius_m)
+        self.set_imu(imu or GyroParams(), wheel_radius_m)
 
     @classmethod
     def from_config(cls, config: OdometryConfig, model: str | None = None, *,
@@ -232,7 +232,7 @@ class Odometer:
         self.set_rules(SampleRules.from_config(config))
         self.set_imu(config.imu, config.geometry.wheel_radius)
 
-    def set_imu(self, params: ImuParams, wheel_radius_m: float) -> None:
+    def set_imu(self, params: GyroParams, wheel_radius_m: float) -> None:
         """Use the gyro as ``params`` say (mode off: not at all).
 
         Unchanged parameters keep the gyro history and the learned gain and bias; changed ones
@@ -631,7 +631,7 @@ class Prediction:
 def predict_wheels(wheels: WheelSamples, source: TwistSource,
                    limits: IntegratorLimits | None = None,
                    start: Sequence[float] = (0.0, 0.0, 0.0), imu: ImuSamples | None = None,
-                   imu_params: ImuParams | None = None,
+                   imu_params: GyroParams | None = None,
                    wheel_radius_m: float = DEFAULT_GEOMETRY.wheel_radius,
                    interval: str = DEFAULT_INTERVAL) -> Prediction:
     """Run ``source`` over every wheel sample from ``start``, through the node's odometer."""

@@ -30,7 +30,7 @@ offset, and ground truth whose yaw noise grows with the turning rate (kiss-icp's
 offset trim the turning pairs away: the demo's simulated drive fitted -405 ms for a gyro
 without offset (fault matrix C100).
 
-:func:`evaluate_imu_mode` runs the node's odometer (:meth:`Odometer.predict`, so exactly what the
+:func:`evaluate_gyro_mode` runs the node's odometer (:meth:`Odometer.predict`, so exactly what the
 node and ``skidkin predict`` do) over the drives in order, the learned gain and bias carried from
 drive to drive, and scores the evaluation segments with the one :func:`relative_errors`.
 """
@@ -55,7 +55,7 @@ from skidkin_ros.errors import DataError, FitError
 __all__ = ['GyroFit', 'fit_gyro', 'gyro_white_noise', 'fit_filter_noise', 'fit_adapt_yaw_scale',
            'segment_windows', 'run_windows', 'window_nees', 'gyro_parameters',
            'predict_drives',
-           'odometry_segment_errors', 'ModeScore', 'evaluate_imu_mode']
+           'odometry_segment_errors', 'ModeScore', 'evaluate_gyro_mode']
 
 TRIM_SIGMAS = 5.0
 OFFSET_RANGE_S = 0.5
@@ -465,8 +465,8 @@ class ModeScore:
     nees: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per window (3 dof)
 
 
-def evaluate_imu_mode(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet,
-                      model: str, mode: str, min_path_m: float = 0.1) -> ModeScore:
+def evaluate_gyro_mode(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet,
+                       model: str, mode: str, min_path_m: float = 0.1) -> ModeScore:
     """Score ``model`` in imu ``mode`` on ``segments`` (cut on ``drives``), like the node runs.
 
     The relative motion the odometry predicts from t_a to t_b (poses at the wheel samples,
