@@ -7,7 +7,8 @@ import pytest
 from skidkin_ros.core.calibration.diagnosis import (body_velocities, DiagnosisOptions,
                                                     ModelState, stlsq, truth_velocities)
 from skidkin_ros.core.calibration.diagnosis.residuals import COMPONENTS, pose_samples
-from skidkin_ros.core.calibration.diagnosis.selection import Outcome, pick, RoundScore, sparsest
+from skidkin_ros.core.calibration.diagnosis.select_extensions import (Outcome, pick, RoundScore,
+                                                                      sparsest)
 from skidkin_ros.core.calibration.diagnosis.tracing import residual_leads
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, LIBRARY

@@ -22,7 +22,7 @@
    dropped once, as calibration does; off by default, because the segments a missing effect
    hits hardest look like outliers to the base model (a yaw slip at one speed ratio, fast
    driving) and trimming them hides the effect.
-4. **Selection** (:mod:`.selection`). Cross-validation over ``folds`` groups of training
+4. **Selection** (:mod:`.select_extensions`). Cross-validation over ``folds`` groups of training
    segments: each candidate's held-out loss (whitened squared end-pose error) against the
    current model's. Parsimony: a candidate is accepted only when it lowers the held-out loss by
    more than ``min_relative_gain`` AND a one-sided Wilcoxon signed-rank test of the per-segment
@@ -39,7 +39,7 @@ from skidkin_ros.core.calibration.diagnosis.recipe import diagnose
 from skidkin_ros.core.calibration.diagnosis.residuals import (body_velocities, COMPONENTS,
                                                               truth_velocities)
 from skidkin_ros.core.calibration.diagnosis.results import DiagnosisResult, ModelStep
-from skidkin_ros.core.calibration.diagnosis.selection import CandidateScore, Progress
+from skidkin_ros.core.calibration.diagnosis.select_extensions import CandidateScore, Progress
 from skidkin_ros.core.calibration.diagnosis.sparse import stlsq
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
 from skidkin_ros.core.calibration.diagnosis.tracing import Trace

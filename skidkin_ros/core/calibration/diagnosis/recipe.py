@@ -21,7 +21,7 @@ from skidkin_ros.core.calibration.diagnosis.candidates import CandidateFitter
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.residuals import pose_residuals, pose_samples
 from skidkin_ros.core.calibration.diagnosis.results import DiagnosisResult, ModelStep
-from skidkin_ros.core.calibration.diagnosis.selection import Progress, select
+from skidkin_ros.core.calibration.diagnosis.select_extensions import Progress, select
 from skidkin_ros.core.calibration.diagnosis.state import fit_state, ModelState
 from skidkin_ros.core.calibration.diagnosis.tracing import (correlations, lag_scan,
                                                             residual_leads, Trace)

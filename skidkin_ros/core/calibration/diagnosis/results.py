@@ -13,7 +13,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
-from skidkin_ros.core.calibration.diagnosis.selection import CandidateScore
+from skidkin_ros.core.calibration.diagnosis.select_extensions import CandidateScore
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
 from skidkin_ros.core.calibration.diagnosis.tracing import ResidualLead, Trace
 from skidkin_ros.core.calibration.engine import TwistSource
