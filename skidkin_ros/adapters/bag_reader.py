@@ -2,8 +2,9 @@
 
 from skidkin_ros.adapters.bags import (BagRecording, check_overlap, FLOAT64, format_summary, IMU,
                                        JOINT_STATE, keep_monotonic, LidarFrame, MAX_STAMP_JUMP_S,
-                                       ODOMETRY, open_recording, POINTCLOUD2, POSE_STAMPED,
-                                       TF_MESSAGE, TopicSummary)
+                                       NoWheelInputError, ODOMETRY, open_recording, POINTCLOUD2,
+                                       POSE_STAMPED, POSE_WITH_COVARIANCE, TF_MESSAGE,
+                                       TopicSummary)
 
 __all__ = [
     'JOINT_STATE',
@@ -12,6 +13,7 @@ __all__ = [
     'IMU',
     'ODOMETRY',
     'POSE_STAMPED',
+    'POSE_WITH_COVARIANCE',
     'TF_MESSAGE',
     'TopicSummary',
     'LidarFrame',
@@ -21,4 +23,5 @@ __all__ = [
     'check_overlap',
     'keep_monotonic',
     'MAX_STAMP_JUMP_S',
+    'NoWheelInputError',
 ]

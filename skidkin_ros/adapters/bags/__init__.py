@@ -49,7 +49,8 @@ imu); the bag receive time only for std_msgs/Float64 wheel topics, which have no
 
 from skidkin_ros.adapters.bags.common import (check_overlap, FLOAT64, format_summary, IMU,
                                               JOINT_STATE, keep_monotonic, MAX_STAMP_JUMP_S,
-                                              ODOMETRY, POINTCLOUD2, POSE_STAMPED, TF_MESSAGE,
+                                              NoWheelInputError, ODOMETRY, POINTCLOUD2,
+                                              POSE_STAMPED, POSE_WITH_COVARIANCE, TF_MESSAGE,
                                               TopicSummary)
 from skidkin_ros.adapters.bags.lidar import LidarFrame
 from skidkin_ros.adapters.bags.recording import BagRecording, open_recording
@@ -61,6 +62,7 @@ __all__ = [
     'IMU',
     'ODOMETRY',
     'POSE_STAMPED',
+    'POSE_WITH_COVARIANCE',
     'TF_MESSAGE',
     'TopicSummary',
     'LidarFrame',
@@ -70,4 +72,5 @@ __all__ = [
     'check_overlap',
     'keep_monotonic',
     'MAX_STAMP_JUMP_S',
+    'NoWheelInputError',
 ]

@@ -11,6 +11,7 @@ from typing import Any, Sequence
 
 import apsw
 import numpy as np
+from rosbags.rosbag1 import ReaderError as ReaderError1
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.serde import SerdeError
 
@@ -24,9 +25,11 @@ POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 IMU = 'sensor_msgs/msg/Imu'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+POSE_WITH_COVARIANCE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 TF_MESSAGE = 'tf2_msgs/msg/TFMessage'
 
 STORAGE_SUFFIXES = ('.db3', '.mcap')
+ROS1_SUFFIX = '.bag'
 DEFAULT_MAX_CORRUPT = 10
 DEFAULT_MAX_WHEEL_SPEED_RAD_S = node_default('max_wheel_speed')
 DEFAULT_PAIR_TOLERANCE_S = node_default('pair_tolerance')
@@ -40,11 +43,15 @@ MAX_JUMP_NS = 600 * 10**9
 MAX_STAMP_JUMP_S = 5.0
 
 # Errors a storage plugin can raise mid-iteration on a damaged file (rosbags does not wrap them).
-STORAGE_ERRORS = (ReaderError, apsw.Error, sqlite3.Error, OSError, struct.error, ValueError,
-                  OverflowError, IndexError, EOFError, KeyError)
+STORAGE_ERRORS = (ReaderError, ReaderError1, apsw.Error, sqlite3.Error, OSError, struct.error,
+                  ValueError, OverflowError, IndexError, EOFError, KeyError)
 # Errors of decoding one message's bytes.
 DECODE_ERRORS = (SerdeError, UnicodeDecodeError, struct.error, ValueError, IndexError,
                  OverflowError, TypeError)
+
+
+class NoWheelInputError(RecordingError):
+    """A recording without any wheel input (no JointState, Float64 pair or odometry named)."""
 
 
 @dataclass(frozen=True)
@@ -151,6 +158,9 @@ METADATA_ERRORS = ('Could not load YAML', 'Could not read metadata', 'A metadata
 
 
 def storage_remedy(path: Path) -> str:
+    if path.suffix == ROS1_SUFFIX:
+        return (f'a damaged ROS 1 bag; on a ROS 1 machine `rosbag reindex {path}` rebuilds its '
+                'index, `rosbag check` says what is wrong')
     if path.suffix == '.mcap':
         return (f'it looks truncated (recording killed?); recover it with '
                 f'`mcap recover {path} -o recovered.mcap`, or `ros2 bag reindex` its folder')

@@ -8,7 +8,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from skidkin_ros.adapters.bags.common import ODOMETRY, POSE_STAMPED, stamp_ns, TF_MESSAGE
+from skidkin_ros.adapters.bags.common import (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE,
+                                              stamp_ns, TF_MESSAGE)
 from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.rotation import quaternion_to_yaw
 from skidkin_ros.errors import RecordingError
@@ -19,11 +20,17 @@ class PosesMixin:
 
     # -- poses -----------------------------------------------------------------------------------
     def read_pose_track(self, topic: str | None = None) -> PoseTrack:
-        """Return a planar track (x, y m; unwrapped yaw rad) from Odometry or PoseStamped."""
-        chosen = self.select((ODOMETRY, POSE_STAMPED), topic, 'ground truth')
+        """Return a planar track (x, y m; unwrapped yaw rad) from a pose topic.
+
+        nav_msgs/Odometry, geometry_msgs/PoseStamped or geometry_msgs/PoseWithCovarianceStamped
+        (AMCL's amcl_pose, robot_localization's map pose); the covariance is not used.
+        """
+        chosen = self.select((ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE), topic,
+                             'ground truth')
         rows: list[tuple[int, float, float, float]] = []
         for _, msg in self.messages(chosen):
-            pose = msg.pose.pose if hasattr(msg, 'child_frame_id') else msg.pose
+            # Odometry and PoseWithCovarianceStamped hold a PoseWithCovariance; PoseStamped a Pose.
+            pose = msg.pose.pose if hasattr(msg.pose, 'covariance') else msg.pose
             q = pose.orientation
             yaw = quaternion_to_yaw(q.x, q.y, q.z, q.w)
             row = (stamp_ns(msg.header), float(pose.position.x), float(pose.position.y), yaw)

@@ -9,6 +9,7 @@ from skidkin_ros.adapters.bags.common import DEFAULT_MAX_CORRUPT
 from skidkin_ros.adapters.bags.floats import FloatPairMixin
 from skidkin_ros.adapters.bags.imu import ImuMixin
 from skidkin_ros.adapters.bags.lidar import LidarMixin
+from skidkin_ros.adapters.bags.odom_wheels import OdomWheelsMixin
 from skidkin_ros.adapters.bags.open import BagStorage
 from skidkin_ros.adapters.bags.poses import PosesMixin
 from skidkin_ros.adapters.bags.stream import StreamMixin
@@ -16,9 +17,9 @@ from skidkin_ros.adapters.bags.topics import TopicsMixin
 from skidkin_ros.adapters.bags.wheels import WheelsMixin
 
 
-class BagRecording(WheelsMixin, FloatPairMixin, LidarMixin, ImuMixin, PosesMixin,
-                   TopicsMixin, StreamMixin, BagStorage):
-    """An open rosbag2 recording: summary, topic selection, and streaming readers.
+class BagRecording(WheelsMixin, FloatPairMixin, OdomWheelsMixin, LidarMixin, ImuMixin,
+                   PosesMixin, TopicsMixin, StreamMixin, BagStorage):
+    """An open recording (rosbag2 or ROS 1): summary, topic selection, and streaming readers.
 
     Use :func:`open_recording`; close it (or use ``with``). ``notes`` collects decisions and
     counts worth telling the user (auto-selected topics and joints, dropped messages).

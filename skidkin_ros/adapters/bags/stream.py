@@ -83,7 +83,7 @@ class StreamMixin:
         skipped = 0
         for conn, t_ns, raw in self._raw_stream(conns, ' + '.join(topics), start_ns, stop_ns):
             try:
-                msg = self.typestore.deserialize_cdr(raw, conn.msgtype)
+                msg = self._deserialize(raw, conn.msgtype)
             except DECODE_ERRORS as err:
                 skipped = self._skip(conn.topic, 'undecodable message', err, skipped)
                 continue

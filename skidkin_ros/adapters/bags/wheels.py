@@ -12,6 +12,7 @@ from skidkin_ros.adapters.bags.common import (DEFAULT_MAX_DT_S, DEFAULT_MAX_WHEE
                                               DEFAULT_MAX_WHEEL_SPEED_RAD_S,
                                               DEFAULT_PAIR_TOLERANCE_S, JOINT_STATE, stamp_ns)
 from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
                                               drop_jumps, DuplicateJointError, joint_indices,
                                               MalformedMessageError, MissingJointError,
@@ -31,8 +32,13 @@ class WheelsMixin:
                     pair_tolerance_s: float = DEFAULT_PAIR_TOLERANCE_S,
                     max_wheel_acceleration: float = DEFAULT_MAX_WHEEL_ACCELERATION,
                     max_dt_s: float = DEFAULT_MAX_DT_S,
-                    wheel_signal: str = 'velocity') -> WheelSamples:
-        """Return wheel speeds (rad/s) from a JointState topic or two Float64 topics.
+                    wheel_signal: str = 'velocity', odometry_topic: str | None = None,
+                    controller: ControllerGeometry | None = None) -> WheelSamples:
+        """Return wheel speeds (rad/s) from a JointState topic, two Float64 topics or odometry.
+
+        A drive controller's nav_msgs/Odometry (``odometry_topic``, or the only Odometry topic
+        when ``controller`` is given and nothing else names the input): see
+        :meth:`_read_odometry_wheels`; its ``controller`` geometry is required.
 
         JointState: stamps from header.stamp (a bag whose stamps are all zero uses receive
         time, noted); a side's speed is the mean of its joints' velocities, as the node takes it
@@ -43,7 +49,11 @@ class WheelsMixin:
         speed jumps faster than ``max_wheel_acceleration`` (rad/s^2) are dropped and noted
         (:meth:`_drop_jumps`).
         """
-        if left_topic is not None or right_topic is not None:
+        if odometry_topic is not None or (controller is not None and topic is None
+                                          and left_topic is None and right_topic is None):
+            wheels = self._read_odometry_wheels(odometry_topic, controller,
+                                                max_wheel_speed_rad_s)
+        elif left_topic is not None or right_topic is not None:
             wheels = self._read_float_pair(left_topic, right_topic, max_wheel_speed_rad_s,
                                            pair_tolerance_s)
         else:
@@ -53,6 +63,8 @@ class WheelsMixin:
             if pair is not None:
                 wheels = self._read_float_pair(*pair, max_wheel_speed_rad_s, pair_tolerance_s)
             else:
+                if topic is None and JOINT_STATE not in self.topics().values():
+                    self._no_wheel_input()
                 chosen = self.select(JOINT_STATE, topic, 'wheel speeds')
                 wheels = self._read_joint_states(chosen, left_joints, right_joints,
                                                  max_wheel_speed_rad_s, wheel_signal)
