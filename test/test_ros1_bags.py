@@ -197,3 +197,27 @@ def test_a_folder_of_split_ros1_bags_reads_as_one_recording(drives, tmp_path):
         assert rec.format == 'rosbag1' and len(rec.files) == 2
         np.testing.assert_array_equal(rec.read_wheels().omega_l, whole.read_wheels().omega_l)
         np.testing.assert_array_equal(rec.read_imu().yaw_rate, whole.read_imu().yaw_rate)
+
+
+@pytest.mark.heavy
+def test_c114_groundtruth_reads_a_bag_without_wheels_and_says_the_check_is_skipped(
+        drives, tmp_path, capsys):
+    bag2, _ = drives
+    # Lidar, IMU and tf_static only: the drive's JointState left out.
+    no_wheels = tmp_path / 'no_wheels.bag'
+    convert([bag2], no_wheels, '', 0, 'lz4', 'file', None, ros1_fallback_store(),
+            ['/joint_states'], [], [], [])
+    common = ['--no-cache', '--no-progress', '--jobs', '1']
+    assert main(['groundtruth', str(no_wheels), '--out', str(tmp_path / 'a.csv')] + common) == 0
+    printed = capsys.readouterr()
+    out = printed.out + printed.err
+    assert 'no wheel input' in out and 'wheel check is skipped' in out
+    assert main(['groundtruth', str(bag2), '--out', str(tmp_path / 'b.csv')] + common) == 0
+    a, b = _rows(tmp_path / 'a.csv'), _rows(tmp_path / 'b.csv')
+    assert len(a) == len(b) > 50
+    for name in ('t_ns', 'x', 'y', 'yaw'):  # the wheels only ever judge, never move a pose
+        assert [r[name] for r in a] == [r[name] for r in b]
+    # calibrate still needs the wheels: the same bag is refused there, with the topics listed.
+    code = main(['calibrate', str(no_wheels), '--out', str(tmp_path / 'p.yaml')] + common)
+    err = capsys.readouterr().err
+    assert code != 0 and 'no sensor_msgs/msg/JointState topic' in err and '/points' in err

@@ -13,9 +13,11 @@ node and the offline prediction agree by construction. For one sample:
    A stamp more than ``max_stamp_step_back`` behind the last accepted one is refused, unless
    ``STEP_BACK_CONFIRM`` samples in a row (increasing, each within ``max_dt`` of the previous)
    say the input clock itself stepped back (a driver restarted): then the odometry is reset to
-   the origin, as for a sim-time jump, and goes on from the new clock. The last accepted stamp
-   is remembered across :meth:`Odometer.reset` (~/reset, ~/set_pose), so a stale or tiny stamp
-   right after a reset is refused too; :meth:`Odometer.clock_changed` forgets it.
+   the origin, as for a sim-time jump, and goes on from the new clock. ~/reset and
+   ~/set_pose (:meth:`Odometer.reset`) change the pose and its covariance only: the last stamp
+   and held speeds stay, so the next sample integrates the whole interval since the previous one
+   (diff_drive_controller keeps its wheel baseline the same way) and a stale or tiny stamp right
+   after a reset is refused; :meth:`Odometer.clock_changed` (a new clock) forgets them.
 2. Integrate it (:meth:`Odometer.step`): the streaming integrator checks the speeds and the
    stamp (duplicate, older, gap), advances the pose, and the covariance is propagated over the
    integrated step. Every outcome is counted by cause; rejections are reported to ``warn``.
@@ -254,19 +256,30 @@ class Odometer:
 
     def reset(self, pose: Sequence[float] = (0.0, 0.0, 0.0),
               covariance: np.ndarray | None = None) -> None:
-        """Set the pose (default: the origin) and restart from it.
+        """Set the pose (default: the origin) and its covariance; the integration goes on.
 
-        The covariance restarts from (almost) zero, plus ``covariance`` (a 3 x 3 (x, y, yaw)
-        block) when given; held speeds, the integrator's last stamp and wheel values waiting for
-        a partner are forgotten. A pose or covariance the odometry cannot hold
-        (:func:`check_pose`, :func:`check_covariance`) raises ValueError and changes nothing.
+        Only the pose and its covariance change (~/reset, ~/set_pose): the last stamp, the held
+        speeds, the wheel positions, a wheel value waiting for its partner and the gyro are kept,
+        so the next sample integrates the whole interval since the last one, as
+        diff_drive_controller keeps its wheel baseline across a reset. The covariance restarts
+        from (almost) zero, plus ``covariance`` (a 3 x 3 (x, y, yaw) block) when given. A pose or
+        covariance the odometry cannot hold (:func:`check_pose`, :func:`check_covariance`)
+        raises ValueError and changes nothing. Only a new clock forgets the baseline
+        (:meth:`clock_changed`).
         """
         pose = check_pose(pose)
         block = None if covariance is None else check_covariance(covariance)
-        self.integrator.reset(pose)
+        self.integrator.restart_pose(pose)
         self.covariance.reset(pose[2])
         if block is not None:
             self.covariance.cov = self.covariance.cov + block
+        self.last_published_t_ns = None
+
+    def _restart(self, pose: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+        """Start afresh at ``pose``: held speeds, last stamp and waiting values forgotten."""
+        pose = check_pose(pose)
+        self.integrator.reset(pose)
+        self.covariance.reset(pose[2])
         self.period_s = 0.0
         self.last_published_t_ns = None
         self.pairer.clear()
@@ -275,8 +288,8 @@ class Odometer:
         self._pending.clear()
 
     def clock_changed(self) -> None:
-        """Reset to the origin and forget the last input stamp (the clock itself jumped)."""
-        self.reset()
+        """Restart at the origin and forget the last input stamp (the clock itself jumped)."""
+        self._restart()
         self.last_input_t_ns = None
         if self.gyro is not None:
             self.gyro.buffer.clear()
@@ -560,7 +573,7 @@ class Odometer:
         covariance zeroed, everything else kept (the windows of a NEES study); the prediction
         then holds the pose covariance and the gain after every sample.
         """
-        self.reset(start)
+        self._restart(start)
         poses = np.empty((len(wheels), 3))
         twists = np.empty((len(wheels), 3))
         pose_covs = np.empty((len(wheels), 36))
