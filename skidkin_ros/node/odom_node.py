@@ -42,8 +42,11 @@ Outputs: nav_msgs/Odometry on ``odom`` (reliable), one per accepted sample with 
 optional TF (needs tf2_ros); /diagnostics at 1 Hz on a steady clock.
 
 Services and topics: ``~/reset`` (std_srvs/Trigger) zeroes the pose and covariance and always
-succeeds. ``~/set_pose`` (geometry_msgs/PoseWithCovarianceStamped, like robot_localization's
-set_pose; there is no standard service carrying a pose) sets the pose; a request with a NaN or
+succeeds; it and ``~/set_pose`` change the pose and its covariance only: the last stamp and the
+held speeds stay, so the next sample integrates the interval since the previous one (as
+diff_drive_controller keeps its wheel baseline); only a new clock restarts. ``~/set_pose``
+(geometry_msgs/PoseWithCovarianceStamped, like robot_localization's set_pose; there is no
+standard service carrying a pose) sets the pose; a request with a NaN or
 infinite field, x or y beyond 1e9 m, or a covariance that is not finite, bounded (1e12) and
 positive semi-definite is rejected with a warning and counted in diagnostics.
 
