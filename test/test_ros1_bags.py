@@ -75,8 +75,10 @@ def _rows(path):
 
 
 @pytest.mark.heavy
-def test_groundtruth_calibrate_and_predict_agree_exactly_on_both_formats(drives, tmp_path):
+def test_groundtruth_calibrate_and_predict_agree_exactly_on_both_formats(drives, tmp_path,
+                                                                         capsys):
     outputs = {}
+    printed = {}
     for name, bag in zip(('rosbag2', 'rosbag1'), drives):
         out = tmp_path / name
         out.mkdir()
@@ -87,6 +89,11 @@ def test_groundtruth_calibrate_and_predict_agree_exactly_on_both_formats(drives,
                      '--accept-invalid'] + common) == 0
         assert main(['predict', str(bag), '--params', str(out / 'params.yaml'),
                      '--out', str(out / 'pred.csv')]) == 0
+        capsys.readouterr()
+        assert main(['evaluate', str(bag), '--params', str(out / 'params.yaml'),
+                     '--models', 'edd_symmetric', 'edd_asymmetric'] + common) == 0
+        printed[name] = (capsys.readouterr().out.replace(str(out), 'OUT')
+                         .replace(str(bag), 'BAG').replace(bag.name, 'BAG'))
         outputs[name] = out
     a, b = outputs['rosbag2'], outputs['rosbag1']
     assert (a / 'gt.csv').read_text() == (b / 'gt.csv').read_text()
@@ -95,6 +102,8 @@ def test_groundtruth_calibrate_and_predict_agree_exactly_on_both_formats(drives,
     fitted = {k: v for k, v in pa.items() if k.startswith('models.')}
     assert fitted and fitted == {k: v for k, v in pb.items() if k.startswith('models.')}
     assert (a / 'pred.csv').read_text() == (b / 'pred.csv').read_text()
+    assert 'edd_asymmetric' in printed['rosbag2']
+    assert printed['rosbag2'] == printed['rosbag1']  # evaluate's error table, digit for digit
 
 
 def _write_ros1(path, definition, md5, msgtype='sensor_msgs/msg/JointState'):
