@@ -48,6 +48,7 @@ setup(
             'config/odom_node.yaml',
             'config/ekf_skidkin.yaml',
         ]),
+        ('share/' + package_name + '/launch', ['launch/odom_node.launch.py']),
     ],
     python_requires='>=3.10',
     install_requires=[
@@ -60,6 +61,7 @@ setup(
         'kiss-icp>=1.2,<2',
         'tqdm>=4.60',
         'threadpoolctl>=3',
+        'apsw',
     ],
     extras_require={'ros': ROS_WHEELS, 'dev': DEV, 'cluster': CLUSTER},
     zip_safe=True,

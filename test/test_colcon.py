@@ -50,6 +50,7 @@ def test_installed_layout(installed):
     share = workspace / 'install' / 'skidkin_ros' / 'share' / 'skidkin_ros'
     assert executable(workspace).is_file()
     assert (share / 'config' / 'odom_node.yaml').is_file()
+    assert (share / 'launch' / 'odom_node.launch.py').is_file()
     assert (share / 'package.xml').is_file()
     where = subprocess.run([sys.executable, '-c', 'import skidkin_ros.node.odom_node as m; '
                             'print(m.__file__)'], env=env, capture_output=True, text=True,

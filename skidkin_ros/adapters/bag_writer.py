@@ -264,10 +264,12 @@ class BagWriter:
         self.write_message('/tf_static', t_ns, msg, qos=[TF_STATIC_QOS])
 
     def write_odometry(self, topic: str, t_ns: int, frame_id: str, child_frame_id: str,
-                       x: float, y: float, yaw: float, stamp_ns: int | None = None) -> None:
-        """Write a planar nav_msgs/Odometry pose (m, rad; zero twist and covariance)."""
+                       x: float, y: float, yaw: float, stamp_ns: int | None = None,
+                       twist: Sequence[float] = (0.0, 0.0)) -> None:
+        """Write a planar nav_msgs/Odometry: pose (m, rad), twist (v m/s, w rad/s; default 0)."""
+        v, w = (float(value) for value in twist)
         twist = self._types['geometry_msgs/msg/Twist'](
-            linear=self._vector3((0.0, 0.0, 0.0)), angular=self._vector3((0.0, 0.0, 0.0)))
+            linear=self._vector3((v, 0.0, 0.0)), angular=self._vector3((0.0, 0.0, w)))
         msg = self._types['nav_msgs/msg/Odometry'](
             header=self._header(t_ns, stamp_ns, frame_id), child_frame_id=child_frame_id,
             pose=self._types['geometry_msgs/msg/PoseWithCovariance'](
@@ -281,4 +283,15 @@ class BagWriter:
         """Write a planar geometry_msgs/PoseStamped (m, rad)."""
         msg = self._types['geometry_msgs/msg/PoseStamped'](
             header=self._header(t_ns, stamp_ns, frame_id), pose=self._planar_pose(x, y, yaw))
+        self.write_message(topic, t_ns, msg)
+
+    def write_pose_with_covariance(self, topic: str, t_ns: int, frame_id: str, x: float,
+                                   y: float, yaw: float, stamp_ns: int | None = None,
+                                   covariance: Sequence[float] | None = None) -> None:
+        """Write a planar geometry_msgs/PoseWithCovarianceStamped (AMCL's amcl_pose form)."""
+        cov = np.zeros(36) if covariance is None else np.asarray(covariance, dtype=np.float64)
+        msg = self._types['geometry_msgs/msg/PoseWithCovarianceStamped'](
+            header=self._header(t_ns, stamp_ns, frame_id),
+            pose=self._types['geometry_msgs/msg/PoseWithCovariance'](
+                pose=self._planar_pose(x, y, yaw), covariance=cov.reshape(36)))
         self.write_message(topic, t_ns, msg)

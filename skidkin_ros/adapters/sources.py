@@ -1,6 +1,7 @@
 """Turn a SOURCE (a rosbag2 recording or a CSV trajectory table) into core ``Drive`` objects.
 
-A bag gives its wheel speeds (JointState or two Float64 topics), its IMU when present, and ground
+A bag gives its wheel speeds (JointState, two Float64 topics, or a drive controller's Odometry
+twist with the controller's geometry), its IMU when present, and ground
 truth from the lidar through kiss-icp (``ground_truth='icp'``), from a pose topic
 (nav_msgs/Odometry or geometry_msgs/PoseStamped), or none (``'none'``: prediction only). A table
 gives one Drive per ``segment``. Decisions taken on the user's behalf (auto-selected topics and
@@ -17,12 +18,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from skidkin_ros.adapters.bag_reader import check_overlap, open_recording
+from skidkin_ros.adapters.bag_reader import check_overlap, NoWheelInputError, open_recording
 from skidkin_ros.adapters.lidar_chunks import bag_ground_truth, ChunkOptions
 from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.table import read_table
-from skidkin_ros.core.drive import Drive, PoseTrack
+from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.odometry.config import node_default
+from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.errors import DataError, RecordingError
 
 __all__ = ['SourceOptions', 'LoadedSource', 'load_source', 'load_sources', 'is_table',
@@ -79,6 +81,11 @@ class SourceOptions:
     max_dt_s: float = node_default('max_dt')
     wheel_signal: str = 'velocity'
     min_overlap_s: float = 10.0
+    msg_files: tuple[Path, ...] = ()
+    odometry_topic: str | None = None
+    controller: ControllerGeometry | None = None
+    # groundtruth: a bag without any wheel input is read (the wheel check is skipped).
+    wheels_optional: bool = False
 
 
 @dataclass
@@ -113,16 +120,17 @@ def load_source(path: str | Path, options: SourceOptions,
 
 
 def _load_bag(path: Path, options: SourceOptions, need_truth: bool) -> LoadedSource:
-    with open_recording(path) as rec:
-        wheels = rec.read_wheels(options.wheel_topic, left_joints=options.left_joints,
-                                 right_joints=options.right_joints,
-                                 left_topic=options.left_topic, right_topic=options.right_topic,
-                                 max_wheel_speed_rad_s=options.max_wheel_speed_rad_s,
-                                 pair_tolerance_s=options.pair_tolerance_s,
-                                 max_wheel_acceleration=options.max_wheel_acceleration,
-                                 max_dt_s=options.max_dt_s,
-                                 wheel_signal=options.wheel_signal)
-        if len(wheels) < 2:
+    with open_recording(path, msg_files=options.msg_files) as rec:
+        try:
+            wheels = _read_wheels(rec, options)
+        except NoWheelInputError as err:
+            if not options.wheels_optional:
+                raise
+            wheels = None
+            rec.notes.append(f'{path}: no wheel input ({str(err).split(". Topics")[0]}); the '
+                             "ground truth's gross wheel check is skipped, ICP's own quality "
+                             'and the IMU (when recorded) still judge the poses')
+        if wheels is not None and len(wheels) < 2:
             raise DataError(f'{path}: fewer than 2 wheel samples; nothing to integrate')
         imu = None
         imu_topics = [t for t, m in rec.topics().items() if m == IMU]
@@ -135,14 +143,28 @@ def _load_bag(path: Path, options: SourceOptions, need_truth: bool) -> LoadedSou
         elif need_truth and options.ground_truth != 'none':
             truth = rec.read_pose_track(options.ground_truth)
             truth_info = {'ground_truth': f'pose topic {options.ground_truth}'}
-        if truth is not None:
+        if truth is not None and wheels is not None:
             check_overlap((int(wheels.t_ns[0]), int(wheels.t_ns[-1])),
                           (int(truth.t_ns[0]), int(truth.t_ns[-1])),
                           names=('wheel speeds', 'ground truth'),
                           min_seconds=options.min_overlap_s)
+        if wheels is None:
+            wheels = WheelSamples(np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
         drive = Drive(path.name, wheels, truth, imu, {'source': str(path)})
         return LoadedSource(path, 'bag', [drive], list(rec.notes), dict(rec.wheel_input),
                             truth_info)
+
+
+def _read_wheels(rec, options: SourceOptions) -> WheelSamples:
+    return rec.read_wheels(options.wheel_topic, left_joints=options.left_joints,
+                           right_joints=options.right_joints,
+                           left_topic=options.left_topic, right_topic=options.right_topic,
+                           max_wheel_speed_rad_s=options.max_wheel_speed_rad_s,
+                           pair_tolerance_s=options.pair_tolerance_s,
+                           max_wheel_acceleration=options.max_wheel_acceleration,
+                           max_dt_s=options.max_dt_s, wheel_signal=options.wheel_signal,
+                           odometry_topic=options.odometry_topic,
+                           controller=options.controller)
 
 
 def _icp_truth(rec, path: Path, wheels, imu, options: SourceOptions) -> tuple[PoseTrack, dict]:

@@ -105,10 +105,10 @@ def run(args: argparse.Namespace) -> int:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         'calibrate', help='fit every model on recordings and write a parameters file',
-        description='Fit the five kinematic models on training recordings (rosbag2 with '
-        'kiss-icp ground truth, or trajectory tables), score them on evaluation data as Baril '
-        'et al. (2020) do (relative errors per metre on h_e segments), calibrate the noise, and '
-        'write a ROS 2 parameters file that odom_node loads as is.')
+        description='Fit the five kinematic models on training recordings (rosbag2 or ROS 1 '
+        'bags with kiss-icp ground truth, or trajectory tables), score them on evaluation data '
+        'as Baril et al. (2020) do (relative errors per metre on h_e segments), calibrate the '
+        'noise, and write a ROS 2 parameters file that odom_node loads as is.')
     parser.add_argument('train', nargs='+', type=Path, help='training bag(s) or table(s)')
     parser.add_argument('--eval', nargs='+', type=Path, default=[],
                         help='evaluation bag(s) or table(s) (default: a hold-out of TRAIN)')

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import io
 from pathlib import Path
 
@@ -46,7 +47,9 @@ def run(args: argparse.Namespace) -> int:
     check_writable(args.out, args.force)
     if args.tum:
         check_writable(args.tum, args.force)
-    loaded = load_source(args.bag, source_options(args), need_truth=True)
+    # The wheels are only a gross check of the ground truth: a bag without them is read.
+    options = dataclasses.replace(source_options(args), wheels_optional=True)
+    loaded = load_source(args.bag, options, need_truth=True)
     print_notes([loaded])
     track = loaded.drives[0].truth
     atomic_write_text(args.out, track_csv(track), force=args.force)
@@ -62,18 +65,20 @@ def run(args: argparse.Namespace) -> int:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         'groundtruth', help='lidar ground truth of a bag with kiss-icp (CSV, TUM for evo)',
-        description='Run kiss-icp over the lidar of a rosbag2 (deskewed with the per-point\n'
-        'times), convert the poses to base_link with the extrinsic, and write the planar\n'
-        'trajectory. The recording is registered in independent chunks on --jobs processes\n'
-        '(or on a Dask cluster with --cluster), each chunk cached as it finishes: a later\n'
-        'calibrate of the same bag, or an interrupted run, skips what is done. Poses are\n'
-        "judged by the registration's own quality, the IMU's yaw rate and, for gross\n"
-        'errors only, the wheels; no robot geometry is needed.',
+        description='Run kiss-icp over the lidar of a rosbag2 or ROS 1 bag (deskewed with\n'
+        'the per-point times), convert the poses to base_link with the extrinsic, and write\n'
+        'the planar trajectory. The recording is registered in independent chunks on --jobs\n'
+        'processes (or on a Dask cluster with --cluster), each chunk cached as it finishes:\n'
+        'a later calibrate of the same bag, or an interrupted run, skips what is done. Poses\n'
+        "are judged by the registration's own quality, the IMU's yaw rate and, for gross\n"
+        'errors only, the wheels (a bag without wheel topics is read, that check\n'
+        'skipped); no robot geometry is needed.',
         epilog='examples:\n  skidkin groundtruth drive_bag --out traj.csv --tum traj_tum.txt\n'
         '  skidkin groundtruth drive_bag --out traj.csv --jobs 4 --chunk-s 60\n'
         '  skidkin groundtruth drive_bag --out traj.csv --cluster tcp://10.0.0.5:8786',
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('bag', type=Path, help='rosbag2 folder or .db3/.mcap file')
+    parser.add_argument('bag', type=Path,
+                        help='rosbag2 folder or .db3/.mcap file, or a ROS 1 .bag')
     parser.add_argument('--out', type=Path, required=True, help='trajectory CSV to write')
     parser.add_argument('--tum', type=Path, help='also write the TUM format (for evo)')
     parser.add_argument('--force', action='store_true', help='overwrite existing outputs')

@@ -12,6 +12,7 @@ from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
 from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.gyro import GYRO_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.errors import DataError, ParameterError
@@ -26,7 +27,21 @@ def _reading(args: argparse.Namespace, config: OdometryConfig) -> SourceOptions:
         raise ParameterError(f'--wheel-signal {given} differs from the wheel_signal of the '
                              f'parameters file, {config["wheel_signal"]}, which the node uses; '
                              'drop the option (predict reads what the node reads)')
-    return dataclasses.replace(source_options(args),
+    options = source_options(args)
+    controller = None
+    if config['input'] == 'odometry':
+        controller = ControllerGeometry.from_values(config.values)
+        if options.controller is not None and options.controller != controller:
+            raise ParameterError(
+                f'--controller-geometry/--controller-multipliers ({options.controller}) differ '
+                f'from the controller.* of the parameters file ({controller}), which the node '
+                'uses; drop the options (predict reads what the node reads)')
+    elif options.controller is not None or options.odometry_topic is not None:
+        raise ParameterError(
+            f'the parameters file has input {config["input"]}, not odometry: the node would not '
+            "read a controller's odometry; calibrate from the odometry (--wheel-odometry) "
+            'first, or drop --wheel-odometry / --controller-geometry')
+    return dataclasses.replace(options, controller=controller,
                                max_wheel_speed_rad_s=config['max_wheel_speed'],
                                pair_tolerance_s=config['pair_tolerance'],
                                max_wheel_acceleration=config['max_wheel_acceleration'],

@@ -21,13 +21,15 @@ from skidkin_ros.cli.progress import Progress
 from skidkin_ros.cli.tables import error_table, parameter_lines
 from skidkin_ros.core.calibration.pipeline import CalibrationResult
 from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY, Geometry
+from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.core.parallel import usable_cpus
+from skidkin_ros.errors import ConfigError
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
            'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'stride_arg', 'RoundBars',
            'check_report_dir', 'input_parameters', 'calibration_provenance',
-           'print_calibration']
+           'print_calibration', 'controller_from_args']
 
 
 def say(*parts: object) -> None:
@@ -121,7 +123,22 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
                        '(travel between samples) or auto (positions when they change); written '
                        'to the parameters file so the node reads the same (default velocity; '
                        "predict: the parameters file's; tables hold speeds only)")
+    group.add_argument('--wheel-odometry', metavar='TOPIC',
+                       help='nav_msgs/Odometry of a drive controller (diff_drive_controller): '
+                       'the wheel speeds are recovered from its twist; needs '
+                       '--controller-geometry')
+    group.add_argument('--controller-geometry', nargs=2, type=float,
+                       metavar=('RADIUS', 'SEPARATION'),
+                       help="the drive controller's configured wheel_radius and "
+                       'wheel_separation (m), as in its parameters (not the calibrated values)')
+    group.add_argument('--controller-multipliers', nargs=3, type=float,
+                       metavar=('LEFT', 'RIGHT', 'SEPARATION'),
+                       help="the controller's left/right_wheel_radius_multiplier and "
+                       'wheel_separation_multiplier (default 1 1 1)')
     group.add_argument('--imu-topic', help='sensor_msgs/Imu topic (optional)')
+    group.add_argument('--msg-file', action='append', type=Path, metavar='PKG/msg/NAME.msg',
+                       help='definition of a message type the recording does not carry (a '
+                       'custom type; ROS 1 or ROS 2 .msg syntax as the recording); repeatable')
     if not ground_truth:
         return
     group.add_argument('--ground-truth', default='icp', metavar='icp|TOPIC|none',
@@ -187,7 +204,22 @@ def source_options(args: argparse.Namespace) -> SourceOptions:
         extrinsic=extrinsic_from_xyz_rpy(extrinsic) if extrinsic else None,
         cache_dir=cache, icp=icp, chunks=chunks,
         on_progress=None if get('no_progress') else Progress('kiss-icp', 'frames'),
-        wheel_signal=get('wheel_signal') or 'velocity')
+        wheel_signal=get('wheel_signal') or 'velocity',
+        msg_files=tuple(get('msg_file') or ()),
+        odometry_topic=get('wheel_odometry'), controller=controller_from_args(args))
+
+
+def controller_from_args(args: argparse.Namespace) -> ControllerGeometry | None:
+    """Return the drive controller's geometry given on the command line, or None."""
+    get = vars(args).get
+    geometry, multipliers = get('controller_geometry'), get('controller_multipliers')
+    if geometry is None:
+        if multipliers is not None:
+            raise ConfigError('--controller-multipliers needs --controller-geometry RADIUS '
+                              "SEPARATION (the controller's wheel_radius and wheel_separation)")
+        return None
+    left, right, separation = multipliers or (1.0, 1.0, 1.0)
+    return ControllerGeometry(geometry[0], geometry[1], left, right, separation)
 
 
 def check_report_dir(path: Path | None, force: bool, what: str = '--report') -> None:
@@ -209,6 +241,9 @@ def input_parameters(sources: Sequence[LoadedSource]) -> dict[str, Any]:
                     'wheel_signal': wheel.get('wheel_signal', 'velocity')}
         if wheel.get('input') == 'wheel_topics':
             return {'input': 'wheel_topics'}
+        if wheel.get('input') == 'odometry':
+            return {'input': 'odometry', 'wheel_signal': 'velocity',
+                    **{k: v for k, v in wheel.items() if k.startswith('controller.')}}
     return {}
 
 

@@ -38,7 +38,7 @@ EPILOG = """examples:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='skidkin', description='Calibrate and evaluate skid-steer wheel odometry models '
-        '(Baril et al. 2020) from rosbag2 recordings or trajectory tables.',
+        '(Baril et al. 2020) from rosbag2 or ROS 1 recordings or trajectory tables.',
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--version', action='version', version=f'skidkin_ros {__version__}')
     parser.add_argument('-v', '--verbose', action='store_true', help='debug logging')

@@ -16,6 +16,11 @@ Inputs (parameter ``input``, read-only after start-up):
 * ``wheel_topics``: std_msgs/Float64 on ``wheel/left/velocity`` and ``wheel/right/velocity``
   (rad/s), stamped with the node clock on receipt (honours use_sim_time) and paired within
   ``pair_tolerance``.
+* ``odometry``: a drive controller's nav_msgs/Odometry on ``wheel_odom`` (remap it to e.g.
+  ``/diff_drive_controller/odom``), on ``header.stamp``; the wheel speeds are recovered from its
+  twist with the controller's own geometry (``controller.*``,
+  :mod:`skidkin_ros.core.odometry.controller`). A NaN/inf twist is refused
+  (``non_finite_twist``). No driver change: the calibrated odometry is published on ``odom``.
 
 Optional gyro (``imu.mode`` adapt or fuse; off by default): sensor_msgs/Imu on ``imu/data``
 (remappable), its ``angular_velocity.z`` taken as the base frame's yaw rate (the IMU mounted
@@ -37,8 +42,11 @@ Outputs: nav_msgs/Odometry on ``odom`` (reliable), one per accepted sample with 
 optional TF (needs tf2_ros); /diagnostics at 1 Hz on a steady clock.
 
 Services and topics: ``~/reset`` (std_srvs/Trigger) zeroes the pose and covariance and always
-succeeds. ``~/set_pose`` (geometry_msgs/PoseWithCovarianceStamped, like robot_localization's
-set_pose; there is no standard service carrying a pose) sets the pose; a request with a NaN or
+succeeds; it and ``~/set_pose`` change the pose and its covariance only: the last stamp and the
+held speeds stay, so the next sample integrates the interval since the previous one (as
+diff_drive_controller keeps its wheel baseline); only a new clock restarts. ``~/set_pose``
+(geometry_msgs/PoseWithCovarianceStamped, like robot_localization's set_pose; there is no
+standard service carrying a pose) sets the pose; a request with a NaN or
 infinite field, x or y beyond 1e9 m, or a covariance that is not finite, bounded (1e12) and
 positive semi-definite is rejected with a warning and counted in diagnostics.
 
@@ -162,6 +170,11 @@ class OdomNode(Node):
             self.create_subscription(JointState, 'joint_states', self._on_joint_state,
                                      qos_profile_sensor_data, qos_overriding_options=overridable,
                                      raw=True)
+        elif self._input == 'odometry':
+            # A drive controller's odometry (remap wheel_odom to e.g.
+            # /diff_drive_controller/odom); its twist gives back the wheel speeds.
+            self.create_subscription(Odometry, 'wheel_odom', self._on_wheel_odometry,
+                                     qos_profile_sensor_data, qos_overriding_options=overridable)
         else:
             self.create_subscription(Float64, 'wheel/left/velocity', self._on_left_wheel,
                                      qos_profile_sensor_data, qos_overriding_options=overridable)
@@ -322,6 +335,20 @@ class OdomNode(Node):
                 return
             for estimate in self._odometer.imu_sample(stamp_to_ns(msg.header.stamp),
                                                       msg.angular_velocity.z, now_ns):
+                self._publish(estimate)
+
+    @_guarded
+    def _on_wheel_odometry(self, msg: Odometry) -> None:
+        """Take a drive controller's Odometry: its twist, on header.stamp."""
+        with self._lock:
+            self.counters['received'] += 1
+            now_ns = self._clock_now_ns()
+            if now_ns is None:
+                return
+            twist = msg.twist.twist
+            estimate = self._odometer.twist_sample(stamp_to_ns(msg.header.stamp),
+                                                   twist.linear.x, twist.angular.z, now_ns)
+            if estimate is not None:
                 self._publish(estimate)
 
     @_guarded

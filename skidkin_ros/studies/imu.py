@@ -29,8 +29,8 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import ErrorStats, evaluate_model, relative_errors
-from skidkin_ros.core.calibration.imu import (odometry_segment_errors, run_windows,
-                                              segment_windows, window_nees)
+from skidkin_ros.core.calibration.gyro_fit import (odometry_segment_errors, run_windows,
+                                                   segment_windows, window_nees)
 from skidkin_ros.core.calibration.pipeline import (calibrate, CalibrationOptions,
                                                    result_to_parameters)
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions

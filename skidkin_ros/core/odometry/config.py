@@ -21,6 +21,7 @@ from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
+from skidkin_ros.core.odometry.controller import CONTROLLER_SPECS, ControllerGeometry
 from skidkin_ros.core.odometry.gyro import GYRO_MODES, GYRO_SPECS, GyroParams
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
@@ -51,7 +52,7 @@ __all__ = [
 ]
 
 SCHEMA_VERSION = 1
-INPUT_MODES = ('joint_state', 'wheel_topics')
+INPUT_MODES = ('joint_state', 'wheel_topics', 'odometry')
 DEFAULT_LEFT_JOINTS = ['front_left_wheel_joint', 'rear_left_wheel_joint']
 DEFAULT_RIGHT_JOINTS = ['front_right_wheel_joint', 'rear_right_wheel_joint']
 # A publish-rate cap below this would silence /odom for minutes (1e-300 Hz: for ever).
@@ -204,8 +205,9 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                     'between two samples, wraps of continuous joints handled) or auto (positions '
                     'when they change, velocities otherwise)', choices=WHEEL_SIGNALS),
         SchemaEntry('input', 'string', 'joint_state',
-                    'joint_state (sensor_msgs/JointState) or wheel_topics (two std_msgs/Float64)',
-                    choices=INPUT_MODES),
+                    'joint_state (sensor_msgs/JointState), wheel_topics (two std_msgs/Float64) '
+                    "or odometry (a drive controller's nav_msgs/Odometry twist, with its "
+                    'geometry in controller.*)', choices=INPUT_MODES),
         SchemaEntry('left_wheel_joints', 'string_array', list(DEFAULT_LEFT_JOINTS),
                     'JointState names of the left wheels (speed = mean of their velocities)'),
         SchemaEntry('right_wheel_joints', 'string_array', list(DEFAULT_RIGHT_JOINTS),
@@ -230,6 +232,9 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
     entries += [SchemaEntry(spec.name, 'double', spec.default_for(geometry),
                             f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
                 for spec in NODE_SPECS]
+    entries += [SchemaEntry(f'controller.{spec.name}', 'double', spec.default_for(None),
+                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
+                for spec in CONTROLLER_SPECS]
     entries += _model_entries(geometry)
     entries += _augmented_entries()
     entries += _imu_entries()
@@ -323,6 +328,12 @@ def _check_node_values(values: Mapping[str, Any]) -> None:
             raise ParameterError(
                 f'parameter {name!r} = {brief(frame)} starts with "/", which tf2 refuses in '
                 f'frame ids; write {frame.lstrip("/")!r}')
+    if values['input'] == 'odometry':
+        ControllerGeometry.from_values(values)  # raises, naming what is missing
+        if values['wheel_signal'] != 'velocity':
+            raise ParameterError(
+                f"parameter 'wheel_signal' = {values['wheel_signal']!r} does not apply to input "
+                "odometry: a controller's twist is a velocity; set wheel_signal velocity")
     if values['odom_frame_id'] == values['base_frame_id']:
         raise ParameterError(
             f'odom_frame_id and base_frame_id are both {values["odom_frame_id"]!r}; the odometry '

@@ -13,9 +13,11 @@ node and the offline prediction agree by construction. For one sample:
    A stamp more than ``max_stamp_step_back`` behind the last accepted one is refused, unless
    ``STEP_BACK_CONFIRM`` samples in a row (increasing, each within ``max_dt`` of the previous)
    say the input clock itself stepped back (a driver restarted): then the odometry is reset to
-   the origin, as for a sim-time jump, and goes on from the new clock. The last accepted stamp
-   is remembered across :meth:`Odometer.reset` (~/reset, ~/set_pose), so a stale or tiny stamp
-   right after a reset is refused too; :meth:`Odometer.clock_changed` forgets it.
+   the origin, as for a sim-time jump, and goes on from the new clock. ~/reset and
+   ~/set_pose (:meth:`Odometer.reset`) change the pose and its covariance only: the last stamp
+   and held speeds stay, so the next sample integrates the whole interval since the previous one
+   (diff_drive_controller keeps its wheel baseline the same way) and a stale or tiny stamp right
+   after a reset is refused; :meth:`Odometer.clock_changed` (a new clock) forgets them.
 2. Integrate it (:meth:`Odometer.step`): the streaming integrator checks the speeds and the
    stamp (duplicate, older, gap), advances the pose, and the covariance is propagated over the
    integrated step. Every outcome is counted by cause; rejections are reported to ``warn``.
@@ -42,6 +44,7 @@ import numpy as np
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY
 from skidkin_ros.core.odometry.config import node_default, OdometryConfig
+from skidkin_ros.core.odometry.controller import ControllerGeometry, NonFiniteTwistError
 from skidkin_ros.core.odometry.gyro import GyroAid, GyroParams, GyroStatus
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, step_scalar,
                                                   StepResult, StreamingIntegrator, TwistSource)
@@ -163,8 +166,11 @@ class Odometer:
                  fresh: Callable[[], None] | None = None, imu: GyroParams | None = None,
                  wheel_radius_m: float = DEFAULT_GEOMETRY.wheel_radius,
                  interval: str = DEFAULT_INTERVAL, wheel_signal: str = 'velocity',
-                 note: Callable[[str], None] | None = None) -> None:
+                 note: Callable[[str], None] | None = None,
+                 controller: ControllerGeometry | None = None) -> None:
         self.integrator = StreamingIntegrator(source, limits, interval)
+        # The drive controller's geometry, for input odometry (twist_sample); None otherwise.
+        self.controller = controller
         self.signal = WheelSignal(wheel_signal, self.integrator.limits.max_wheel_speed_rad_s)
         self._note = note or _ignore
         self.covariance = covariance or PoseCovariancePropagator(
@@ -197,7 +203,8 @@ class Odometer:
         return cls(config.bound_model(model), config.limits, SampleRules.from_config(config),
                    _propagator(config), counters=counters, warn=warn, fresh=fresh,
                    imu=config.imu, wheel_radius_m=config.geometry.wheel_radius,
-                   interval=config['interval'], wheel_signal=config['wheel_signal'], note=note)
+                   interval=config['interval'], wheel_signal=config['wheel_signal'], note=note,
+                   controller=_controller(config))
 
     # ------------------------------------------------------------------ state
     @property
@@ -231,6 +238,7 @@ class Odometer:
         self.covariance = covariance
         self.set_rules(SampleRules.from_config(config))
         self.set_imu(config.imu, config.geometry.wheel_radius)
+        self.controller = _controller(config)
 
     def set_imu(self, params: GyroParams, wheel_radius_m: float) -> None:
         """Use the gyro as ``params`` say (mode off: not at all).
@@ -249,19 +257,30 @@ class Odometer:
 
     def reset(self, pose: Sequence[float] = (0.0, 0.0, 0.0),
               covariance: np.ndarray | None = None) -> None:
-        """Set the pose (default: the origin) and restart from it.
+        """Set the pose (default: the origin) and its covariance; the integration goes on.
 
-        The covariance restarts from (almost) zero, plus ``covariance`` (a 3 x 3 (x, y, yaw)
-        block) when given; held speeds, the integrator's last stamp and wheel values waiting for
-        a partner are forgotten. A pose or covariance the odometry cannot hold
-        (:func:`check_pose`, :func:`check_covariance`) raises ValueError and changes nothing.
+        Only the pose and its covariance change (~/reset, ~/set_pose): the last stamp, the held
+        speeds, the wheel positions, a wheel value waiting for its partner and the gyro are kept,
+        so the next sample integrates the whole interval since the last one, as
+        diff_drive_controller keeps its wheel baseline across a reset. The covariance restarts
+        from (almost) zero, plus ``covariance`` (a 3 x 3 (x, y, yaw) block) when given. A pose or
+        covariance the odometry cannot hold (:func:`check_pose`, :func:`check_covariance`)
+        raises ValueError and changes nothing. Only a new clock forgets the baseline
+        (:meth:`clock_changed`).
         """
         pose = check_pose(pose)
         block = None if covariance is None else check_covariance(covariance)
-        self.integrator.reset(pose)
+        self.integrator.restart_pose(pose)
         self.covariance.reset(pose[2])
         if block is not None:
             self.covariance.cov = self.covariance.cov + block
+        self.last_published_t_ns = None
+
+    def _restart(self, pose: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+        """Start afresh at ``pose``: held speeds, last stamp and waiting values forgotten."""
+        pose = check_pose(pose)
+        self.integrator.reset(pose)
+        self.covariance.reset(pose[2])
         self.period_s = 0.0
         self.last_published_t_ns = None
         self.pairer.clear()
@@ -270,37 +289,38 @@ class Odometer:
         self._pending.clear()
 
     def clock_changed(self) -> None:
-        """Reset to the origin and forget the last input stamp (the clock itself jumped)."""
-        self.reset()
+        """Restart at the origin and forget the last input stamp (the clock itself jumped)."""
+        self._restart()
         self.last_input_t_ns = None
         if self.gyro is not None:
             self.gyro.buffer.clear()
 
     # ------------------------------------------------------------------ inputs
     def joint_sample(self, t_ns: int, omega_l: float, omega_r: float, now_ns: int,
-                     positions: tuple[Sequence[float], Sequence[float]] | None = None
-                     ) -> Estimate | None:
+                     positions: tuple[Sequence[float], Sequence[float]] | None = None,
+                     what: str = 'JointState') -> Estimate | None:
         """Take a stamped sample (a JointState's) received at ``now_ns`` on the node clock.
 
         ``positions``: the left and right wheel joints' positions (rad), None when the message
         has none; ``wheel_signal`` says which of them and the speeds is integrated
-        (:class:`~skidkin_ros.core.odometry.wheels.WheelSignal`).
+        (:class:`~skidkin_ros.core.odometry.wheels.WheelSignal`). ``what`` names the message
+        type in the warnings.
         """
         if t_ns == 0:
             if not self.rules.zero_stamp_uses_receive_time:
-                self._reject('zero_stamp', 'JointState header.stamp is zero; sample rejected '
+                self._reject('zero_stamp', f'{what} header.stamp is zero; sample rejected '
                              '(set zero_stamp_uses_receive_time to use the receive time '
                              'instead)')
                 return None
             t_ns = now_ns
         elif t_ns < 0:
-            self._reject('negative_stamp', f'JointState stamp is negative ({t_ns / NS_PER_S:.3f} '
+            self._reject('negative_stamp', f'{what} stamp is negative ({t_ns / NS_PER_S:.3f} '
                          's); sample rejected: ROS time starts at 0, check the driver clock')
             return None
         ahead_ns = t_ns - now_ns
         if ahead_ns > self._future_ns:
             self._reject('future_stamp',
-                         f'JointState stamp is {ahead_ns / NS_PER_S:.3f} s ahead of the node '
+                         f'{what} stamp is {ahead_ns / NS_PER_S:.3f} s ahead of the node '
                          f'clock (future_tolerance {self.rules.future_tolerance_s:g} s); sample '
                          'rejected: check the clocks of the driver and this machine')
             return None
@@ -313,6 +333,27 @@ class Odometer:
             self._reject(taken.cause, taken.detail)
             return None
         return self.update(t_ns, *taken.speeds, now_ns)
+
+    def twist_sample(self, t_ns: int, v_m_s: float, w_rad_s: float, now_ns: int
+                     ) -> Estimate | None:
+        """Take a drive controller's odometry twist (v m/s, w rad/s) stamped ``t_ns``.
+
+        The wheel speeds the controller saw are recovered with its configured geometry
+        (:meth:`~skidkin_ros.core.odometry.controller.ControllerGeometry.wheel_speeds`, the one
+        rule the bag reader uses too), then the sample goes the JointState way. A NaN or
+        infinite twist is refused (``non_finite_twist``).
+        """
+        if self.controller is None:
+            self._reject('no_controller_geometry', 'Odometry wheel input without the '
+                         "controller's geometry (input odometry sets controller.*); dropped")
+            return None
+        try:
+            omega_l, omega_r = self.controller.wheel_speeds(v_m_s, w_rad_s)
+        except NonFiniteTwistError as err:
+            self._reject('non_finite_twist', f'Odometry twist rejected: {err}; the controller '
+                         'published a broken twist, nothing integrated for it')
+            return None
+        return self.joint_sample(t_ns, omega_l, omega_r, now_ns, what='Odometry')
 
     def wheel_sample(self, side: str, omega_rad_s: float, now_ns: int) -> Estimate | None:
         """Take one side's unstamped speed (a Float64 topic's) received at ``now_ns``."""
@@ -533,7 +574,7 @@ class Odometer:
         covariance zeroed, everything else kept (the windows of a NEES study); the prediction
         then holds the pose covariance and the gain after every sample.
         """
-        self.reset(start)
+        self._restart(start)
         poses = np.empty((len(wheels), 3))
         twists = np.empty((len(wheels), 3))
         pose_covs = np.empty((len(wheels), 36))
@@ -596,6 +637,13 @@ class _GyroFeed:
             deadline = t_ns + self.gyro.params.max_wait * NS_PER_S
             while self.i < n and t[self.i] <= deadline and not ready(t_ns):
                 self._add()
+
+
+def _controller(config: OdometryConfig) -> ControllerGeometry | None:
+    """Return the drive controller's geometry for input odometry, else None."""
+    if config['input'] != 'odometry':
+        return None
+    return ControllerGeometry.from_values(config.values)
 
 
 def _propagator(config: OdometryConfig) -> PoseCovariancePropagator:
