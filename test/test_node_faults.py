@@ -408,3 +408,18 @@ def test_n34_wheel_speed_jump_rejected_naming_the_side(make_rig):
     warning = rig.node.last_warnings['wheel_jump']
     assert 'left wheel speed jumped from 2 to 90' in warning
     assert 'max_wheel_acceleration' in warning
+
+
+def test_n120_qos_override_of_one_node_leaves_the_next_alone(make_rig):
+    # QoS overrides change the profile object they are given; rclpy's sensor-data profile is one
+    # object per process, so a node given it directly leaked its override into every later node.
+    first = make_rig()
+    prefix, number = first.namespace.rsplit('_', 1)
+    topic = f'{prefix}_{int(number) + 1}/joint_states'   # the next rig's namespace
+    deep = make_rig({f'qos_overrides.{topic}.subscription.depth': 777})
+    assert deep.namespace == topic.rsplit('/', 1)[0]
+    assert [s.qos_profile.depth for s in deep.node.subscriptions
+            if s.topic_name.endswith('joint_states')] == [777]
+    plain = make_rig()
+    assert [s.qos_profile.depth for s in plain.node.subscriptions
+            if s.topic_name.endswith('joint_states')] == [5]

@@ -58,6 +58,7 @@ kept pose; a stamp gap longer than ``max_dt`` is not integrated across.
 from __future__ import annotations
 
 import collections
+import copy
 import functools
 import math
 import sys
@@ -77,6 +78,8 @@ from rclpy.executors import ExternalShutdownException
 import rclpy.logging
 from rclpy.node import Node
 from rclpy.qos import (qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
+
+
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
@@ -107,6 +110,15 @@ WATCHDOG_PERIOD_S = 0.1
 WARN_PERIOD_NS = NS_PER_S
 OUTPUT_DEPTH = 10
 EXIT_CONFIG = 2
+
+
+def sensor_qos() -> QoSProfile:
+    """Return a fresh copy of the sensor-data profile for one input.
+
+    QoS overrides (``qos_overrides.<topic>...``) change the profile they are given in place, and
+    rclpy's ``qos_profile_sensor_data`` is one object shared by every node of the process.
+    """
+    return copy.copy(qos_profile_sensor_data)
 
 
 def _guarded(method: Callable) -> Callable:
@@ -168,18 +180,18 @@ class OdomNode(Node):
         if self._input == 'joint_state':
             # Serialized (raw): the node reads the few fields it needs itself (see node.wire).
             self.create_subscription(JointState, 'joint_states', self._on_joint_state,
-                                     qos_profile_sensor_data, qos_overriding_options=overridable,
+                                     sensor_qos(), qos_overriding_options=overridable,
                                      raw=True)
         elif self._input == 'odometry':
             # A drive controller's odometry (remap wheel_odom to e.g.
             # /diff_drive_controller/odom); its twist gives back the wheel speeds.
             self.create_subscription(Odometry, 'wheel_odom', self._on_wheel_odometry,
-                                     qos_profile_sensor_data, qos_overriding_options=overridable)
+                                     sensor_qos(), qos_overriding_options=overridable)
         else:
             self.create_subscription(Float64, 'wheel/left/velocity', self._on_left_wheel,
-                                     qos_profile_sensor_data, qos_overriding_options=overridable)
+                                     sensor_qos(), qos_overriding_options=overridable)
             self.create_subscription(Float64, 'wheel/right/velocity', self._on_right_wheel,
-                                     qos_profile_sensor_data, qos_overriding_options=overridable)
+                                     sensor_qos(), qos_overriding_options=overridable)
         self._imu_sub: Any = None
         self._sync_imu_subscription(config)
         self.create_service(Trigger, '~/reset', self._on_reset)
@@ -235,7 +247,7 @@ class OdomNode(Node):
         wanted = config['imu.mode'] != 'off'
         if wanted and self._imu_sub is None:
             self._imu_sub = self.create_subscription(
-                Imu, 'imu/data', self._on_imu, qos_profile_sensor_data,
+                Imu, 'imu/data', self._on_imu, sensor_qos(),
                 qos_overriding_options=QoSOverridingOptions.with_default_policies())
         elif not wanted and self._imu_sub is not None:
             self.destroy_subscription(self._imu_sub)
