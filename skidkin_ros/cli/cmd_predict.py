@@ -129,7 +129,7 @@ def add_parser(subparsers) -> None:
                         'imu.mode); a bag needs --imu-topic (or one Imu topic), a table the '
                         'imu_yaw_rate column')
     parser.add_argument('--reference', metavar='TOPIC',
-                        help='a bag\'s nav_msgs/Odometry (or PoseStamped) topic to learn the '
+                        help="a bag's nav_msgs/Odometry (or PoseStamped) topic to learn the "
                         'parameters from online, as odom_node does with online.enabled and '
                         'reference/odom remapped to TOPIC (the online.* parameters of --params '
                         'apply)')

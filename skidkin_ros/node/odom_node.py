@@ -82,12 +82,12 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Estimate
-from skidkin_ros.core.online import attach_online, online_odometer
-from skidkin_ros.core.online.save import save_learned
 from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
                                               DuplicateJointError, joint_indices,
                                               MissingJointError, positions_at, repeated_names,
                                               speeds_at)
+from skidkin_ros.core.online import attach_online, online_odometer
+from skidkin_ros.core.online.save import save_learned
 from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
 from skidkin_ros.errors import ConfigError, SkidkinError
 from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_msg,
@@ -381,7 +381,7 @@ class OdomNode(Node):
             if learner is None:
                 response.success = False
                 response.message = ('online.enabled is false: nothing learned to save (the '
-                                    'parameters in force are the file\'s)')
+                                    "parameters in force are the file's)")
                 return response
             try:
                 path = save_learned(self._config, learner, self._config['online.save_path'],

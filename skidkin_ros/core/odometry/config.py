@@ -242,7 +242,7 @@ def _online_entries() -> list[SchemaEntry]:
     entries = [
         SchemaEntry('online.enabled', 'bool', False,
                     'learn the model parameters online from a reference odometry on '
-                    'reference/odom (nav_msgs/Odometry); off: the file\'s parameters, as always'),
+                    "reference/odom (nav_msgs/Odometry); off: the file's parameters, as always"),
         SchemaEntry('online.reference_frame_id', 'string', '',
                     'refuse reference poses whose header.frame_id differs (empty: any)'),
         SchemaEntry('online.reference_child_frame_id', 'string', '',

@@ -37,10 +37,10 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('mount_yaw', 'rad', 0.0, -math.pi, math.pi,
               'yaw of the reference frame in the base frame'),
     ParamSpec('horizon', 'm', 2.0, 0.0, 100.0,
-              'learning segments end after this reference path (the calibrator\'s h_t)',
+              "learning segments end after this reference path (the calibrator's h_t)",
               lower_open=True),
     ParamSpec('horizon_rad', 'rad', 1.0, 0.0, 100.0,
-              'or after this much turning (the calibrator\'s h_t_rad)', lower_open=True),
+              "or after this much turning (the calibrator's h_t_rad)", lower_open=True),
     ParamSpec('memory', 'm', 30.0, 0.0, 1e6,
               'forgetting length: information older than this many metres fades by 1/e',
               lower_open=True),
@@ -159,8 +159,8 @@ class ReferenceStatus(enum.Enum):
     WHEEL_GAP = 'reference_wheel_gap'        # the wheels have a gap since the last one: restart
 
 
-def base_pose(x: float, y: float, yaw: float, params: OnlineParams) -> tuple[float, float,
-                                                                              float]:
+def base_pose(x: float, y: float, yaw: float,
+              params: OnlineParams) -> tuple[float, float, float]:
     """Return the base frame's pose from the reference frame's (T_WB = T_WS T_BS^-1)."""
     yaw_b = yaw - params.mount_yaw
     c, s = math.cos(yaw_b), math.sin(yaw_b)

@@ -127,8 +127,8 @@ class OnlineCalibrator:
         self.scale = parameter_scales(model, geometry)
         self.options = SegmentOptions(
             horizon_m=params.horizon, horizon_rad=params.horizon_rad,
-            min_motion_m=HorizonOptions.min_motion_m, min_rotation_rad=HorizonOptions.min_rotation_rad,
-            interval=interval)
+            min_motion_m=HorizonOptions.min_motion_m,
+            min_rotation_rad=HorizonOptions.min_rotation_rad, interval=interval)
         self.k0 = model.vector(dict(values), geometry)
         self.prior_info = np.eye(self.k0.size) / params.prior_sigma ** 2
         info = self.prior_info.copy()
@@ -168,10 +168,11 @@ class OnlineCalibrator:
         self._seg_version = self.version
         self._jumps = 0
         self._stall_m = 0.0
+        self._last_seen: tuple[int, float, float, float] | None = None
         self._last_accepted_wheel_ns: int | None = None
 
     def restart(self) -> None:
-        """Forget the buffered wheel steps and reference poses (odometry reset); keep the grounds."""
+        """Forget the buffered wheel steps and reference poses (a reset); keep the grounds."""
         self._restart_buffers()
 
     @property
@@ -225,7 +226,7 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------ wheel steps
     def wheel_break(self, t_ns: int) -> None:
-        """A wheel sample held only (first, after a gap): a new chain of steps starts there."""
+        """Start a new chain of steps at a wheel sample held only (the first, after a gap)."""
         self._chain_id += 1
         self._last_t1 = t_ns
 
@@ -345,6 +346,17 @@ class OnlineCalibrator:
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
                         'step kept (time_offset wrong, or wheel data missing)')
             return
+        seen, self._last_seen = self._last_seen, (t_ns, x, y, yaw)
+        if seen is not None and seen[1:] == (x, y, yaw):
+            moved = self._wheel_motion(seen[0], t_ns)
+            self._stall_m += 0.0 if moved is None else moved[0]
+            if self._stall_m > self.params.stall:
+                self._count(ReferenceStatus.STALL, f'reference frozen while the wheels '
+                            f'travelled {self._stall_m:.2f} m: not used, segment dropped')
+                self._seg_start = None
+                return
+        else:
+            self._stall_m = 0.0
         last = self._refs[-1] if self._refs else None
         if last is None:
             self._start_chain(t_ns, x, y, yaw)
@@ -375,22 +387,12 @@ class OnlineCalibrator:
                 self._start_chain(t_ns, x, y, yaw)
             return
         self._jumps = 0
-        if dist == 0.0 and yaw == last.yaw and wheel_dist > 0.0:
-            self._stall_m += wheel_dist
-            if self._stall_m > params.stall:
-                self._count(ReferenceStatus.STALL, f'reference frozen while the wheels travelled '
-                            f'{self._stall_m:.2f} m: segment dropped')
-                self._seg_start = None
-                return
-        else:
-            self._stall_m = 0.0
         ref = _Ref(t_ns, x, y, yaw, last.path_m + dist)
         self._accept(ref)
 
     def _start_chain(self, t_ns: int, x: float, y: float, yaw: float) -> None:
         self._refs.clear()
         self._jumps = 0
-        self._stall_m = 0.0
         ref = _Ref(t_ns, x, y, yaw, 0.0)
         self._refs.append(ref)
         self._seg_start = ref
@@ -496,7 +498,7 @@ class OnlineCalibrator:
         self._update(e, sens, motion_cov + self._reference_cov(), path)
 
     def _change(self, seg: SegmentSet, motion_cov: np.ndarray) -> None:
-        """The CUSUM passed its threshold: take back a known ground, or start a new one."""
+        """Take back a known ground, or start a new one (the CUSUM passed its threshold)."""
         self.cusum = 0.0
         best, best_nees = None, CHI2_99_3DOF
         for ground in self.grounds:
@@ -563,7 +565,7 @@ class OnlineCalibrator:
         self.version += 1
 
     def _recognise(self, ref: _Ref) -> None:
-        """Score the last switch_window metres under every ground; switch to a clearly better one."""
+        """Score the last switch_window metres under every ground; take a clearly better one."""
         refs = self._refs
         window = self.params.switch_window
         if ref.path_m - refs[0].path_m < window:
