@@ -92,6 +92,8 @@ class Learner(Protocol):
 
     def uncertainty(self) -> Any: ...
 
+    def take_error(self) -> Any: ...
+
 
 @dataclass(frozen=True)
 class SampleRules:
@@ -311,6 +313,9 @@ class Odometer:
         self.integrator.set_source(learner.bound_model())
         if self.covariance.calibrated:
             self.covariance.set_parameters(learner.uncertainty())
+            error = learner.take_error()
+            if error is not None:  # what the old ground's parameters got wrong, carried
+                self.covariance.cov = self.covariance.cov + error
 
     def reference_sample(self, t_ns: int, x: float, y: float, yaw: float,
                          frame_id: str = '', child_frame_id: str = '') -> str:

@@ -48,6 +48,9 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               'forgetting length while adapting to a new ground', lower_open=True),
     ParamSpec('adapt_distance', 'm', 10.0, 0.0, 1e6,
               'travel after a detected change during which adapt_memory applies'),
+    ParamSpec('window', '', 20.0, 1.0, 1000.0,
+              'learning segments kept per ground and solved again at every new one (older '
+              'ones also fade by the memory)'),
     ParamSpec('prior_sigma', '', 0.2, 0.0, 10.0,
               'prior standard deviation of each parameter on a new ground, relative to its '
               'typical magnitude', lower_open=True),
@@ -78,7 +81,7 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               lower_open=True),
     ParamSpec('cusum_threshold', '', 40.0, 0.0, 1e9,
               'change detection: a CUSUM beyond this is a change of ground', lower_open=True),
-    ParamSpec('switch_window', 'm', 1.0, 0.0, 100.0,
+    ParamSpec('switch_window', 'm', 0.5, 0.0, 100.0,
               'a known ground is recognised on the last this many metres of reference path',
               lower_open=True),
     ParamSpec('switch_margin', '', 12.0, 0.0, 1e9,
@@ -106,6 +109,7 @@ class OnlineParams:
     memory: float = 30.0
     adapt_memory: float = 4.0
     adapt_distance: float = 10.0
+    window: float = 20.0
     prior_sigma: float = 0.2
     min_information: float = 16.0
     sigma_xy: float = 0.02
@@ -117,7 +121,7 @@ class OnlineParams:
     stall: float = 0.3
     cusum_drift: float = 6.0
     cusum_threshold: float = 40.0
-    switch_window: float = 1.0
+    switch_window: float = 0.5
     switch_margin: float = 12.0
     max_grounds: float = 4.0
 

@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import bisect
 import collections
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import math
 from typing import Mapping
 
@@ -83,14 +83,28 @@ STATES = ('holding', 'learning', 'adapting')
 
 @dataclass
 class Ground:
-    """One ground's parameters and their information (in units of the typical magnitudes)."""
+    """One ground: its parameters, prior, window of segments and information.
+
+    Information matrices are in units of each parameter's typical magnitude. ``anchor`` and
+    ``prior`` are the prior (where the ground started, how sure of it); ``window`` the recent
+    segments with their weight matrices and the travel at which they were learned.
+    """
 
     ident: int
     k: np.ndarray
-    info: np.ndarray
+    prior: np.ndarray
+    anchor: np.ndarray = None
+    info: np.ndarray = None
+    window: list = field(default_factory=list)
     learned_m: float = 0.0
     segments: int = 0
     last_used: int = 0
+
+    def __post_init__(self) -> None:
+        if self.anchor is None:
+            self.anchor = self.k.copy()
+        if self.info is None:
+            self.info = self.prior.copy()
 
 
 class _Ref:
@@ -138,6 +152,7 @@ class OnlineCalibrator:
         self.grounds = [Ground(0, self.k0.copy(), info)]
         self.active = self.grounds[0]
         self._next_ident = 1
+        self._error = np.zeros((3, 3))
         self.version = 0              # grows when the parameters in force change
         self.travel_m = 0.0           # reference path accepted, in all
         self._adapt_until_m = -1.0
@@ -480,7 +495,7 @@ class OnlineCalibrator:
             self.counters['online_straddles'] += 1
             return
         motion_cov = self._motion_cov(seg)
-        e, sens, nees = self._score(self.active, seg, motion_cov, True)
+        e, _, nees = self._score(self.active, seg, motion_cov, True)
         path, rot = b.path_m - a.path_m, b.yaw - a.yaw
         params = self.params
         if (math.hypot(e[0], e[1]) > params.max_jump + 0.5 * path
@@ -493,9 +508,9 @@ class OnlineCalibrator:
         self.last_nees = nees
         self.cusum = max(0.0, self.cusum + nees - params.cusum_drift)
         if self.cusum > params.cusum_threshold:
+            self._note_error(seg, e)
             self._change(seg, motion_cov)
-            e, sens, nees = self._score(self.active, seg, motion_cov, True)
-        self._update(e, sens, motion_cov + self._reference_cov(), path)
+        self._update(seg, motion_cov + self._reference_cov(), path)
 
     def _change(self, seg: SegmentSet, motion_cov: np.ndarray) -> None:
         """Take back a known ground, or start a new one (the CUSUM passed its threshold)."""
@@ -525,42 +540,75 @@ class OnlineCalibrator:
         self._warn('online_change', f'change of ground detected: learning ground {ground.ident} '
                    f'from the current parameters ({len(self.grounds)} grounds known)')
 
+    def _note_error(self, seg: SegmentSet, residual: np.ndarray) -> None:
+        """Keep the error the old ground made on the segment that revealed the change.
+
+        The odometry carried that error already, with a covariance that did not know the ground
+        had changed: the odometer adds it (world frame, e e^T) to the published covariance once
+        (:meth:`take_error`), so the covariance stays honest across a change.
+        """
+        c, s = math.cos(float(seg.start[0, 2])), math.sin(float(seg.start[0, 2]))
+        world = np.array([c * residual[0] - s * residual[1], s * residual[0] + c * residual[1],
+                          residual[2]])
+        self._error = self._error + np.outer(world, world)
+
+    def take_error(self) -> np.ndarray | None:
+        """Return the error noted since the last call (3 x 3, world frame), or None."""
+        error, self._error = self._error, np.zeros((3, 3))
+        return error if error.any() else None
+
     def _activate(self, ground: Ground, cause: str) -> None:
         self.counters[cause] += 1
         self.active = ground
         ground.last_used = self.counters['online_segments'] + self.counters[cause]
         self.version += 1
 
-    def _update(self, e: np.ndarray, sens: np.ndarray, cov: np.ndarray, path_m: float) -> None:
-        """Forget, then one Gauss-Newton step in the observable directions (module docstring)."""
+    def _update(self, seg: SegmentSet, cov: np.ndarray, path_m: float) -> None:
+        """Add the segment to the window; one Gauss-Newton step in the observable directions.
+
+        The window's segments fade by exp(-path / memory) at every new segment (forgetting:
+        faster while adapting, and what faded then stays faded) and are
+        relinearised at the current parameters (no early linearisation stays baked in, as in a
+        plain recursive filter); the prior (the ground's start, its information) keeps the
+        unobserved directions where they were and bounds their uncertainty.
+        """
         ground = self.active
-        memory = (self.params.adapt_memory if self.travel_m < self._adapt_until_m
-                  else self.params.memory)
-        keep = math.exp(-path_m / memory)
-        ground.info = keep * ground.info + (1.0 - keep) * self.prior_info
-        weight = np.linalg.inv(cov)
-        gain = sens.T @ weight @ sens         # information added, scaled units
-        gain = 0.5 * (gain + gain.T)
-        values, vectors = np.linalg.eigh(gain)
-        observed = values >= max(self.params.min_information, 1e-9 * values.max())
+        params = self.params
+        memory = params.adapt_memory if self.travel_m < self._adapt_until_m else params.memory
+        fade = math.exp(-path_m / memory)
+        for item in ground.window:
+            item[2] *= fade
+        ground.window.append([seg, np.linalg.inv(cov), 1.0])
+        ground.window = [item for item in ground.window[-int(params.window):]
+                         if item[2] > 1e-3]
         self.counters['online_segments'] += 1
         ground.segments += 1
         ground.learned_m += path_m
         ground.last_used = self.counters['online_segments']
+        batch = _stack([item[0] for item in ground.window])
+        weights = np.array([item[2] for item in ground.window])
+        inverse = np.stack([item[1] for item in ground.window]) * weights[:, None, None]
+        e = segment_errors(self.model, ground.k, self.geometry, batch)
+        sens = parameter_sensitivity(self.model.name, self.model.mapping(ground.k),
+                                     self.geometry, batch) * self.scale
+        data = np.einsum('nip,nij,njq->pq', sens, inverse, sens)
+        data = 0.5 * (data + data.T)
+        u_offset = (ground.k - ground.anchor) / self.scale
+        gradient = np.einsum('nip,nij,nj->p', sens, inverse, e) - ground.prior @ u_offset
+        ground.info = data + ground.prior
+        values, vectors = np.linalg.eigh(data)
+        observed = values >= max(params.min_information, 1e-9 * max(values.max(), 0.0))
         if not observed.any():
             self.counters['online_unobservable'] += 1
             return
         basis = vectors[:, observed]
-        info_sub = basis.T @ ground.info @ basis + np.diag(values[observed])
-        step_sub = np.linalg.solve(info_sub, basis.T @ (sens.T @ weight @ e))
-        k = ground.k + (basis @ step_sub) * self.scale
-        k = np.clip(k, self._lo, self._hi)
+        step = basis @ np.linalg.solve(basis.T @ ground.info @ basis, basis.T @ gradient)
+        k = np.clip(ground.k + step * self.scale, self._lo, self._hi)
         try:
             self.model.check_constraints(k)
         except ParameterError:
             self.counters['online_update_refused'] += 1
             return
-        ground.info = ground.info + basis @ np.diag(values[observed]) @ basis.T
         ground.k = k
         self.version += 1
 
@@ -579,12 +627,35 @@ class OnlineCalibrator:
         if seg is None:
             return
         motion_cov = self._motion_cov(seg)
-        scores = [(self._score(g, seg, motion_cov, False)[2], g) for g in self.grounds]
-        active = next(s for s, g in scores if g is self.active)
-        best, ground = min(scores, key=lambda item: item[0])
+        scores = [(self._score(g, seg, motion_cov, False), g) for g in self.grounds]
+        active, residual = next((s[2], s[0]) for s, g in scores if g is self.active)
+        best, ground = min(((s[2], g) for s, g in scores), key=lambda item: item[0])
         if ground is not self.active and active - best > self.params.switch_margin:
+            self._note_error(seg, residual)
             self._activate(ground, 'online_switch')
             self.cusum = 0.0
+
+
+def _stack(segments: list[SegmentSet]) -> SegmentSet:
+    """Return one-row segment sets as one set, padded with dt = 0 to the longest."""
+    if len(segments) == 1:
+        return segments[0]
+    width = max(seg.dt_s.shape[1] for seg in segments)
+
+    def pad(name: str) -> np.ndarray:
+        out = np.zeros((len(segments), width))
+        for i, seg in enumerate(segments):
+            row = getattr(seg, name)[0]
+            out[i, :row.size] = row
+        return out
+    return SegmentSet(
+        drive=np.zeros(len(segments), dtype=int),
+        t_a_ns=np.concatenate([seg.t_a_ns for seg in segments]),
+        t_b_ns=np.concatenate([seg.t_b_ns for seg in segments]),
+        start=np.concatenate([seg.start for seg in segments]),
+        end=np.concatenate([seg.end for seg in segments]),
+        omega_l=pad('omega_l'), omega_r=pad('omega_r'), dt_s=pad('dt_s'),
+        path_m=np.concatenate([seg.path_m for seg in segments]))
 
 
 def _wrap(angle: float) -> float:
