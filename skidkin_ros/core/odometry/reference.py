@@ -48,7 +48,7 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               'forgetting length while adapting to a new ground', lower_open=True),
     ParamSpec('adapt_distance', 'm', 10.0, 0.0, 1e6,
               'travel after a detected change during which adapt_memory applies'),
-    ParamSpec('window', '', 20.0, 1.0, 1000.0,
+    ParamSpec('window', '', 16.0, 1.0, 1000.0,
               'learning segments kept per ground and solved again at every new one (older '
               'ones also fade by the memory)'),
     ParamSpec('prior_sigma', '', 0.2, 0.0, 10.0,
@@ -109,7 +109,7 @@ class OnlineParams:
     memory: float = 30.0
     adapt_memory: float = 4.0
     adapt_distance: float = 10.0
-    window: float = 20.0
+    window: float = 16.0
     prior_sigma: float = 0.2
     min_information: float = 16.0
     sigma_xy: float = 0.02

@@ -74,6 +74,8 @@ __all__ = ['OnlineCalibrator', 'Ground', 'MAX_STEPS', 'STATES']
 MAX_STEPS = 60_000
 # Jumps in a row that mean the reference relocalised (its chain restarts there).
 JUMP_CONFIRM = 3
+# Wheel steps shorter than this are merged (time-weighted mean speeds) inside learning segments.
+BLOCK_S = 0.05
 # Reference poses kept for the window (beyond: the oldest go).
 MAX_REFERENCES = 4096
 # A ground whose segment NEES is below this (chi2, 3 dof, 99 %) explains the segment.
@@ -168,13 +170,9 @@ class OnlineCalibrator:
     def _restart_buffers(self) -> None:
         # Wheel steps (t0, t1] with the speeds integrated and the model's twist; chain ids
         # tell contiguous steps apart from steps after a gap.
-        self._t0: list[int] = []
         self._t1: list[int] = []
-        self._wl: list[float] = []
-        self._wr: list[float] = []
-        self._vx: list[float] = []
-        self._w: list[float] = []
-        self._chain: list[int] = []
+        # per step: (t0, left speed, right speed, model v_x, model yaw rate, chain id)
+        self._rows: list[tuple[int, float, float, float, float, int]] = []
         self._chain_id = 0
         self._last_t1: int | None = None
         self._pending: collections.deque[tuple[int, float, float, float]] = collections.deque()
@@ -184,6 +182,7 @@ class OnlineCalibrator:
         self._jumps = 0
         self._stall_m = 0.0
         self._last_seen: tuple[int, float, float, float] | None = None
+        self._recognised_m = -math.inf
         self._last_accepted_wheel_ns: int | None = None
 
     def restart(self) -> None:
@@ -253,13 +252,8 @@ class OnlineCalibrator:
         if t0 is None or wheels is None:
             self._chain_id += 1
             return False
-        self._t0.append(t0)
         self._t1.append(t1_ns)
-        self._wl.append(wheels[0])
-        self._wr.append(wheels[1])
-        self._vx.append(math.hypot(twist[0], twist[1]))
-        self._w.append(twist[2])
-        self._chain.append(self._chain_id)
+        self._rows.append((t0, wheels[0], wheels[1], twist[0], twist[2], self._chain_id))
         if len(self._t1) > MAX_STEPS:
             self.counters['online_segment_too_long'] += 1
             self._seg_start = None
@@ -269,7 +263,7 @@ class OnlineCalibrator:
         pending = self._pending
         while pending and pending[0][0] <= t1_ns:
             self._judge(*pending.popleft())
-        if not pending:
+        if not pending and not len(self._t1) & 255:
             self._trim_old()
         return self.version != before
 
@@ -284,8 +278,8 @@ class OnlineCalibrator:
         """Drop the wheel steps that end before keep_ns (amortised: in halves)."""
         n = bisect.bisect_left(self._t1, keep_ns)
         if n > 256 and (n > len(self._t1) // 2 or len(self._t1) > MAX_STEPS):
-            for name in ('_t0', '_t1', '_wl', '_wr', '_vx', '_w', '_chain'):
-                del getattr(self, name)[:n]
+            del self._t1[:n]
+            del self._rows[:n]
 
     # ------------------------------------------------------------------ reference poses
     def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
@@ -345,19 +339,20 @@ class OnlineCalibrator:
         t1 = self._t1
         i0 = bisect.bisect_right(t1, t_a)
         i1 = bisect.bisect_left(t1, t_b)
-        if i1 >= len(t1) or i0 > i1 or self._t0[i0] > t_a or self._chain[i0] != self._chain[i1]:
+        rows = self._rows
+        if i1 >= len(t1) or i0 > i1 or rows[i0][0] > t_a or rows[i0][5] != rows[i1][5]:
             return None
         dist = rot = 0.0
-        t0 = self._t0
         for i in range(i0, i1 + 1):
-            dt = (min(t1[i], t_b) - max(t0[i], t_a)) * 1e-9
-            dist += self._vx[i] * dt
-            rot += self._w[i] * dt
-        return abs(dist), rot
+            t0, _, _, speed, yaw_rate, _ = rows[i]
+            dt = (min(t1[i], t_b) - max(t0, t_a)) * 1e-9
+            dist += abs(speed) * dt
+            rot += yaw_rate * dt
+        return dist, rot
 
     def _judge(self, t_ns: int, x: float, y: float, yaw: float) -> None:
         """Judge a reference pose the wheels now cover; use it if it is good."""
-        if not self._t1 or t_ns <= self._t0[0]:
+        if not self._t1 or t_ns <= self._rows[0][0]:
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
                         'step kept (time_offset wrong, or wheel data missing)')
             return
@@ -432,7 +427,9 @@ class OnlineCalibrator:
             self._learn(start, ref)
             self._seg_start = ref
             self._seg_version = self.version
-        if len(self.grounds) > 1:
+        if len(self.grounds) > 1 and not (
+                0.0 <= ref.path_m - self._recognised_m < 0.5 * self.params.switch_window):
+            self._recognised_m = ref.path_m
             self._recognise(ref)
         # the window needs only the last switch_window metres
         window = self.params.switch_window
@@ -443,21 +440,23 @@ class OnlineCalibrator:
     # ------------------------------------------------------------------ segments
     def _segment(self, a: _Ref, b: _Ref) -> SegmentSet | None:
         """Return the segment a -> b as the calibrator's SegmentSet (one row), or None."""
-        t1, t0 = self._t1, self._t0
+        t1, rows = self._t1, self._rows
         i0 = bisect.bisect_right(t1, a.t_ns)
         i1 = bisect.bisect_left(t1, b.t_ns)
-        if i1 >= len(t1) or i0 > i1 or t0[i0] > a.t_ns or self._chain[i0] != self._chain[i1]:
+        if i1 >= len(t1) or i0 > i1 or rows[i0][0] > a.t_ns or rows[i0][5] != rows[i1][5]:
             return None
         stamps = np.array(t1[i0:i1 + 1], dtype=np.int64)
-        starts = np.array(t0[i0:i1 + 1], dtype=np.int64)
+        chunk = rows[i0:i1 + 1]
+        starts = np.array([row[0] for row in chunk], dtype=np.int64)
+        table = np.array([row[1:3] for row in chunk])
         dt_s = (np.minimum(stamps, b.t_ns) - np.maximum(starts, a.t_ns)) * 1e-9
         if dt_s.max() > self.options.max_gap_s:
             return None
+        left, right, dt_s = _blocks(table[:, 0], table[:, 1], dt_s)
         return SegmentSet(
             drive=np.zeros(1, dtype=int), t_a_ns=np.array([a.t_ns], np.int64),
             t_b_ns=np.array([b.t_ns], np.int64), start=np.array([[a.x, a.y, a.yaw]]),
-            end=np.array([[b.x, b.y, b.yaw]]),
-            omega_l=np.array([self._wl[i0:i1 + 1]]), omega_r=np.array([self._wr[i0:i1 + 1]]),
+            end=np.array([[b.x, b.y, b.yaw]]), omega_l=left[None], omega_r=right[None],
             dt_s=dt_s[None], path_m=np.array([b.path_m - a.path_m]))
 
     def _reference_cov(self) -> np.ndarray:
@@ -495,7 +494,13 @@ class OnlineCalibrator:
             self.counters['online_straddles'] += 1
             return
         motion_cov = self._motion_cov(seg)
-        e, _, nees = self._score(self.active, seg, motion_cov, True)
+        ground = self.active
+        # the residuals of the window and the new segment at once (one set of rollouts)
+        errors, sens = self._residuals(ground, [item[0] for item in ground.window] + [seg])
+        e = errors[-1]
+        predictive = (motion_cov + self._reference_cov()
+                      + sens[-1] @ np.linalg.inv(ground.info) @ sens[-1].T)
+        nees = float(mahalanobis(predictive[None], e[None])[0])
         path, rot = b.path_m - a.path_m, b.yaw - a.yaw
         params = self.params
         if (math.hypot(e[0], e[1]) > params.max_jump + 0.5 * path
@@ -510,7 +515,19 @@ class OnlineCalibrator:
         if self.cusum > params.cusum_threshold:
             self._note_error(seg, e)
             self._change(seg, motion_cov)
-        self._update(seg, motion_cov + self._reference_cov(), path)
+            if self.active is not ground:   # a new ground starts from ground.k: same rows
+                errors, sens = ((errors[-1:], sens[-1:]) if not self.active.window
+                                else (None, None))
+        self._update(seg, motion_cov + self._reference_cov(), path, errors, sens)
+
+    def _residuals(self, ground: Ground, segments: list[SegmentSet]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Return the residuals (N, 3) and their sensitivities (N, 3, p; scaled units)."""
+        batch = _stack(segments)
+        errors = segment_errors(self.model, ground.k, self.geometry, batch)
+        sens = parameter_sensitivity(self.model.name, self.model.mapping(ground.k),
+                                     self.geometry, batch) * self.scale
+        return errors, sens
 
     def _change(self, seg: SegmentSet, motion_cov: np.ndarray) -> None:
         """Take back a known ground, or start a new one (the CUSUM passed its threshold)."""
@@ -563,14 +580,17 @@ class OnlineCalibrator:
         ground.last_used = self.counters['online_segments'] + self.counters[cause]
         self.version += 1
 
-    def _update(self, seg: SegmentSet, cov: np.ndarray, path_m: float) -> None:
+    def _update(self, seg: SegmentSet, cov: np.ndarray, path_m: float,
+                errors: np.ndarray | None = None, sens: np.ndarray | None = None) -> None:
         """Add the segment to the window; one Gauss-Newton step in the observable directions.
 
         The window's segments fade by exp(-path / memory) at every new segment (forgetting:
         faster while adapting, and what faded then stays faded) and are
         relinearised at the current parameters (no early linearisation stays baked in, as in a
         plain recursive filter); the prior (the ground's start, its information) keeps the
-        unobserved directions where they were and bounds their uncertainty.
+        unobserved directions where they were and bounds their uncertainty. ``errors`` and
+        ``sens``: the residuals of the window and the segment at the current parameters, when
+        known (None: computed here).
         """
         ground = self.active
         params = self.params
@@ -578,19 +598,20 @@ class OnlineCalibrator:
         fade = math.exp(-path_m / memory)
         for item in ground.window:
             item[2] *= fade
-        ground.window.append([seg, np.linalg.inv(cov), 1.0])
-        ground.window = [item for item in ground.window[-int(params.window):]
-                         if item[2] > 1e-3]
+        items = ground.window + [[seg, np.linalg.inv(cov), 1.0]]
+        first = max(len(items) - int(params.window), 0)
+        keep = [i for i in range(first, len(items)) if items[i][2] > 1e-3]
+        ground.window = [items[i] for i in keep]
         self.counters['online_segments'] += 1
         ground.segments += 1
         ground.learned_m += path_m
         ground.last_used = self.counters['online_segments']
-        batch = _stack([item[0] for item in ground.window])
+        if errors is None or len(errors) != len(items):
+            e, sens = self._residuals(ground, [item[0] for item in ground.window])
+        else:
+            e, sens = errors[keep], sens[keep]
         weights = np.array([item[2] for item in ground.window])
         inverse = np.stack([item[1] for item in ground.window]) * weights[:, None, None]
-        e = segment_errors(self.model, ground.k, self.geometry, batch)
-        sens = parameter_sensitivity(self.model.name, self.model.mapping(ground.k),
-                                     self.geometry, batch) * self.scale
         data = np.einsum('nip,nij,njq->pq', sens, inverse, sens)
         data = 0.5 * (data + data.T)
         u_offset = (ground.k - ground.anchor) / self.scale
@@ -626,7 +647,12 @@ class OnlineCalibrator:
         seg = self._segment(start, ref)
         if seg is None:
             return
-        motion_cov = self._motion_cov(seg)
+        path = ref.path_m - start.path_m
+        rot = abs(ref.yaw - start.yaw)
+        # a diagonal weight from the noise rates (the grounds are compared on the same one)
+        var_x, var_y, var_yaw = self.noise.step_variances(path, rot)
+        motion_cov = np.diag([var_x + self.noise.var_x_const, var_y + self.noise.var_y_const,
+                              var_yaw + self.noise.var_yaw_const]) + 1e-9 * np.eye(3)
         scores = [(self._score(g, seg, motion_cov, False), g) for g in self.grounds]
         active, residual = next((s[2], s[0]) for s, g in scores if g is self.active)
         best, ground = min(((s[2], g) for s, g in scores), key=lambda item: item[0])
@@ -634,6 +660,24 @@ class OnlineCalibrator:
             self._note_error(seg, residual)
             self._activate(ground, 'online_switch')
             self.cusum = 0.0
+
+
+def _blocks(left: np.ndarray, right: np.ndarray, dt_s: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge wheel steps into blocks of about BLOCK_S (speeds averaged over time).
+
+    A fast wheel stream (1 kHz) would make every rollout of a segment 50 times longer than at
+    20 Hz for no information: the twist is linear in the speeds over a few milliseconds. Steps
+    already longer than half a block are kept as they are.
+    """
+    if dt_s.size < 2 or dt_s.sum() >= 0.5 * BLOCK_S * dt_s.size:
+        return left, right, dt_s
+    start = np.concatenate([[0.0], np.cumsum(dt_s)[:-1]])
+    ids = np.floor(start / BLOCK_S).astype(np.int64)
+    first = np.flatnonzero(np.diff(ids, prepend=-1))
+    dt_b = np.add.reduceat(dt_s, first)
+    return (np.add.reduceat(left * dt_s, first) / dt_b,
+            np.add.reduceat(right * dt_s, first) / dt_b, dt_b)
 
 
 def _stack(segments: list[SegmentSet]) -> SegmentSet:
