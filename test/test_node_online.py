@@ -2,10 +2,10 @@
 
 import math
 
-import numpy as np
-import pytest
 from nav_msgs.msg import Odometry
 from node_harness import NodeRig, RELIABLE, wall_ns
+import numpy as np
+import pytest
 from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.online import online_odometer

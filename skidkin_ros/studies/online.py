@@ -20,13 +20,13 @@ model (the simulator's parameters of the ground under the robot at each sample: 
 Scores (all on the whole drive): ε_t and ε_θ, the mean position and heading error of the
 odometry's increments over 2 m of true path (:func:`skidkin_ros.sim.accuracy.increment_errors`,
 the calibrator's comparison); metres to learn a new ground (long stretches: the true path from
-the change to the first 2 m increment from which the next five average within 1.5x the true
-model's: the next 40 increments, 2 s of driving); the cost of a 20 s reference dropout (the drive's ε_t with the reference cut for 20 s at
-three quarters of the drive, over the ε_t without); the NEES of the published pose (x, y, yaw)
-against its published covariance at every second after the first ten, whole drive from the start
-(mean, and the share inside the 95 % chi2 region). Run::
+the change to the first 2 m increment from which the next 40 (2 s of driving) average within
+1.5x the true model's); the cost of a 20 s reference dropout (the drive's ε_t with the
+reference cut for 20 s at three quarters of the drive, over the ε_t without); the NEES of the
+published pose (x, y, yaw) against its published covariance at every second after the first
+ten, whole drive from the start (mean, and the share inside the 95 % chi2 region). Run::
 
-    python -m skidkin_ros.studies.online
+    python bench/online_study.py
 
 (about a minute on one core).
 """
@@ -35,8 +35,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-import sys
-import time
 from typing import Sequence
 
 import numpy as np
@@ -56,7 +54,7 @@ from skidkin_ros.sim.accuracy import increment_errors
 from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate, Simulation
 
-__all__ = ['CASES', 'calibrated_file', 'run_case', 'run_study', 'main']
+__all__ = ['CASES', 'CaseResult', 'calibrated_file', 'run_case', 'run_study', 'table']
 
 SLIP, YAW_SLIP = 0.25, 0.15
 PERIOD_M = 4.0
@@ -106,7 +104,8 @@ def _true_poses(sim: Simulation, interval: str) -> np.ndarray:
     base = dict(DEFAULT_TRUE_PARAMS)
     ratio = (1.0 - SLIP) / (1.0 - YAW_SLIP)
     other = {'alpha_l': base['alpha_l'] * (1 - SLIP), 'alpha_r': base['alpha_r'] * (1 - SLIP),
-             'x_v': base['x_v'] / (1.0 - YAW_SLIP), 'y_l': base['y_l'] * ratio, 'y_r': base['y_r'] * ratio}
+             'x_v': base['x_v'] / (1.0 - YAW_SLIP), 'y_l': base['y_l'] * ratio,
+             'y_r': base['y_r'] * ratio}
     sources = (model.bind(base, geometry), model.bind(other, geometry))
     mask = sim.trace.masks.get('terrain_regime')
     on = (np.zeros(len(sim.wheels), bool) if mask is None else
@@ -223,10 +222,12 @@ def run_study(seeds: dict | None = None, duration_s: float = 240.0) -> list[Case
             for seed in seeds[case]]
 
 
-def _table(results: list[CaseResult]) -> str:
+def table(results: list[CaseResult]) -> str:
+    """Return the results as a markdown table."""
     lines = ['| case | seed | path m | eps_t fixed / online / true (m) | eps_th fixed / online / '
              'true (rad) | online/fixed eps_t | online/true eps_t | learned in m | 20 s '
-             'dropout cost | NEES online: mean (95 % inside) | NEES fixed: mean |', '|' + '---|' * 11]
+             'dropout cost | NEES online: mean (95 % inside) | NEES fixed: mean |',
+             '|' + '---|' * 11]
     for r in results:
         lines.append(
             f'| {r.case} | {r.seed} | {r.length_m:.0f} | {r.eps_t["fixed"]:.4f} / '
@@ -237,16 +238,3 @@ def _table(results: list[CaseResult]) -> str:
             f'{100 * (r.dropout_ratio - 1):+.1f} % | {r.nees_mean:.2f} '
             f'({100 * r.nees_inside:.0f} %) | {r.nees_fixed:.2f} |')
     return '\n'.join(lines)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the study and print its table (markdown)."""
-    tic = time.perf_counter()
-    results = run_study()
-    print(_table(results))
-    print(f'\n({time.perf_counter() - tic:.0f} s)')
-    return 0
-
-
-if __name__ == '__main__':
-    sys.exit(main(sys.argv[1:]))
