@@ -54,7 +54,7 @@ def test_library_code_does_not_print():
 
 # The core's folders tell the story in order: models -> what the node runs -> fitting them
 # offline -> checking the result with a filter. A folder may use the ones before it, never after.
-CORE_ORDER = ('kinematics', 'odometry', 'calibration', 'estimation')
+CORE_ORDER = ('kinematics', 'odometry', 'calibration', 'online', 'estimation')
 
 
 def _skidkin_imports(path, names=False):

@@ -15,6 +15,7 @@ from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.gyro import GYRO_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.core.online import online_odometer
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = ['add_parser']
@@ -77,11 +78,22 @@ def _predict_table(args: argparse.Namespace, config: OdometryConfig) -> tuple[st
 
 
 def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str, int]:
-    loaded = load_source(args.source, _reading(args, config), need_truth=False)
+    reading = _reading(args, config)
+    if args.reference is not None:
+        reading = dataclasses.replace(reading, ground_truth=args.reference)
+    loaded = load_source(args.source, reading, need_truth=args.reference is not None)
     print_notes([loaded])
     _check_gyro(config, loaded.drives)
-    wheels = loaded.drives[0].wheels
-    pred = Odometer.from_config(config).predict(wheels, imu=loaded.drives[0].imu)
+    drive = loaded.drives[0]
+    wheels = drive.wheels
+    odometer = online_odometer(config)
+    pred = odometer.predict(wheels, imu=drive.imu, reference=drive.truth
+                            if args.reference is not None else None)
+    if odometer.learner is not None:
+        summary = odometer.learner.summary()
+        say(f'online calibration: {int(summary["grounds"])} ground(s), '
+            f'{odometer.counters["online_segments"]} segments, last state {summary["state"]}; '
+            + ', '.join(f'{name} {value:.4g}' for name, value in odometer.learner.values.items()))
     out = io.StringIO()
     out.write('t,t_ns,x,y,yaw,vx,vy,wz,status,cov_xx,cov_xy,cov_xyaw,cov_yy,cov_yyaw,'
               'cov_yawyaw\n')
@@ -98,9 +110,14 @@ def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str,
 
 def run(args: argparse.Namespace) -> int:
     check_writable(args.out, args.force)
-    config = OdometryConfig.from_file(args.params, args.model,
-                                      {'use_parameter_covariance': False}
-                                      if args.no_parameter_covariance else None)
+    overrides = {'use_parameter_covariance': False} if args.no_parameter_covariance else {}
+    if args.reference is not None:
+        if is_table(args.source):
+            raise ParameterError('--reference needs a bag (a nav_msgs/Odometry topic in it); a '
+                                 'trajectory table is predicted segment by segment from its '
+                                 'ground truth')
+        overrides['online.enabled'] = True
+    config = OdometryConfig.from_file(args.params, args.model, overrides or None)
     if args.imu_mode is not None:
         config = dataclasses.replace(config, values={**config.values, 'imu.mode': args.imu_mode})
     if config.imu.mode != 'off':
@@ -126,6 +143,11 @@ def add_parser(subparsers) -> None:
                         help="use the gyro as odom_node's imu.mode does (default: the file's "
                         'imu.mode); a bag needs --imu-topic (or one Imu topic), a table the '
                         'imu_yaw_rate column')
+    parser.add_argument('--reference', metavar='TOPIC',
+                        help="a bag's nav_msgs/Odometry (or PoseStamped) topic to learn the "
+                        'parameters from online, as odom_node does with online.enabled and '
+                        'reference/odom remapped to TOPIC (the online.* parameters of --params '
+                        'apply)')
     parser.add_argument('--out', type=Path, required=True, help='CSV to write')
     parser.add_argument('--force', action='store_true', help='overwrite an existing output')
     parser.add_argument('--no-parameter-covariance', action='store_true',

@@ -25,7 +25,9 @@ WARN_CAUSES = ('non_finite', 'implausible', 'wheel_jump', 'older', 'gap', 'zero_
                'negative_stamp', 'future_stamp', 'stamp_step_back', 'stamp_reset', 'missing_joint',
                'duplicate_joint', 'malformed_message', 'unpaired', 'waiting_for_clock',
                'set_pose_rejected', 'imu_non_finite', 'imu_saturated', 'imu_older',
-               'imu_bad_stamp', 'imu_future_stamp', 'imu_no_rate', 'imu_interval_stale')
+               'imu_bad_stamp', 'imu_future_stamp', 'imu_no_rate', 'imu_interval_stale',
+               'reference_non_finite', 'reference_bad_stamp', 'reference_older',
+               'reference_frame', 'reference_jump', 'reference_stall', 'online_inconsistent')
 ERROR_CAUSES = ('non_finite_state', 'non_finite_output', 'callback_error')
 
 
@@ -40,13 +42,15 @@ class StatusReport:
                stale: bool, age_s: float | None,
                side_ages_s: Mapping[str, float | None] | None = None,
                wheel_signal: str = 'velocity',
-               imu: Mapping[str, float] | None = None) -> DiagnosticStatus:
+               imu: Mapping[str, float] | None = None,
+               online: Mapping[str, float | str] | None = None) -> DiagnosticStatus:
         """Return the status of the period since the last call, and start a new period.
 
         ``age_s``: steady-clock age of the last accepted sample (None: none yet);
         ``side_ages_s``: the same per wheel topic (wheel_topics input only); ``wheel_signal``:
         the signal (velocity or position) that measured the last interval; ``imu``: the gyro
-        filter's state (gain, bias, their sigmas, ...) when imu.mode is not off.
+        filter's state (gain, bias, their sigmas, ...) when imu.mode is not off; ``online``:
+        the online calibration's state, parameters and sigmas when online.enabled.
         """
         now = time.monotonic_ns()
         period_s = max((now - self._start_mono_ns) / NS_PER_S, 1e-9)
@@ -75,6 +79,8 @@ class StatusReport:
         values['imu.mode'] = config['imu.mode']
         for key, value in (imu or {}).items():
             values[f'imu.{key}'] = f'{value:.6g}'
+        for key, value in (online or {}).items():
+            values[f'online.{key}'] = value if isinstance(value, str) else f'{value:.6g}'
         for cause in sorted(counters):
             values[f'count.{cause}'] = str(counters[cause])
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]

@@ -33,6 +33,14 @@ sample whose interval the gyro does not cover yet waits at most ``imu.max_wait``
 every gyro message and on the 0.1 s watchdog tick); a stale gyro never stops the odometry (the
 learned gain carries on). The gain and bias are on /diagnostics.
 
+Optional reference (``online.enabled``; off by default): nav_msgs/Odometry on ``reference/odom``
+(remappable; lidar odometry, a SLAM, GNSS), the pose of ``online.mount_*`` on the robot stamped
+``online.time_offset`` late. The active model's parameters are learned from it online
+(:mod:`skidkin_ros.core.online`); refused reference poses are counted by cause and never stop
+the odometry. /diagnostics reports the state (learning, holding, adapting), the parameters and
+their sigmas; ``~/save_calibration`` (std_srvs/Trigger) writes them as a parameters file
+(``online.save_path``; never over an existing file).
+
 Inputs use the sensor-data QoS (best-effort and reliable publishers both connect); QoS can be
 overridden with the standard ``qos_overrides.<topic>.subscription.*`` parameters.
 
@@ -84,14 +92,16 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.odometry.odometer import Estimate, Odometer
+from skidkin_ros.core.odometry.odometer import Estimate
 from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
                                               DuplicateJointError, joint_indices,
                                               MissingJointError, positions_at, repeated_names,
                                               speeds_at)
-from skidkin_ros.core.rotation import yaw_to_quaternion
+from skidkin_ros.core.online import attach_online, online_odometer
+from skidkin_ros.core.online.save import save_learned
+from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
-from skidkin_ros.errors import ConfigError
+from skidkin_ros.errors import ConfigError, SkidkinError
 from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_msg,
                                           planar_pose_from_msg, stamp_to_ns)
 from skidkin_ros.node.diagnostics import StatusReport
@@ -151,8 +161,8 @@ class OdomNode(Node):
             self.destroy_node()
             raise
         config = self._config
-        self._odometer = Odometer.from_config(config, counters=self.counters, warn=self._warn,
-                                              fresh=self._mark_fresh, note=self._note_signal)
+        self._odometer = online_odometer(config, counters=self.counters, warn=self._warn,
+                                         fresh=self._mark_fresh, note=self._note_signal)
         self._last_accepted_mono_ns: int | None = None
         self._stale = True
         self._stale_reported = False
@@ -194,7 +204,10 @@ class OdomNode(Node):
                                      sensor_qos(), qos_overriding_options=overridable)
         self._imu_sub: Any = None
         self._sync_imu_subscription(config)
+        self._reference_sub: Any = None
+        self._sync_reference_subscription(config)
         self.create_service(Trigger, '~/reset', self._on_reset)
+        self.create_service(Trigger, '~/save_calibration', self._on_save_calibration)
         self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose,
                                  QoSProfile(depth=OUTPUT_DEPTH,
                                             reliability=ReliabilityPolicy.RELIABLE))
@@ -234,9 +247,21 @@ class OdomNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_config(self, config: OdometryConfig) -> None:
-        """Switch to a validated configuration; the pose and its covariance are kept."""
+        """Switch to a validated configuration; the pose and its covariance are kept.
+
+        Online calibration goes on with what it learned when neither the model, its parameters
+        nor online.* changed; otherwise it restarts from the parameters given.
+        """
+        old = self._config
+        learner = self._odometer.learner
         self._odometer.configure(config)
+        if (learner is not None and config.online == old.online and config.model == old.model
+                and config.model_values == old.model_values):
+            self._odometer.attach_learner(learner)
+        else:
+            attach_online(self._odometer, config, self._warn)
         self._sync_imu_subscription(config)
+        self._sync_reference_subscription(config)
         self._joint_names = None  # the wheel joints may have changed
         if config['publish_tf'] and self._tf_broadcaster is None:
             self._tf_broadcaster = self._make_tf_broadcaster(True)
@@ -252,6 +277,17 @@ class OdomNode(Node):
         elif not wanted and self._imu_sub is not None:
             self.destroy_subscription(self._imu_sub)
             self._imu_sub = None
+
+    def _sync_reference_subscription(self, config: OdometryConfig) -> None:
+        """Subscribe to the reference while online.enabled (no cost when off)."""
+        wanted = config.online.enabled
+        if wanted and self._reference_sub is None:
+            self._reference_sub = self.create_subscription(
+                Odometry, 'reference/odom', self._on_reference, qos_profile_sensor_data,
+                qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        elif not wanted and self._reference_sub is not None:
+            self.destroy_subscription(self._reference_sub)
+            self._reference_sub = None
 
     @property
     def config(self) -> OdometryConfig:
@@ -362,6 +398,44 @@ class OdomNode(Node):
                                                    twist.linear.x, twist.angular.z, now_ns)
             if estimate is not None:
                 self._publish(estimate)
+
+    @_guarded
+    def _on_reference(self, msg: Odometry) -> None:
+        """Take a reference pose (online calibration): header.stamp, pose.pose, its frames."""
+        with self._lock:
+            self.counters['reference_received'] += 1
+            pose = msg.pose.pose
+            q = pose.orientation
+            yaw = quaternion_to_yaw(q.x, q.y, q.z, q.w)
+            self._odometer.reference_sample(stamp_to_ns(msg.header.stamp), pose.position.x,
+                                            pose.position.y, yaw, msg.header.frame_id,
+                                            msg.child_frame_id)
+
+    @_guarded
+    def _on_save_calibration(self, request: Trigger.Request,
+                             response: Trigger.Response) -> Any:
+        """Write the learned parameters as a parameters file the node loads as is."""
+        with self._lock:
+            learner = self._odometer.learner
+            if learner is None:
+                response.success = False
+                response.message = ('online.enabled is false: nothing learned to save (the '
+                                    "parameters in force are the file's)")
+                return response
+            try:
+                path = save_learned(self._config, learner, self._config['online.save_path'],
+                                    {'node': self.get_fully_qualified_name(),
+                                     'reference_topic': self._reference_sub.topic_name})
+            except SkidkinError as err:
+                response.success = False
+                response.message = f'not saved: {err}'
+                self.counters['save_refused'] += 1
+                return response
+            self.counters['saved'] += 1
+        self.get_logger().info(f'learned calibration saved to {path}')
+        response.success = True
+        response.message = f'saved to {path}'
+        return response
 
     @_guarded
     def _on_left_wheel(self, msg: Float64) -> None:
@@ -619,9 +693,12 @@ class OdomNode(Node):
                 imu['newest_age_s'] = (float('nan') if newest is None or now_ns is None
                                        else (now_ns - newest) / NS_PER_S)
                 imu['at_bound'] = float(gyro.filter.at_bound)
+            learner = self._odometer.learner
+            online = None if learner is None else learner.summary()
             return self._status_report.status(
                 f'{self.get_fully_qualified_name()}: wheel odometry', self._config,
-                self.counters, stale, age_s, side_ages, self._odometer.signal.in_use, imu)
+                self.counters, stale, age_s, side_ages, self._odometer.signal.in_use, imu,
+                online)
 
     @_guarded
     def _on_diagnostics(self) -> None:

@@ -30,8 +30,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
-from skidkin_ros.core.drive import ImuSamples, WheelSamples
-from skidkin_ros.core.rotation import quaternion_to_yaw
+from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
+from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
 from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import SkidkinError
 from skidkin_ros.node.conversions import ns_to_stamp, stamp_to_ns
@@ -157,6 +157,55 @@ def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
         send_gyro(k)
 
 
+def _reference_msg(t_ns: int, x: float, y: float, yaw: float, frame_id: str,
+                   child_frame_id: str) -> Odometry:
+    msg = Odometry()
+    msg.header.stamp = ns_to_stamp(t_ns)
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = child_frame_id
+    msg.pose.pose.position.x = float(x)
+    msg.pose.pose.position.y = float(y)
+    qx, qy, qz, qw = yaw_to_quaternion(float(yaw))
+    msg.pose.pose.orientation.z = qz
+    msg.pose.pose.orientation.w = qw
+    return msg
+
+
+def _send_with_reference(harness: '_Harness', samples: WheelSamples, reference: PoseTrack,
+                         names: list[str], n_left: int, offset_ns: int, deadline: float,
+                         frames: tuple[str, str]) -> None:
+    """Send wheel samples and reference poses in stamp order, one at a time.
+
+    A reference pose stamped up to a wheel sample's stamp goes first, as ``Odometer.predict``
+    hands them over; the yaw goes through a quaternion, as on the wire.
+    """
+    harness.spin_until(lambda: harness.reference_publisher.get_subscription_count() > 0,
+                       max(deadline - time.monotonic(), 0.0), 'the node to subscribe to the '
+                       'reference')
+    counters = harness.odom.counters
+    ref_t = np.asarray(reference.t_ns, dtype=np.int64)
+
+    def send_reference(k: int) -> None:
+        target = counters['reference_received'] + 1
+        harness.reference_publisher.publish(_reference_msg(
+            int(ref_t[k]) + offset_ns, reference.x[k], reference.y[k], reference.yaw[k],
+            *frames))
+        harness.spin_until(lambda: counters['reference_received'] >= target,
+                           max(deadline - time.monotonic(), 0.0), f'reference pose {k}')
+
+    j = 0
+    for i in range(len(samples)):
+        t_wheel = int(samples.t_ns[i])
+        while j < ref_t.size and ref_t[j] <= t_wheel:
+            send_reference(j)
+            j += 1
+        target = counters['received'] + 1
+        harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
+                                               samples.omega_l[i], samples.omega_r[i]))
+        harness.spin_until(lambda: counters['received'] >= target,
+                           max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
+
+
 class _Harness:
     """The node under test, a driver node and one executor in a private context."""
 
@@ -173,6 +222,7 @@ class _Harness:
         qos = QoSProfile(depth=QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self.publisher = self.driver.create_publisher(JointState, 'joint_states', qos)
         self.imu_publisher = self.driver.create_publisher(Imu, 'imu/data', qos)
+        self.reference_publisher = self.driver.create_publisher(Odometry, 'reference/odom', qos)
         self.received: list[Odometry] = []
         self.driver.create_subscription(Odometry, 'odom', self.received.append, qos)
         self.executor = SingleThreadedExecutor(context=context)
@@ -203,7 +253,8 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
                         timeout_s: float = 60.0,
                         stamp_offset_ns: int | None = None,
                         positions: Sequence[tuple[float, float] | None] | None = None,
-                        imu: ImuSamples | None = None) -> ReplayResult:
+                        imu: ImuSamples | None = None, reference: PoseTrack | None = None,
+                        reference_frames: tuple[str, str] = ('', '')) -> ReplayResult:
     """Feed ``samples`` to a real OdomNode as JointState messages and return its odometry.
 
     ``params_file`` and ``overrides`` (flat parameter names, e.g. ``{'model': 'roc'}``) configure
@@ -216,6 +267,8 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
     ``imu``: gyro samples sent as sensor_msgs/Imu on imu/data (for imu.mode adapt or fuse), in
     stamp order with the wheel samples (a gyro sample before a wheel sample of the same stamp)
     and one message at a time, so the node takes them in the order ``Odometer.predict`` does.
+    ``reference``: poses sent as nav_msgs/Odometry on reference/odom (online.enabled), in stamp
+    order with the wheel samples, with ``reference_frames`` (frame_id, child_frame_id).
     Raises ConfigError if the node refuses the configuration, ReplayError on a timeout.
     """
     params = dict(overrides or {})
@@ -226,7 +279,7 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
         params['right_wheel_joints'] = list(right_joints)
     namespace = f'/skidkin_replay_{os.getpid()}_{next(_instance)}'
     for topic, role in (('joint_states', 'subscription'), ('odom', 'publisher'),
-                        ('imu/data', 'subscription')):
+                        ('imu/data', 'subscription'), ('reference/odom', 'subscription')):
         params[f'qos_overrides.{namespace}/{topic}.{role}.reliability'] = 'reliable'
         params[f'qos_overrides.{namespace}/{topic}.{role}.depth'] = QUEUE_DEPTH
     offset_ns = _stamp_offset(samples, stamp_offset_ns)
@@ -242,7 +295,11 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
         names = left + right
         sent = 0
         n = len(samples)
-        if imu is not None:
+        if reference is not None:
+            _send_with_reference(harness, samples, reference, names, len(left), offset_ns,
+                                 deadline, reference_frames)
+            sent = n
+        elif imu is not None:
             _send_with_imu(harness, samples, imu, names, len(left), offset_ns, deadline,
                            positions)
             sent = n

@@ -78,8 +78,9 @@ EFFECTS: dict[str, EffectSpec] = {spec.name: spec for spec in (
     EffectSpec('direction_asymmetry', 'twist', '-', 0.05, 0.3,
                'backward driving slips more: v_x *= 1 - k when reversing'),
     EffectSpec('terrain_regime', 'twist', '-', 0.1, 0.4,
-               'v_x and omega lose a fraction k after a switch time (mode time) or where x > '
-               'boundary (mode region)'),
+               'v_x and omega lose a fraction k (omega: option yaw, when given) after a switch '
+               'time (mode time), where x > boundary (mode region) or on every other stretch of '
+               'period_m metres of path (mode alternate)'),
     # Appended (not inserted) so the strengths drawn for the effects above stay as they were.
     EffectSpec('forward_lag', 'dynamics', 's', 0.05, 0.4,
                'forward speed follows the wheel-implied forward speed through a first-order '
@@ -116,9 +117,11 @@ class EffectInput:
 class Effect:
     """One named effect with its strength; ``options`` tune the terrain regime.
 
-    terrain_regime options: mode ('time' or 'region'), switch_frac (fraction of the duration
-    after which the regime starts, mode time), boundary_x_m (regime where x > boundary, mode
-    region).
+    terrain_regime options: mode ('time', 'region' or 'alternate'), switch_frac (fraction of the
+    duration after which the regime starts, mode time), boundary_x_m (regime where x > boundary,
+    mode region), period_m (mode alternate: the regime on every other stretch of that much path,
+    the first stretch off), yaw (the fraction omega loses, default the strength: a ground that
+    slips in translation and in yaw by different amounts).
     """
 
     name: str
@@ -135,14 +138,16 @@ class Effect:
             raise ParameterError(f'effect {self.name}: strength must be a finite number >= 0 '
                                  f'{spec.unit} (typical {spec.low:g}..{spec.high:g}), got '
                                  f'{self.strength!r}')
-        allowed = {'terrain_regime': {'mode', 'switch_frac', 'boundary_x_m'}}.get(self.name,
-                                                                                  set())
+        allowed = {'terrain_regime': {'mode', 'switch_frac', 'boundary_x_m', 'period_m',
+                                      'yaw'}}.get(self.name, set())
         unknown = sorted(set(self.options) - allowed)
         if unknown:
             raise ParameterError(f'effect {self.name}: unknown option(s) {unknown}; allowed: '
                                  f'{sorted(allowed)}')
-        if self.options.get('mode', 'time') not in ('time', 'region'):
-            raise ParameterError("terrain_regime mode must be 'time' or 'region'")
+        if self.options.get('mode', 'time') not in ('time', 'region', 'alternate'):
+            raise ParameterError("terrain_regime mode must be 'time', 'region' or 'alternate'")
+        if not float(self.options.get('period_m', 5.0)) > 0.0:
+            raise ParameterError('terrain_regime period_m must be > 0 m')
 
     @property
     def spec(self) -> EffectSpec:
@@ -171,6 +176,8 @@ class Effect:
             return None
         if self.options.get('mode', 'time') == 'time':
             return data.t_s >= float(self.options.get('switch_frac', 0.5)) * data.duration_s
+        if self.options['mode'] == 'alternate':
+            return _alternating(data, float(self.options.get('period_m', 5.0)))
         return data.pose_hint[:, 0] > float(self.options.get('boundary_x_m', 0.0))
 
     def apply_wheels(self, data: EffectInput) -> tuple[np.ndarray, np.ndarray]:
@@ -205,10 +212,22 @@ class Effect:
             reverse = np.clip(-v_x / _DIRECTION_BLEND_M_S, 0.0, 1.0)
             twist[:, 0] = v_x * (1.0 - k * reverse)
         elif self.name == 'terrain_regime':
-            scale = np.where(self.mask(data), 1.0 - k, 1.0)
-            twist[:, 0] = v_x * scale
-            twist[:, 2] = omega * scale
+            on = self.mask(data)
+            twist[:, 0] = v_x * np.where(on, 1.0 - k, 1.0)
+            twist[:, 2] = omega * np.where(on, 1.0 - float(self.options.get('yaw', k)), 1.0)
         return twist
+
+
+def _alternating(data: EffectInput, period_m: float) -> np.ndarray:
+    """Return True on every other stretch of ``period_m`` metres of path (the first: False).
+
+    The path is the wheel-implied one (the twist before this effect), integrated on the fine
+    grid: causal, so a prefix of a drive has the prefix of its mask.
+    """
+    speed = np.hypot(data.twist[:, 0], data.twist[:, 1])
+    dt_s = np.diff(data.t_s, append=data.t_s[-1])
+    path = np.concatenate([[0.0], np.cumsum(speed * dt_s)[:-1]])
+    return (np.floor(path / period_m).astype(np.int64) % 2) == 1
 
 
 def _first_order(signal: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:

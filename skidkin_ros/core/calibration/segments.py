@@ -74,6 +74,25 @@ class SegmentOptions:
             raise ParameterError(f'short_drive must be one of {SHORT_DRIVE_MODES}, '
                                  f'got {self.short_drive!r}')
 
+    def ends(self, start_path_m: float, path_m: float, rotation_rad: float,
+             elapsed_ns: int) -> bool:
+        """Tell whether a segment started at cumulative path ``start_path_m`` ends at a pose.
+
+        The cutting rule of :func:`cut_segments` for one pose at a time (online calibration cuts
+        a reference stream as it arrives): ``horizon_s`` decides alone when set, else the
+        cumulative path ``path_m`` reaching ``start_path_m + horizon_m``; with ``horizon_rad``,
+        turning that much since the start ends it too (the same comparisons as the batch cut).
+        """
+        if self.horizon_s is not None:
+            return elapsed_ns >= s_to_ns(self.horizon_s) - 1
+        if path_m >= start_path_m + self.horizon_m:
+            return True
+        return self.horizon_rad is not None and abs(rotation_rad) >= self.horizon_rad
+
+    def too_still(self, path_m: float, rotation_rad: float) -> bool:
+        """Tell whether a segment moved too little to say anything (C13's rule)."""
+        return path_m < self.min_motion_m and abs(rotation_rad) < self.min_rotation_rad
+
 
 @dataclass(frozen=True)
 class HorizonOptions:
@@ -293,7 +312,7 @@ def cut_segments(drives: Sequence[Drive], options: SegmentOptions | None = None)
                 continue
             length = float(path[b] - path[a])
             rotation = float(truth.yaw[b] - truth.yaw[a])
-            if length < options.min_motion_m and abs(rotation) < options.min_rotation_rad:
+            if options.too_still(length, rotation):
                 counts['stationary'] += 1
                 continue
             steps = _held_steps(wheels, int(truth.t_ns[a]), int(truth.t_ns[b]))

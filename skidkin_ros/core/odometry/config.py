@@ -27,6 +27,7 @@ from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
+from skidkin_ros.core.odometry.reference import ONLINE_SPECS, OnlineParams
 from skidkin_ros.core.odometry.uncertainty import (check_parameter_covariance,
                                                    ParameterUncertainty)
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
@@ -238,6 +239,26 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
     entries += _model_entries(geometry)
     entries += _augmented_entries()
     entries += _imu_entries()
+    entries += _online_entries()
+    return entries
+
+
+def _online_entries() -> list[SchemaEntry]:
+    entries = [
+        SchemaEntry('online.enabled', 'bool', False,
+                    'learn the model parameters online from a reference odometry on '
+                    "reference/odom (nav_msgs/Odometry); off: the file's parameters, as always"),
+        SchemaEntry('online.reference_frame_id', 'string', '',
+                    'refuse reference poses whose header.frame_id differs (empty: any)'),
+        SchemaEntry('online.reference_child_frame_id', 'string', '',
+                    'refuse reference poses whose child_frame_id differs (empty: any)'),
+        SchemaEntry('online.save_path', 'string', '',
+                    '~/save_calibration writes here (empty: skidkin_online_<date>.yaml in the '
+                    'working directory); an existing file is never overwritten'),
+    ]
+    entries += [SchemaEntry(f'online.{spec.name}', 'double', spec.default_for(None),
+                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
+                for spec in ONLINE_SPECS]
     return entries
 
 
@@ -400,6 +421,11 @@ class OdometryConfig:
             np.asarray(flat, dtype=float).reshape(size, size))
 
     @property
+    def online(self) -> OnlineParams:
+        """Return the online calibration parameters (online.*; disabled unless set)."""
+        return OnlineParams.from_values(self.values)
+
+    @property
     def imu(self) -> GyroParams:
         """Return the gyro parameters (imu.*; mode off unless set)."""
         return GyroParams.from_values(self.values)
@@ -476,11 +502,29 @@ class OdometryConfig:
             ext.vector(augmented_values[ext.name])
         if values['model'] != AUGMENTED_NAME:
             get_model(values['model'])
+        _check_online(values)
         given = tuple(m.name for m in MODELS.values()
                       if not m.params or any(f'models.{m.name}.{p.name}' in flat
                                              for p in m.params))
         return cls(values['model'], geometry, model_values, noise, values,
                    values['augmented.base'], extensions, augmented_values, given)
+
+
+def _check_online(values: Mapping[str, Any]) -> None:
+    """Refuse online calibration where it cannot run (a clear message instead of a surprise)."""
+    if not values['online.enabled']:
+        return
+    model = values['model']
+    if model == AUGMENTED_NAME:
+        raise ConfigError('online.enabled: an augmented model cannot be learned online yet; run '
+                          'its base model (model: ' + values['augmented.base'] + ') or turn '
+                          'online.enabled off')
+    if not get_model(model).params:
+        raise ConfigError(f'online.enabled: model {model} has no parameter to learn; choose a '
+                          'calibrated model (e.g. edd_asymmetric, full_linear)')
+    if values['imu.mode'] == 'adapt':
+        raise ConfigError('online.enabled with imu.mode adapt: both would learn the yaw rate; '
+                          'use imu.mode fuse or off with online calibration')
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:

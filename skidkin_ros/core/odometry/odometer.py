@@ -37,11 +37,11 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass, replace
 import math
-from typing import Callable, Mapping, NamedTuple, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Protocol, Sequence
 
 import numpy as np
 
-from skidkin_ros.core.drive import ImuSamples, WheelSamples
+from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY
 from skidkin_ros.core.odometry.config import node_default, OdometryConfig
 from skidkin_ros.core.odometry.controller import ControllerGeometry, NonFiniteTwistError
@@ -77,6 +77,26 @@ STEP_BACK_CONFIRM = 3
 MAX_PENDING = 1000
 Triple = tuple[float, float, float]
 Warn = Callable[..., None]  # warn(cause, message, error=False)
+
+
+class Learner(Protocol):
+    """What the odometer needs of an online calibrator (skidkin_ros.core.online)."""
+
+    def wheel_step(self, t1_ns: int, wheels: tuple[float, float] | None,
+                   twist: Triple) -> bool: ...
+
+    def wheel_break(self, t_ns: int) -> None: ...
+
+    def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str,
+                  child_frame_id: str) -> tuple[Any, bool]: ...
+
+    def restart(self) -> None: ...
+
+    def bound_model(self) -> TwistSource: ...
+
+    def uncertainty(self) -> Any: ...
+
+    def take_error(self) -> Any: ...
 
 
 @dataclass(frozen=True)
@@ -190,6 +210,9 @@ class Odometer:
         self._pending: collections.deque[tuple[int, float, float, int]] = collections.deque()
         self.gyro: GyroAid | None = None
         self.set_imu(imu or GyroParams(), wheel_radius_m)
+        # An online calibrator (skidkin_ros.core.online) learning the model's parameters from a
+        # reference, attached by its maker; None: the parameters are the file's (the default).
+        self.learner: Learner | None = None
 
     @classmethod
     def from_config(cls, config: OdometryConfig, model: str | None = None, *,
@@ -287,6 +310,8 @@ class Odometer:
         self.signal.clear()
         self._step_back_run.clear()
         self._pending.clear()
+        if self.learner is not None:
+            self.learner.restart()
 
     def clock_changed(self) -> None:
         """Restart at the origin and forget the last input stamp (the clock itself jumped)."""
@@ -294,6 +319,39 @@ class Odometer:
         self.last_input_t_ns = None
         if self.gyro is not None:
             self.gyro.buffer.clear()
+
+    # ------------------------------------------------------------------ online calibration
+    def attach_learner(self, learner: 'Learner | None') -> None:
+        """Learn the parameters online with ``learner`` (None: the file's, fixed) from now on."""
+        self.learner = learner
+        if learner is not None:
+            self.apply_learned()
+
+    def apply_learned(self) -> None:
+        """Integrate with the learner's parameters and publish their uncertainty."""
+        learner = self.learner
+        self.integrator.set_source(learner.bound_model())
+        if self.covariance.calibrated:
+            self.covariance.set_parameters(learner.uncertainty())
+            error = learner.take_error()
+            if error is not None:  # what the old ground's parameters got wrong, carried
+                self.covariance.cov = self.covariance.cov + error
+
+    def reference_sample(self, t_ns: int, x: float, y: float, yaw: float,
+                         frame_id: str = '', child_frame_id: str = '') -> str:
+        """Take a reference pose (online calibration); return its status's counter name.
+
+        Without a learner the pose is counted 'reference_ignored'. The odometry is never held
+        up or changed by the pose itself: only the parameters it teaches change.
+        """
+        learner = self.learner
+        if learner is None:
+            self.counters['reference_ignored'] += 1
+            return 'reference_ignored'
+        status, changed = learner.reference(t_ns, x, y, yaw, frame_id, child_frame_id)
+        if changed:
+            self.apply_learned()
+        return status.value
 
     # ------------------------------------------------------------------ inputs
     def joint_sample(self, t_ns: int, omega_l: float, omega_r: float, now_ns: int,
@@ -496,7 +554,14 @@ class Odometer:
             else:
                 result = self._aided(gyro, result)
             self.period_s = result.dt_s
-        elif status is SampleStatus.GAP:
+            learner = self.learner
+            if learner is not None and learner.wheel_step(t_ns, result.step_wheels,
+                                                          result.step_twist):
+                self.apply_learned()
+            return result
+        if self.learner is not None and status in (SampleStatus.FIRST, SampleStatus.GAP):
+            self.learner.wheel_break(t_ns)
+        if status is SampleStatus.GAP:
             self._warn('gap', result.detail)
         elif status is SampleStatus.NON_FINITE_STATE:
             self._warn('non_finite_state', f'{result.detail}; not published', error=True)
@@ -563,7 +628,8 @@ class Odometer:
     # ------------------------------------------------------------------ offline
     def predict(self, wheels: WheelSamples, start: Sequence[float] = (0.0, 0.0, 0.0),
                 imu: ImuSamples | None = None,
-                restarts: Mapping[int, Sequence[float]] | None = None) -> 'Prediction':
+                restarts: Mapping[int, Sequence[float]] | None = None,
+                reference: PoseTrack | None = None) -> 'Prediction':
         """Restart at ``start`` and run every sample through :meth:`step`, as the node does.
 
         With the gyro in use, ``imu`` samples arrive in stamp order, as the node receives them:
@@ -572,7 +638,9 @@ class Odometer:
         history and the learned gain and bias carry over from an earlier call (a drive cut in
         windows). ``restarts`` ({sample index: pose}): after that sample, the pose is set and its
         covariance zeroed, everything else kept (the windows of a NEES study); the prediction
-        then holds the pose covariance and the gain after every sample.
+        then holds the pose covariance and the gain after every sample. ``reference`` (online
+        calibration, a learner attached): reference poses handed over in stamp order, those
+        stamped up to a wheel sample's stamp before it, as the node receives them.
         """
         self._restart(start)
         poses = np.empty((len(wheels), 3))
@@ -585,9 +653,11 @@ class Odometer:
         status = []
         gyro = self.gyro
         feed = _GyroFeed(gyro, imu, self.counters)
+        references = _ReferenceFeed(self, reference)
         for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns.tolist(), wheels.omega_l,
                                                          wheels.omega_r)):
             feed.until(t_ns)
+            references.until(t_ns)
             result = self.step(int(t_ns), omega_l, omega_r)
             poses[i] = result.pose
             twists[i] = result.twist
@@ -602,6 +672,27 @@ class Odometer:
         offset_ns = self.output_offset_ns
         return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns,
                           pose_covs.reshape(-1, 6, 6), covariances, gains)
+
+
+class _ReferenceFeed:
+    """Offline: hands recorded reference poses to the odometer in the order the node gets them."""
+
+    def __init__(self, odometer: Odometer, track: PoseTrack | None) -> None:
+        self.odometer = odometer
+        if track is None or len(track) == 0:
+            self.rows: list[tuple[int, float, float, float]] = []
+        else:
+            self.rows = list(zip(np.asarray(track.t_ns, dtype=np.int64).tolist(),
+                                 np.asarray(track.x, dtype=float).tolist(),
+                                 np.asarray(track.y, dtype=float).tolist(),
+                                 np.asarray(track.yaw, dtype=float).tolist()))
+        self.i = 0
+
+    def until(self, t_ns: int) -> None:
+        rows, n = self.rows, len(self.rows)
+        while self.i < n and rows[self.i][0] <= t_ns:
+            self.odometer.reference_sample(*rows[self.i])
+            self.i += 1
 
 
 class _GyroFeed:

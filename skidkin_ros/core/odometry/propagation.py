@@ -330,6 +330,17 @@ class PoseCovariancePropagator:
         """Return S = d pose / d k, (3, p) (empty without parameter uncertainty)."""
         return np.asarray(self._sens, dtype=float).reshape(-1, 3).T
 
+    def set_parameters(self, parameters: ParameterUncertainty | None) -> None:
+        """Use a new parameter covariance (online calibration); the sensitivity S is kept.
+
+        S (d pose / d k, carried since the last reset) keeps its columns when the parameters
+        keep their number; otherwise it restarts from zero.
+        """
+        self.parameters = parameters if self.noise is not None else None
+        size = 0 if self.parameters is None else self.parameters.size
+        if len(self._sens) != size:
+            self._sens = [(0.0, 0.0, 0.0)] * size
+
     def reset(self, yaw_rad: float = 0.0) -> None:
         """Restart from an exact pose with heading ``yaw_rad``."""
         self._upper = _INITIAL_UPPER

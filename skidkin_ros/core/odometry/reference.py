@@ -1,0 +1,173 @@
+"""The reference input of online calibration: its parameters, its mount and its fault causes.
+
+A second source of motion (lidar odometry, a SLAM, GNSS, visual odometry) publishes stamped
+poses of one of the robot's frames (the reference frame, e.g. the lidar) in its own world frame.
+Online calibration (:mod:`skidkin_ros.core.online`) compares the wheel odometry with it; this
+module holds what the node's parameter schema needs without the calibration code:
+
+* ``ONLINE_SPECS`` and :class:`OnlineParams`: the ``online.*`` parameters (units, ranges);
+* :func:`base_pose`: a reference pose of the reference frame, turned into the pose of the base
+  frame (``online.mount_*`` is the reference frame's pose on the robot, T_BS):
+  T_WB = T_WS T_BS^-1;
+* :class:`ReferenceStatus`: what happened to one reference pose, every value a counted cause.
+
+Stamps: ``online.time_offset`` is the reference stamp minus the wheel stamp of the same motion
+(> 0: the reference stamps late), so a reference pose stamped t describes wheel time
+t - time_offset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+import enum
+import math
+from typing import Any, Mapping
+
+from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
+from skidkin_ros.core.timeunits import s_to_ns
+
+__all__ = ['ONLINE_SPECS', 'OnlineParams', 'ReferenceStatus', 'base_pose']
+
+ONLINE_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec('time_offset', 's', 0.0, -1.0, 1.0,
+              'reference stamp minus the wheel stamp of the same motion (> 0: reference late)'),
+    ParamSpec('mount_x', 'm', 0.0, -100.0, 100.0,
+              'x of the reference frame (its child_frame_id) in the base frame'),
+    ParamSpec('mount_y', 'm', 0.0, -100.0, 100.0,
+              'y of the reference frame in the base frame'),
+    ParamSpec('mount_yaw', 'rad', 0.0, -math.pi, math.pi,
+              'yaw of the reference frame in the base frame'),
+    ParamSpec('horizon', 'm', 2.0, 0.0, 100.0,
+              "learning segments end after this reference path (the calibrator's h_t)",
+              lower_open=True),
+    ParamSpec('horizon_rad', 'rad', 1.0, 0.0, 100.0,
+              "or after this much turning (the calibrator's h_t_rad)", lower_open=True),
+    ParamSpec('memory', 'm', 30.0, 0.0, 1e6,
+              'forgetting length: information older than this many metres fades by 1/e',
+              lower_open=True),
+    ParamSpec('adapt_memory', 'm', 4.0, 0.0, 1e6,
+              'forgetting length while adapting to a new ground', lower_open=True),
+    ParamSpec('adapt_distance', 'm', 10.0, 0.0, 1e6,
+              'travel after a detected change during which adapt_memory applies'),
+    ParamSpec('window', '', 16.0, 1.0, 1000.0,
+              'learning segments kept per ground and solved again at every new one (older '
+              'ones also fade by the memory)'),
+    ParamSpec('prior_sigma', '', 0.2, 0.0, 10.0,
+              'prior standard deviation of each parameter on a new ground, relative to its '
+              'typical magnitude', lower_open=True),
+    ParamSpec('min_information', '', 16.0, 0.0, INF,
+              'a direction of the parameters is updated only when one segment adds this much '
+              'information to it (relative units: 16 = a 25 % standard deviation)',
+              lower_open=True),
+    ParamSpec('sigma_xy', 'm', 0.02, 0.0, 100.0,
+              'standard deviation of a reference position (each pose)', lower_open=True),
+    ParamSpec('sigma_yaw', 'rad', 0.005, 0.0, 10.0,
+              'standard deviation of a reference heading (each pose)', lower_open=True),
+    ParamSpec('max_rate', 'Hz', 50.0, 0.0, 1e4,
+              'reference poses closer than 1/max_rate to the last accepted one are dropped '
+              '(counted reference_rate_limited)', lower_open=True),
+    ParamSpec('max_gap', 's', 1.0, 0.0, 3600.0,
+              'a reference gap longer than this breaks the segment; no reference for this long: '
+              'holding', lower_open=True),
+    ParamSpec('max_jump', 'm', 0.5, 0.0, 1e6,
+              'reference and wheels disagreeing by more than this plus half the wheel travel '
+              'between two reference poses: a jump, refused', lower_open=True),
+    ParamSpec('max_jump_rad', 'rad', 0.5, 0.0, 100.0,
+              'the same for the heading (plus half the wheel rotation)', lower_open=True),
+    ParamSpec('stall', 'm', 0.3, 0.0, 1e6,
+              'a reference that does not move while the wheels travel this far is stalled',
+              lower_open=True),
+    ParamSpec('cusum_drift', '', 6.0, 0.0, 1e6,
+              'change detection: the CUSUM of segment NEES minus this (3 dof: 3 on average)',
+              lower_open=True),
+    ParamSpec('cusum_threshold', '', 40.0, 0.0, 1e9,
+              'change detection: a CUSUM beyond this is a change of ground', lower_open=True),
+    ParamSpec('switch_window', 'm', 0.5, 0.0, 100.0,
+              'a known ground is recognised on the last this many metres of reference path',
+              lower_open=True),
+    ParamSpec('switch_margin', '', 12.0, 0.0, 1e9,
+              'another known ground is taken when its NEES on the window is lower by this',
+              lower_open=True),
+    ParamSpec('max_grounds', '', 4.0, 1.0, 16.0,
+              'grounds remembered at once (the least recently used is forgotten)'),
+)
+_ATTR = {spec.name: spec.name for spec in ONLINE_SPECS}
+
+
+@dataclass(frozen=True)
+class OnlineParams:
+    """The ``online.*`` parameters (see ``ONLINE_SPECS`` for units and meanings)."""
+
+    enabled: bool = False
+    reference_frame_id: str = ''
+    reference_child_frame_id: str = ''
+    time_offset: float = 0.0
+    mount_x: float = 0.0
+    mount_y: float = 0.0
+    mount_yaw: float = 0.0
+    horizon: float = 2.0
+    horizon_rad: float = 1.0
+    memory: float = 30.0
+    adapt_memory: float = 4.0
+    adapt_distance: float = 10.0
+    window: float = 16.0
+    prior_sigma: float = 0.2
+    min_information: float = 16.0
+    sigma_xy: float = 0.02
+    sigma_yaw: float = 0.005
+    max_rate: float = 50.0
+    max_gap: float = 1.0
+    max_jump: float = 0.5
+    max_jump_rad: float = 0.5
+    stall: float = 0.3
+    cusum_drift: float = 6.0
+    cusum_threshold: float = 40.0
+    switch_window: float = 0.5
+    switch_margin: float = 12.0
+    max_grounds: float = 4.0
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any], prefix: str = 'online.') -> 'OnlineParams':
+        """Return the parameters of a flat mapping (``online.enabled``, ...), checked."""
+        kwargs: dict[str, Any] = {
+            'enabled': bool(values.get(prefix + 'enabled', False)),
+            'reference_frame_id': str(values.get(prefix + 'reference_frame_id', '')),
+            'reference_child_frame_id': str(values.get(prefix + 'reference_child_frame_id',
+                                                       ''))}
+        for spec in ONLINE_SPECS:
+            if prefix + spec.name in values:
+                kwargs[_ATTR[spec.name]] = check_value(spec, values[prefix + spec.name], prefix)
+        return cls(**kwargs)
+
+    @property
+    def time_offset_ns(self) -> int:
+        return s_to_ns(self.time_offset)
+
+
+assert ({f.name for f in fields(OnlineParams)}
+        == set(_ATTR.values()) | {'enabled', 'reference_frame_id', 'reference_child_frame_id'})
+
+
+class ReferenceStatus(enum.Enum):
+    """What happened to one reference pose (the value is the counter's name)."""
+
+    ACCEPTED = 'reference_accepted'          # used: a segment end, a window, or the next start
+    NON_FINITE = 'reference_non_finite'      # NaN or inf in the pose: refused
+    BAD_STAMP = 'reference_bad_stamp'        # zero or negative stamp: refused
+    OLDER = 'reference_older'                # not after the last accepted stamp: refused
+    RATE_LIMITED = 'reference_rate_limited'  # closer than 1/max_rate to the last one: dropped
+    FRAME = 'reference_frame'                # frame_id or child_frame_id not the configured one
+    GAP = 'reference_gap'                    # longer than max_gap after the last: segment broken
+    JUMP = 'reference_jump'                  # disagrees with the wheels by metres: refused
+    STALL = 'reference_stall'                # frozen while the wheels travel: refused
+    UNCOVERED = 'reference_uncovered'        # no wheel data at its time: not used
+    WHEEL_GAP = 'reference_wheel_gap'        # the wheels have a gap since the last one: restart
+
+
+def base_pose(x: float, y: float, yaw: float,
+              params: OnlineParams) -> tuple[float, float, float]:
+    """Return the base frame's pose from the reference frame's (T_WB = T_WS T_BS^-1)."""
+    yaw_b = yaw - params.mount_yaw
+    c, s = math.cos(yaw_b), math.sin(yaw_b)
+    return (x - (c * params.mount_x - s * params.mount_y),
+            y - (s * params.mount_x + c * params.mount_y), yaw_b)

@@ -1,0 +1,7 @@
+"""Online calibration: the active model's parameters learned from a reference while driving."""
+
+from skidkin_ros.core.online.attach import attach_online, online_odometer
+from skidkin_ros.core.online.calibrator import Ground, MAX_STEPS, OnlineCalibrator, STATES
+
+__all__ = ['OnlineCalibrator', 'Ground', 'MAX_STEPS', 'STATES', 'attach_online',
+           'online_odometer']

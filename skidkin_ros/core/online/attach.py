@@ -1,0 +1,51 @@
+"""Make an odometer learn online: the one place the node and ``skidkin predict`` build it."""
+
+from __future__ import annotations
+
+import collections
+from typing import Callable
+
+import numpy as np
+
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.core.online.calibrator import OnlineCalibrator
+
+__all__ = ['attach_online', 'online_odometer', 'make_calibrator']
+
+
+def make_calibrator(config: OdometryConfig,
+                    counters: collections.Counter[str] | None = None,
+                    warn: Callable[..., None] | None = None) -> OnlineCalibrator:
+    """Return the online calibrator a configuration describes (online.enabled or not).
+
+    It starts from the file's parameters of the active model; their covariance
+    (models.<m>.parameter_covariance), when the file has one, is the first ground's information
+    on top of the broad prior (online.prior_sigma).
+    """
+    model = get_model(config.model)
+    flat = config.values.get(f'models.{model.name}.parameter_covariance')
+    size = len(model.params)
+    prior = None if flat is None else np.asarray(flat, dtype=float).reshape(size, size)
+    return OnlineCalibrator(model, config.model_values[model.name], config.geometry,
+                            config.active_noise, config.online, config['interval'], prior,
+                            counters, warn)
+
+
+def attach_online(odometer: Odometer, config: OdometryConfig,
+                  warn: Callable[..., None] | None = None) -> OnlineCalibrator | None:
+    """Attach a new calibrator when online.enabled, else detach any; return it (or None)."""
+    learner = None
+    if config.online.enabled:
+        learner = make_calibrator(config, odometer.counters, warn)
+    odometer.attach_learner(learner)
+    return learner
+
+
+def online_odometer(config: OdometryConfig, **kwargs) -> Odometer:
+    """Return ``Odometer.from_config(config, **kwargs)``, learning online when enabled."""
+    odometer = Odometer.from_config(config, **kwargs)
+    if config.online.enabled:
+        attach_online(odometer, config, kwargs.get('warn'))
+    return odometer

@@ -1,0 +1,243 @@
+"""Online calibration (core): learns a new ground, detects the change, refuses bad references."""
+
+import math
+import os
+
+import numpy as np
+import pytest
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.drive import Drive, PoseTrack
+from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.core.online import online_odometer
+from skidkin_ros.core.online.calibrator import MAX_STEPS
+from skidkin_ros.core.online.save import save_learned
+from skidkin_ros.errors import ConfigError, OutputError
+from skidkin_ros.sim.effects import make_effect
+from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
+
+SLIP, YAW_SLIP = 0.25, 0.1
+FILE = {'model': 'edd_asymmetric',
+        **{f'models.edd_asymmetric.{k}': v for k, v in DEFAULT_TRUE_PARAMS.items()},
+        'models.edd_asymmetric.noise.calibrated': True}
+
+
+def _config(**more):
+    return OdometryConfig.from_flat({**FILE, **more})
+
+
+def _reference(sim, rate_hz=10.0):
+    return sim.truth_at(np.arange(sim.start_ns, sim.end_ns, int(1e9 / rate_hz)))
+
+
+@pytest.fixture(scope='module')
+def change_drive():
+    effect = make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.5, yaw=YAW_SLIP)
+    return simulate(SimConfig(duration_s=160.0, seed=3, effects=(effect,)))
+
+
+def test_the_streaming_cut_is_the_calibrators_cut(change_drive):
+    track = _reference(change_drive)
+    options = SegmentOptions(horizon_m=2.0, horizon_rad=1.0)
+    batch = cut_segments([Drive('d', change_drive.wheels, track)], options)
+    path = track.path_length()
+    ends, a = [], 0
+    for j in range(1, len(track)):
+        if options.ends(path[a], path[j], track.yaw[j] - track.yaw[a],
+                        int(track.t_ns[j] - track.t_ns[a])):
+            ends.append((int(track.t_ns[a]), int(track.t_ns[j])))
+            a = j
+    kept = set(zip(batch.t_a_ns.tolist(), batch.t_b_ns.tolist()))
+    assert kept and kept <= set(ends)
+    assert len(ends) - len(kept) == batch.counts.stationary + batch.counts.wheel_gap
+
+
+def test_a_new_ground_is_detected_and_learned(change_drive):
+    seen = {}
+    odometer = online_odometer(_config(**{'online.enabled': True}))
+    learner = odometer.learner
+
+    def warn(cause, message, error=False):
+        if cause == 'online_change':
+            seen['sigma_at_change'] = np.sqrt(np.diag(learner.covariance))
+    learner._warn = warn
+    sigma_start = np.sqrt(np.diag(learner.covariance))
+    online = odometer.predict(change_drive.wheels, reference=_reference(change_drive))
+    fixed = Odometer.from_config(_config()).predict(change_drive.wheels)
+    assert odometer.counters['online_change'] == 1
+    values = learner.values
+    # the new ground: v_x x (1 - SLIP), omega x (1 - YAW_SLIP): alpha x 0.75, y x 0.75 / 0.9
+    assert values['alpha_l'] == pytest.approx(0.9 * (1 - SLIP), rel=0.05)
+    assert values['alpha_r'] == pytest.approx(0.85 * (1 - SLIP), rel=0.05)
+    assert values['y_l'] - values['y_r'] == pytest.approx(
+        1.05 * (1 - SLIP) / (1 - YAW_SLIP), rel=0.05)
+    # the uncertainty was reset at the change (wide), and narrows as the ground is learned
+    sigma_end = np.sqrt(np.diag(learner.covariance))
+    assert np.all(seen['sigma_at_change'] > 3 * sigma_end)
+    assert np.all(sigma_end < sigma_start)
+    # the last quarter of the drive: the online odometry beats the calibration ground's file
+    truth = change_drive.truth.poses
+    last = slice(3 * len(truth) // 4, None)
+
+    def drift(poses):
+        return np.hypot(*(np.diff(poses[last, :2], axis=0) - np.diff(truth[last, :2], axis=0)
+                          ).T).sum()
+    assert drift(online.poses) < 0.5 * drift(fixed.poses)
+    assert np.all(np.isfinite(online.poses)) and np.all(np.isfinite(online.pose_covariances))
+
+
+def test_driving_straight_leaves_the_icr_alone():
+    effect = make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.0, yaw=YAW_SLIP)
+    sim = simulate(SimConfig(duration_s=40.0, seed=4, effects=(effect,),
+                             script=((40.0, 4.0, 4.0),), encoder_noise_rad_s=0.0,
+                             arena_radius_m=7.0, scene_half_size_m=100.0))
+    odometer = online_odometer(_config(**{'online.enabled': True}))
+    odometer.predict(sim.wheels, reference=_reference(sim))
+    values = odometer.learner.values
+    assert odometer.counters['online_segments'] >= 8
+    # the forward scale moved toward the slip; the ICR (y_l, y_r) is not observable: unchanged
+    assert values['alpha_l'] + values['alpha_r'] < 0.95 * (0.9 + 0.85)
+    assert values['y_l'] == pytest.approx(DEFAULT_TRUE_PARAMS['y_l'], rel=0.02)
+    assert values['y_r'] == pytest.approx(DEFAULT_TRUE_PARAMS['y_r'], rel=0.02)
+
+
+def _hostile(track):
+    """Return the good reference with a bad pose after every 7th good one, of known causes."""
+    rows = list(zip(track.t_ns.tolist(), track.x.tolist(), track.y.tolist(),
+                    track.yaw.tolist()))
+    out = []
+    for i, (t, x, y, yaw) in enumerate(rows):
+        out.append((t, x, y, yaw))
+        if i < 5 or i % 7 or i + 1 >= len(rows):
+            continue
+        nxt = rows[i + 1][0]
+        kind = (i // 7) % 5
+        if kind == 0:
+            out.append((t + 1, math.nan, y, yaw))             # NaN
+        elif kind == 1:
+            out.append((t - 50_000_000, x, y, yaw))         # time going back
+        elif kind == 2:
+            out.append((t + 1_000_000, x, y, yaw))          # 1 kHz: too close
+        elif kind == 3:
+            out.append((t + (nxt - t) // 2, x + 5.0, y, yaw))  # a 5 m jump
+        else:
+            out.append((t + 2, x, y, math.inf))
+    return out
+
+
+@pytest.mark.parametrize('seed', [7])
+def test_bad_reference_poses_are_refused_and_counted(seed):
+    sim = simulate(SimConfig(duration_s=60.0, seed=seed))
+    track = _reference(sim)
+    clean = online_odometer(_config(**{'online.enabled': True}))
+    expected = clean.predict(sim.wheels, reference=track)
+    hostile = online_odometer(_config(**{'online.enabled': True}))
+    hostile.reset()
+    poses = []
+    rows = _hostile(track)
+    j = 0
+    for t, l, r in zip(sim.wheels.t_ns.tolist(), sim.wheels.omega_l, sim.wheels.omega_r):
+        while j < len(rows) and rows[j][0] <= t:
+            hostile.reference_sample(*rows[j])
+            j += 1
+        poses.append(hostile.step(t, l, r).pose)
+    counts = hostile.counters
+    for cause in ('reference_non_finite', 'reference_older', 'reference_rate_limited',
+                  'reference_jump'):
+        assert counts[cause] > 0, cause
+    assert np.all(np.isfinite(poses))
+    assert counts['online_segments'] == clean.counters['online_segments']
+    # refused poses change nothing: the odometry is the clean reference's, bit for bit
+    assert np.array_equal(np.array(poses), expected.poses)
+
+
+def test_a_relocalised_reference_restarts_and_a_frozen_one_stalls():
+    sim = simulate(SimConfig(duration_s=40.0, seed=8))
+    track = _reference(sim)
+    shifted = PoseTrack(track.t_ns, track.x + np.where(np.arange(len(track)) > 150, 20.0, 0.0),
+                        track.y, track.yaw)
+    odometer = online_odometer(_config(**{'online.enabled': True}))
+    odometer.predict(sim.wheels, reference=shifted)
+    assert odometer.counters['reference_jump'] == 3     # then the chain restarts there
+    assert odometer.counters['online_segments'] > 5
+    frozen = PoseTrack(track.t_ns, np.where(np.arange(len(track)) > 100, track.x[100], track.x),
+                       np.where(np.arange(len(track)) > 100, track.y[100], track.y),
+                       np.where(np.arange(len(track)) > 100, track.yaw[100], track.yaw))
+    stalled = online_odometer(_config(**{'online.enabled': True}))
+    stalled.predict(sim.wheels, reference=frozen)
+    assert stalled.counters['reference_stall'] > 0
+    assert stalled.learner.state() == 'holding'
+
+
+def test_a_frame_that_never_matches_is_refused():
+    sim = simulate(SimConfig(duration_s=20.0, seed=9))
+    track = _reference(sim)
+    odometer = online_odometer(_config(**{'online.enabled': True,
+                                          'online.reference_child_frame_id': 'lidar'}))
+    odometer.reset()
+    for t, x, y, yaw in zip(track.t_ns.tolist(), track.x, track.y, track.yaw):
+        assert odometer.reference_sample(t, x, y, yaw, 'map', 'base_link') == 'reference_frame'
+    assert odometer.counters['reference_frame'] == len(track)
+    assert odometer.learner.state() == 'holding'
+
+
+def test_disabled_online_ignores_the_reference_bit_for_bit():
+    sim = simulate(SimConfig(duration_s=20.0, seed=10))
+    config = _config()
+    plain = Odometer.from_config(config).predict(sim.wheels)
+    odometer = online_odometer(config)
+    assert odometer.learner is None
+    fed = odometer.predict(sim.wheels, reference=_reference(sim))
+    assert np.array_equal(fed.poses, plain.poses)
+    assert np.array_equal(fed.pose_covariances, plain.pose_covariances)
+    assert odometer.counters['reference_ignored'] == len(_reference(sim))
+
+
+def test_memory_stays_bounded_on_a_long_drive():
+    sim = simulate(SimConfig(duration_s=120.0, seed=11, wheel_rate_hz=200.0))
+    odometer = online_odometer(_config(**{'online.enabled': True}))
+    learner = odometer.learner
+    track = _reference(sim)
+    odometer.reset()
+    most = j = 0
+    for t, l, r in zip(sim.wheels.t_ns.tolist(), sim.wheels.omega_l, sim.wheels.omega_r):
+        while j < len(track) and track.t_ns[j] <= t:
+            odometer.reference_sample(int(track.t_ns[j]), track.x[j], track.y[j], track.yaw[j])
+            j += 1
+        odometer.step(t, l, r)
+        most = max(most, len(learner._t1))
+    # the steps since the oldest pose still needed (a 2 m segment, a 1 m window): a few
+    # seconds, never the drive (24 000 steps)
+    assert most < 4000 < len(sim.wheels)
+    assert most < MAX_STEPS
+
+
+@pytest.mark.parametrize('flat, words', [
+    ({'model': 'augmented', 'augmented.base': 'edd_symmetric'}, 'augmented'),
+    ({'model': 'ideal_dd'}, 'no parameter'),
+    ({'imu.mode': 'adapt'}, 'imu.mode adapt'),
+])
+def test_online_refuses_what_it_cannot_learn(flat, words):
+    with pytest.raises(ConfigError, match=words):
+        _config(**{'online.enabled': True, **flat})
+
+
+def test_save_writes_a_loadable_file_and_never_overwrites(tmp_path, change_drive):
+    odometer = online_odometer(_config(**{'online.enabled': True}))
+    odometer.predict(change_drive.wheels, reference=_reference(change_drive))
+    target = tmp_path / 'learned.yaml'
+    old = os.umask(0o077)
+    try:
+        path = save_learned(odometer_config := _config(**{'online.enabled': True}),
+                            odometer.learner, target, {'reference_topic': '/kiss/odometry'})
+    finally:
+        os.umask(old)
+    assert (path.stat().st_mode & 0o777) == 0o600
+    loaded = OdometryConfig.from_file(path)
+    for name, value in odometer.learner.values.items():
+        assert loaded.model_values['edd_asymmetric'][name] == value
+    text = path.read_text()
+    assert 'online calibration' in text and '/kiss/odometry' in text
+    assert loaded.active_parameter_uncertainty is not None
+    with pytest.raises(OutputError, match='never overwritten'):
+        save_learned(odometer_config, odometer.learner, target)
