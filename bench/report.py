@@ -165,7 +165,7 @@ def _mrad(value: Any) -> str:
 def _gt_section(gt: Mapping[str, Any]) -> list[str]:
     import icp_settings
 
-    lines = ['## Ground truth on the outdoor scene (issue 16)', '']
+    lines = ['## Ground truth on the outdoor scene', '']
     if not gt.get('available'):
         return lines + [f'ground truth: {gt.get("reason", "not run")}', '']
     side = gt['side_by_side']

@@ -34,7 +34,7 @@ def _read_csv(path):
 def test_calibrate_then_predict_then_the_real_node_agrees(sim_table, tmp_path, capsys):
     table, sim = sim_table
     params = tmp_path / 'params.yaml'
-    # roc's beta_2 may end on its clamp on this exact data (issue 11 item 2): a warning, exit 0
+    # roc's beta_2 may end on its clamp on this exact data: a warning, exit 0
     assert main(['calibrate', str(table), '--out', str(params), '--robot', 'sim']) == 0
     out = capsys.readouterr().out
     assert '<- best' in out and 'edd_asymmetric' in out
@@ -141,10 +141,10 @@ def test_models_table_is_generated_from_the_specs(capsys):
     assert '`models.edd_asymmetric.y_r`' in out and '(-inf, 0)' in out
 
 
-def test_readme_model_table_matches_the_specs(capsys):
-    readme = (Path(__file__).resolve().parents[1] / 'README.md').read_text()
+def test_docs_model_table_matches_the_specs(capsys):
+    page = (Path(__file__).resolve().parents[1] / 'docs' / 'models.md').read_text()
     main(['models'])
-    assert capsys.readouterr().out.strip() in readme, 'run `skidkin models` and paste it'
+    assert capsys.readouterr().out.strip() in page, 'run `make docs` (skidkin models)'
 
 
 @pytest.mark.heavy
@@ -201,7 +201,7 @@ def test_diagnose_from_the_command_line_on_two_cores(tmp_path, capsys):
 
 
 def test_output_errors_exit_5_before_any_work_without_a_traceback(sim_table, tmp_path, capsys):
-    """Issue 12 item 10 (C23): these escaped as tracebacks with exit code 1."""
+    """C23: these escaped as tracebacks with exit code 1."""
     table, _ = sim_table
     params = tmp_path / 'params.yaml'
     write_params_file(params, {})
@@ -236,7 +236,7 @@ def test_output_errors_exit_5_before_any_work_without_a_traceback(sim_table, tmp
 
 
 def test_outputs_honour_the_umask_and_a_replaced_file_keeps_its_mode(sim_table, tmp_path):
-    """Issue 12 item 11 (C24): every output was created 0600, and --force made a 0644 file 0600."""
+    """C24: every output was created 0600, and --force made a 0644 file 0600."""
     table, _ = sim_table
     params = tmp_path / 'params.yaml'
     old_mask = os.umask(0o022)
@@ -269,7 +269,7 @@ def test_demo_force_removes_only_what_the_demo_wrote(tmp_path, capsys):
 
 
 def test_a_device_as_a_source_is_a_data_error_not_a_traceback(tmp_path, capsys):
-    """Issue 12 item 13 (C28): /dev/zero as a source ended in a NotADirectoryError traceback."""
+    """C28: /dev/zero as a source ended in a NotADirectoryError traceback."""
     params = tmp_path / 'params.yaml'
     write_params_file(params, {})
     assert main(['predict', '/dev/zero', '--params', str(params), '--out',

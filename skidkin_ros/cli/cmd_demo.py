@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def pipeline(args: argparse.Namespace) -> dict:
-    """Run the demo, print its progress and return its numbers (for tests and the README)."""
+    """Run the demo, print its progress and return its numbers (for tests and docs/results.md)."""
     started = time.monotonic()
     out: Path = args.out
     _prepare(out, args.force)

@@ -1,4 +1,4 @@
-"""``skidkin effects``: the undeclared-effect study, printed as the README's Markdown table."""
+"""``skidkin effects``: the undeclared-effect study, as the Markdown table of docs/results.md."""
 
 from __future__ import annotations
 

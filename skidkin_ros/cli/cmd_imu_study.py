@@ -1,4 +1,4 @@
-"""``skidkin imu-study``: off, adapt and fuse on simulated ground changes, as the README table."""
+"""``skidkin imu-study``: off, adapt and fuse on simulated ground changes, as docs/results.md."""
 
 from __future__ import annotations
 

@@ -1,1 +1,1 @@
-"""Studies: simulated experiments whose results the README reports (they return data)."""
+"""Studies: simulated experiments whose results docs/results.md reports (they return data)."""

@@ -1,4 +1,4 @@
-"""Gyro study (issue 14): off, adapt and fuse on simulated drives that change ground.
+"""Gyro study: off, adapt and fuse on simulated drives that change ground.
 
 Training: effect-free drives of the simulator's default robot (true model ``edd_asymmetric``),
 exact ground truth; ``full_linear`` calibrated on them (:func:`calibrate`: fit on two drives,
@@ -123,7 +123,7 @@ class ImuCase:
     nees: dict[str, tuple[float, tuple[float, float], int]]       # mode -> (mean, band, count)
 
     def rows(self) -> list[str]:
-        """Return the Markdown rows of the README table (one per group)."""
+        """Return the Markdown rows of the table in docs/results.md (one per group)."""
         out = []
         for group, modes in self.groups.items():
             cells = []
