@@ -39,10 +39,10 @@ test-fast: $(STAMP)
 	$(PY) -m pytest -q -ra -m 'not heavy' $(PYTEST_ARGS)
 
 bench: $(STAMP)
-	$(PY) bench/run.py --out bench/results
+	$(PY) lab/bench/run.py --out lab/bench/results
 
 bench-smoke: $(STAMP)
-	$(PY) bench/run.py --smoke --out bench/results-smoke
+	$(PY) lab/bench/run.py --smoke --out lab/bench/results-smoke
 
 lint: $(STAMP)
 	$(PY) -m pytest -q test/test_lint.py

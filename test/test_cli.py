@@ -135,6 +135,26 @@ def test_husky_calibration_from_the_command_line(tmp_path, capsys):
     assert float(rows[config.model][1]) < 0.5 * float(rows['ideal_dd'][1])  # median eps_t
 
 
+def test_the_product_command_lists_the_product_and_the_lab_the_studies(capsys):
+    from lab.cli.main import main as lab_main
+    with pytest.raises(SystemExit):
+        main(['--help'])
+    product = capsys.readouterr().out
+    for command in ('calibrate', 'evaluate', 'predict', 'diagnose', 'groundtruth', 'simulate',
+                    'models', 'demo'):
+        assert f'    {command} ' in product, command
+    for study in ('effects', 'estimate', 'imu-study'):
+        assert f'    {study} ' not in product, study
+        with pytest.raises(SystemExit) as info:
+            main([study])
+        assert info.value.code == 2  # not a product command
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        lab_main(['--help'])
+    lab = capsys.readouterr().out
+    assert all(f'    {study} ' in lab for study in ('effects', 'estimate', 'imu-study'))
+
+
 def test_models_table_is_generated_from_the_specs(capsys):
     assert main(['models']) == 0
     out = capsys.readouterr().out
@@ -323,7 +343,8 @@ def test_a_bad_stride_or_jobs_names_its_own_meaning(tmp_path, capsys, option, ex
 
 def test_estimate_lists_each_figure_once(tmp_path, capsys, monkeypatch):
     # the study itself is tested in test_consistency.py; this checks what the command prints
-    from skidkin_ros.cli import cmd_estimate
+    from lab.cli import cmd_estimate
+    from lab.cli.main import main as lab_main
 
     class Study:
 
@@ -333,7 +354,7 @@ def test_estimate_lists_each_figure_once(tmp_path, capsys, monkeypatch):
     figures = {'error_over_time': tmp_path / 'e.png', 'segment_nees': tmp_path / 'n.png'}
     monkeypatch.setattr(cmd_estimate, 'run_estimation_study', lambda **_: Study())
     monkeypatch.setattr(cmd_estimate, 'write_estimation_figures', lambda *_: figures)
-    assert main(['estimate', '--out', str(tmp_path / 'est'), '--quick']) == 0
+    assert lab_main(['estimate', '--out', str(tmp_path / 'est'), '--quick']) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == 'model edd_symmetric (a summary line)'
     assert [line for line in lines if line.startswith('figure ')] == [

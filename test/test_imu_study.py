@@ -6,8 +6,8 @@ segments cannot resolve the 5 % of the effect-free goal (the fixed model's media
 ``interval: midpoint`` (exact for the simulator's speeds).
 """
 
+from lab.studies.imu import calibrated_config, run_case
 import pytest
-from skidkin_ros.studies.imu import calibrated_config, run_case
 
 
 @pytest.fixture(scope='module')

@@ -31,7 +31,7 @@ from skidkin_ros.core.calibration.segments import cut_segments
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 
-HUSKY_CSV = Path(__file__).resolve().parents[1] / 'data' / 'husky' / 'drive_husky_windows.csv'
+HUSKY_CSV = Path(__file__).resolve().parents[2] / 'data' / 'husky' / 'drive_husky_windows.csv'
 HUSKY = Geometry(0.1651, 0.555)
 TRANSLATION_TOLERANCE = 0.05
 

@@ -212,7 +212,7 @@ def _gt_section(gt: Mapping[str, Any]) -> list[str]:
               f'exit code {calib["exit_code"]}, {state}.', '',
               '### kiss-icp settings: speed and accuracy', '',
               'One setting changed at a time from the defaults; kiss-icp on one thread; '
-              '`python bench/icp_settings.py` runs this table alone.', '']
+              '`python lab/bench/icp_settings.py` runs this table alone.', '']
     return lines + icp_settings.markdown(gt['settings'])
 
 

@@ -18,9 +18,9 @@ without a time offset, and the diagnosis runs under it (:data:`SIM_INTERVAL`): i
 stamp-convention row. Under ``starting`` the speeds lag by half a period, under ``ending`` they
 lead by as much (:func:`convention_offset_s`).
 
-``skidkin effects`` prints the table of docs/results.md (:func:`run_study` yields the rows one
-case at a time; each :class:`EffectCase` gives its table row). A case is named ``none``, an
-effect, or effects joined by ``+``.
+``python -m lab.cli effects`` prints the table of docs/results.md (:func:`run_study` yields
+the rows one case at a time; each :class:`EffectCase` gives its table row). A case is named
+``none``, an effect, or effects joined by ``+``.
 """
 
 from __future__ import annotations

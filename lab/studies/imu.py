@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Iterator, Sequence
 
+from lab.studies.effects import SIM_INTERVAL
 import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import ErrorStats, evaluate_model, relative_errors
@@ -41,7 +42,6 @@ from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer, Prediction
 from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
-from skidkin_ros.studies.effects import SIM_INTERVAL
 
 __all__ = ['GEOMETRY', 'MODEL', 'CASES', 'ImuCase', 'run_case', 'run_study', 'TABLE_HEADER']
 
