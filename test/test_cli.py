@@ -170,7 +170,8 @@ def test_docs_model_table_matches_the_specs(capsys):
 @pytest.mark.heavy
 def test_demo_pipeline_sized_down(tmp_path):
     args = argparse.Namespace(out=tmp_path / 'demo', force=False, train_duration=60.0,
-                              eval_duration=40.0, no_cache=True, progress=False)
+                              eval_duration=40.0, eval_drives=2, no_cache=True,
+                              progress=False)
     summary = cmd_demo.pipeline(args)
     assert summary['params'].exists()
     truth, icp = summary['true_params'], summary['fitted_icp']
