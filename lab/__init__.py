@@ -3,3 +3,5 @@
 Runnable from a clone of the repository (``python -m lab.cli --help``, ``make bench``,
 ``make docs``); never installed and never imported by the ``skidkin_ros`` package.
 """
+
+__all__ = ['cli', 'docs', 'report', 'studies']
