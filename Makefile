@@ -9,7 +9,7 @@ PYTEST_ARGS ?=
 CONSTRAINTS ?= constraints.txt
 PIP_C := $(if $(CONSTRAINTS),PIP_CONSTRAINT=$(abspath $(CONSTRAINTS)),)
 
-.PHONY: demo test test-fast bench bench-smoke lint clean constraints
+.PHONY: demo test test-fast bench bench-smoke lint docs clean constraints
 
 $(STAMP): setup.py setup.cfg package.xml $(CONSTRAINTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -39,13 +39,17 @@ test-fast: $(STAMP)
 	$(PY) -m pytest -q -ra -m 'not heavy' $(PYTEST_ARGS)
 
 bench: $(STAMP)
-	$(PY) bench/run.py --out bench/results
+	$(PY) lab/bench/run.py --out lab/bench/results
 
 bench-smoke: $(STAMP)
-	$(PY) bench/run.py --smoke --out bench/results-smoke
+	$(PY) lab/bench/run.py --smoke --out lab/bench/results-smoke
 
 lint: $(STAMP)
 	$(PY) -m pytest -q test/test_lint.py
+
+# Paste the tables generated from the specs (skidkin models, skidkin models --node) into docs/.
+docs: $(STAMP)
+	$(PY) -m lab.docs
 
 clean:
 	rm -rf build install log demo_out .pytest_cache

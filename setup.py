@@ -40,7 +40,8 @@ DEV = CLUSTER + [
 setup(
     name=package_name,
     version='0.1.0',
-    packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    # The lab (studies, benchmarks) runs from the repository and is never installed.
+    packages=find_packages(exclude=['test', 'test.*', 'lab', 'lab.*']),
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),

@@ -400,7 +400,7 @@ def test_c19_streaming_memory_stays_far_below_the_bag_size(tmp_path, storage):
 
 
 def test_c27_unreadable_metadata_is_not_blamed_on_the_storage_file(tmp_path):
-    """Issue 12 item 13: a broken metadata.yaml got the remedy `sqlite3 .recover` on the .db3."""
+    """Red-team case: a broken metadata.yaml got the remedy `sqlite3 .recover` on the .db3."""
     bag = _drive_bag(tmp_path / 'bag', n=20, clouds=2)
     for text in ('rosbag2_bagfile_information: [', 'foo: 1\n', ''):
         (bag / 'metadata.yaml').write_text(text)
@@ -416,7 +416,7 @@ def test_c27_unreadable_metadata_is_not_blamed_on_the_storage_file(tmp_path):
 
 
 def test_c28_a_device_or_pipe_as_a_recording_is_refused(tmp_path):
-    """Issue 12 item 13: /dev/zero as a source ended in a NotADirectoryError traceback."""
+    """Red-team case: /dev/zero as a source ended in a NotADirectoryError traceback."""
     with pytest.raises(RecordingError, match='neither a file nor a folder'):
         open_recording('/dev/zero')
     fifo = tmp_path / 'pipe'
@@ -426,7 +426,7 @@ def test_c28_a_device_or_pipe_as_a_recording_is_refused(tmp_path):
 
 
 def test_c29_a_topic_whose_messages_were_removed_says_so(tmp_path):
-    """Issue 12 item 13: a removed JointState topic was reported as 'joints seen: []'."""
+    """Red-team case: a removed JointState topic was reported as 'joints seen: []'."""
     bag = _drive_bag(tmp_path / 'bag', n=20, clouds=2)
     with sqlite3.connect(_storage_file(bag)) as db:
         for topic in ('/joint_states', '/imu'):
@@ -443,7 +443,7 @@ def test_c29_a_topic_whose_messages_were_removed_says_so(tmp_path):
 
 
 def test_c30_wheel_speed_jumps_are_dropped_naming_the_side(tmp_path):
-    """Issue 12 item 13: 90 rad/s spikes under max_wheel_speed reached the fit and lidar check."""
+    """Red-team case: 90 rad/s spikes under max_wheel_speed reached the fit and lidar check."""
     spikes = {20: (2.0, 90.0), 40: (-85.0, 2.0), 60: (2.0, 95.0)}
     with BagWriter(tmp_path / 'bag') as bag:
         for i in range(100):

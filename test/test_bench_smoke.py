@@ -21,7 +21,7 @@ def _finite(value) -> bool:
 @pytest.mark.ros
 def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
     out = tmp_path / 'results'
-    proc = subprocess.run([sys.executable, str(ROOT / 'bench' / 'run.py'), '--smoke',
+    proc = subprocess.run([sys.executable, str(ROOT / 'lab' / 'bench' / 'run.py'), '--smoke',
                            '--out', str(out)], cwd=ROOT, capture_output=True, text=True,
                           timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -106,7 +106,7 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
 
     # The Markdown table names the command and has the expected rows; the plot is a PNG.
     text = (out / 'results.md').read_text()
-    assert 'python bench/run.py --smoke' in text
+    assert 'python lab/bench/run.py --smoke' in text
     for needle in ('| bare rclpy relay |', '| odom_node full_linear |',
                    '| odom_node roc | not run in the smoke run', '## Calibration',
                    '## Lidar pipeline', '| km | drives | 1 process s |',
@@ -116,13 +116,14 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
 
 
 def _bench_module(name):
-    spec = importlib.util.spec_from_file_location(f'bench_{name}', ROOT / 'bench' / f'{name}.py')
+    spec = importlib.util.spec_from_file_location(f'bench_{name}',
+                                                  ROOT / 'lab' / 'bench' / f'{name}.py')
     module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(ROOT / 'bench'))
+    sys.path.insert(0, str(ROOT / 'lab' / 'bench'))
     try:
         spec.loader.exec_module(module)
     finally:
-        sys.path.remove(str(ROOT / 'bench'))
+        sys.path.remove(str(ROOT / 'lab' / 'bench'))
     return module
 
 
@@ -140,7 +141,7 @@ def test_heading_bench_without_the_husky_table_says_so_in_the_results(tmp_path):
 
 @pytest.mark.ros
 def test_callback_bench_times_every_case():
-    proc = subprocess.run([sys.executable, str(ROOT / 'bench' / 'callback_bench.py'),
+    proc = subprocess.run([sys.executable, str(ROOT / 'lab' / 'bench' / 'callback_bench.py'),
                            '--messages', '50', '--repeats', '1'], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]

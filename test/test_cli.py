@@ -34,7 +34,7 @@ def _read_csv(path):
 def test_calibrate_then_predict_then_the_real_node_agrees(sim_table, tmp_path, capsys):
     table, sim = sim_table
     params = tmp_path / 'params.yaml'
-    # roc's beta_2 may end on its clamp on this exact data (issue 11 item 2): a warning, exit 0
+    # roc's beta_2 may end on its clamp on this exact data: a warning, exit 0
     assert main(['calibrate', str(table), '--out', str(params), '--robot', 'sim']) == 0
     out = capsys.readouterr().out
     assert '<- best' in out and 'edd_asymmetric' in out
@@ -135,22 +135,43 @@ def test_husky_calibration_from_the_command_line(tmp_path, capsys):
     assert float(rows[config.model][1]) < 0.5 * float(rows['ideal_dd'][1])  # median eps_t
 
 
+def test_the_product_command_lists_the_product_and_the_lab_the_studies(capsys):
+    from lab.cli.main import main as lab_main
+    with pytest.raises(SystemExit):
+        main(['--help'])
+    product = capsys.readouterr().out
+    for command in ('calibrate', 'evaluate', 'predict', 'diagnose', 'groundtruth', 'simulate',
+                    'models', 'demo'):
+        assert f'    {command} ' in product, command
+    for study in ('effects', 'estimate', 'imu-study'):
+        assert f'    {study} ' not in product, study
+        with pytest.raises(SystemExit) as info:
+            main([study])
+        assert info.value.code == 2  # not a product command
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        lab_main(['--help'])
+    lab = capsys.readouterr().out
+    assert all(f'    {study} ' in lab for study in ('effects', 'estimate', 'imu-study'))
+
+
 def test_models_table_is_generated_from_the_specs(capsys):
     assert main(['models']) == 0
     out = capsys.readouterr().out
     assert '`models.edd_asymmetric.y_r`' in out and '(-inf, 0)' in out
 
 
-def test_readme_model_table_matches_the_specs(capsys):
-    readme = (Path(__file__).resolve().parents[1] / 'README.md').read_text()
+def test_docs_model_table_matches_the_specs(capsys):
+    page = (Path(__file__).resolve().parents[1] / 'docs' / 'models.md').read_text()
     main(['models'])
-    assert capsys.readouterr().out.strip() in readme, 'run `skidkin models` and paste it'
+    assert capsys.readouterr().out.strip() in page, 'run `make docs` (skidkin models)'
 
 
 @pytest.mark.heavy
 def test_demo_pipeline_sized_down(tmp_path):
     args = argparse.Namespace(out=tmp_path / 'demo', force=False, train_duration=60.0,
-                              eval_duration=40.0, no_cache=True, progress=False)
+                              eval_duration=40.0, eval_drives=2, no_cache=True,
+                              progress=False)
     summary = cmd_demo.pipeline(args)
     assert summary['params'].exists()
     truth, icp = summary['true_params'], summary['fitted_icp']
@@ -201,7 +222,7 @@ def test_diagnose_from_the_command_line_on_two_cores(tmp_path, capsys):
 
 
 def test_output_errors_exit_5_before_any_work_without_a_traceback(sim_table, tmp_path, capsys):
-    """Issue 12 item 10 (C23): these escaped as tracebacks with exit code 1."""
+    """C23: these escaped as tracebacks with exit code 1."""
     table, _ = sim_table
     params = tmp_path / 'params.yaml'
     write_params_file(params, {})
@@ -236,7 +257,7 @@ def test_output_errors_exit_5_before_any_work_without_a_traceback(sim_table, tmp
 
 
 def test_outputs_honour_the_umask_and_a_replaced_file_keeps_its_mode(sim_table, tmp_path):
-    """Issue 12 item 11 (C24): every output was created 0600, and --force made a 0644 file 0600."""
+    """C24: every output was created 0600, and --force made a 0644 file 0600."""
     table, _ = sim_table
     params = tmp_path / 'params.yaml'
     old_mask = os.umask(0o022)
@@ -269,7 +290,7 @@ def test_demo_force_removes_only_what_the_demo_wrote(tmp_path, capsys):
 
 
 def test_a_device_as_a_source_is_a_data_error_not_a_traceback(tmp_path, capsys):
-    """Issue 12 item 13 (C28): /dev/zero as a source ended in a NotADirectoryError traceback."""
+    """C28: /dev/zero as a source ended in a NotADirectoryError traceback."""
     params = tmp_path / 'params.yaml'
     write_params_file(params, {})
     assert main(['predict', '/dev/zero', '--params', str(params), '--out',
@@ -323,7 +344,8 @@ def test_a_bad_stride_or_jobs_names_its_own_meaning(tmp_path, capsys, option, ex
 
 def test_estimate_lists_each_figure_once(tmp_path, capsys, monkeypatch):
     # the study itself is tested in test_consistency.py; this checks what the command prints
-    from skidkin_ros.cli import cmd_estimate
+    from lab.cli import cmd_estimate
+    from lab.cli.main import main as lab_main
 
     class Study:
 
@@ -333,7 +355,7 @@ def test_estimate_lists_each_figure_once(tmp_path, capsys, monkeypatch):
     figures = {'error_over_time': tmp_path / 'e.png', 'segment_nees': tmp_path / 'n.png'}
     monkeypatch.setattr(cmd_estimate, 'run_estimation_study', lambda **_: Study())
     monkeypatch.setattr(cmd_estimate, 'write_estimation_figures', lambda *_: figures)
-    assert main(['estimate', '--out', str(tmp_path / 'est'), '--quick']) == 0
+    assert lab_main(['estimate', '--out', str(tmp_path / 'est'), '--quick']) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == 'model edd_symmetric (a summary line)'
     assert [line for line in lines if line.startswith('figure ')] == [

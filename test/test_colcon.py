@@ -56,6 +56,10 @@ def test_installed_layout(installed):
                             'print(m.__file__)'], env=env, capture_output=True, text=True,
                            cwd=workspace)
     assert str(workspace / 'install') in where.stdout, where.stderr  # the built copy runs
+    # The lab (studies, benchmarks) stays in the source tree: nothing of it is installed.
+    site = next((workspace / 'install' / 'skidkin_ros' / 'lib').glob('python*/site-packages'))
+    assert (site / 'skidkin_ros').is_dir() and not (site / 'lab').exists()
+    assert not list(site.glob('skidkin_ros/**/studies')) and not (site / 'bench').exists()
 
 
 def test_missing_params_file_exit_code(installed, tmp_path):

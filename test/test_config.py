@@ -114,7 +114,7 @@ def test_unreadable_params_files_name_the_path(tmp_path, text, needle):
     ({'max_stamp_step_back': 0.0}, 'max_stamp_step_back'),
     ({'max_wheel_acceleration': -1.0}, 'max_wheel_acceleration')])
 def test_a_silent_publish_rate_and_unusable_frame_ids_are_refused(flat, needle):
-    """Issue 12 item 6 (N32): max_rate 1e-300 silenced /odom, an empty frame id was taken."""
+    """N32: max_rate 1e-300 silenced /odom, an empty frame id was taken."""
     with pytest.raises(ParameterError) as err:
         OdometryConfig.from_flat(flat)
     assert needle in str(err.value)
@@ -122,7 +122,7 @@ def test_a_silent_publish_rate_and_unusable_frame_ids_are_refused(flat, needle):
 
 
 def test_empty_params_file_refused_and_a_duplicate_key_warned(tmp_path, caplog):
-    """Issue 12 item 7 (C21): the node took an empty file, and a duplicate key won silently."""
+    """C21: the node took an empty file, and a duplicate key won silently."""
     for text in ('', '# only a comment\n', '---\n'):
         empty = tmp_path / 'empty.yaml'
         empty.write_text(text)
@@ -144,7 +144,7 @@ def _alias_bomb(depth):
 
 
 def test_alias_bomb_refused_at_once_and_echoed_values_are_short(tmp_path):
-    """Issue 12 item 9 (C22): 726 bytes of aliases ended in a MemoryError after 42 s."""
+    """C22: 726 bytes of aliases ended in a MemoryError after 42 s."""
     bomb = tmp_path / 'bomb.yaml'
     bomb.write_text(_alias_bomb(9))
     assert len(bomb.read_bytes()) < 800
@@ -163,7 +163,7 @@ def test_alias_bomb_refused_at_once_and_echoed_values_are_short(tmp_path):
 
 
 def test_params_file_that_is_not_a_regular_small_file_is_refused(tmp_path):
-    """Issue 12 item 13 (C31): /dev/zero as a file to read must not be read for ever."""
+    """C31: /dev/zero as a file to read must not be read for ever."""
     with pytest.raises(ConfigError, match='not a regular file'):
         read_params_file('/dev/zero')
     with pytest.raises(ConfigError, match='directory'):

@@ -1,6 +1,8 @@
 """NEES machinery, odometry NEES over independent windows, and the end-to-end estimation study."""
 
 from _calib_synth import GEOMETRY, make_drive
+from lab.report.estimation import write_estimation_figures
+from lab.studies.estimation import run_estimation_study, StudyOptions
 import numpy as np
 import pytest
 from scipy import stats
@@ -12,8 +14,6 @@ from skidkin_ros.core.estimation.nees import (chi2_band, nees, nees_over_time, s
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.errors import DataError
-from skidkin_ros.report.estimation import write_estimation_figures
-from skidkin_ros.studies.estimation import run_estimation_study, StudyOptions
 
 NOISE = NoiseModel(4e-3, 1e-3, 2e-4, 5e-3)
 

@@ -2,6 +2,8 @@
 
 import math
 
+from lab.studies.effects import (case_effects, PAIRS,
+                                 run_case as study_case, run_study, SIM_INTERVAL)
 import numpy as np
 import pytest
 from skidkin_ros.core.calibration.diagnosis import (body_velocities, DiagnosisOptions,
@@ -18,8 +20,6 @@ from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, w
 from skidkin_ros.errors import OutputError, ParameterError
 from skidkin_ros.report.diagnosis import write_diagnosis_report
 from skidkin_ros.sim.effects import EFFECT_NAMES, make_effect
-from skidkin_ros.studies.effects import (case_effects, PAIRS,
-                                         run_case as study_case, run_study, SIM_INTERVAL)
 
 # Effects whose simulator form is exactly one extension: that extension must be named.
 EXACT_EFFECTS = tuple(name for name in EFFECT_NAMES if name != 'acceleration_slip')

@@ -1,4 +1,4 @@
-"""Issue 11 items 1-3: iterated weighting, the likelihood rule, roc's fit range, evaluate."""
+"""Iterated weighting, the likelihood rule, roc's fit range, evaluate."""
 
 from dataclasses import replace
 

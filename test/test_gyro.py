@@ -1,4 +1,4 @@
-"""The gyro in the odometry (issue 14): interval matching, bad samples, the gain/bias filter."""
+"""The gyro in the odometry: interval matching, bad samples, the gain/bias filter."""
 
 import math
 

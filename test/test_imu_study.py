@@ -1,13 +1,13 @@
-"""The gyro study on the simulator (issue 14's goals), sized down: one ground-change drive.
+"""The gyro study on the simulator (the gyro's goals), sized down: one ground-change drive.
 
-The effect-free case runs the README's three drives (50 segments of 2 m): one drive's 16
+The effect-free case runs the three drives of docs/results.md (50 segments of 2 m): one drive's 16
 segments cannot resolve the 5 % of the effect-free goal (the fixed model's median eps_t of seed
 11 alone is 27 % below that of the three). The study calibrates and scores under
 ``interval: midpoint`` (exact for the simulator's speeds).
 """
 
+from lab.studies.imu import calibrated_config, run_case
 import pytest
-from skidkin_ros.studies.imu import calibrated_config, run_case
 
 
 @pytest.fixture(scope='module')

@@ -156,3 +156,22 @@ def test_generic_diagnosis_code_names_no_extension():
                     and node.value not in allowed):
                 offenders.append(f'{f.name}:{node.lineno} {node.value}')
     assert offenders == []
+
+
+def test_the_product_never_imports_the_lab():
+    """lab/ (studies, benchmarks) runs from a clone; the installed package must not need it."""
+    # _imports walks the whole tree: an import inside a function counts too.
+    offenders = [str(f.relative_to(PACKAGE)) for f in _files('') for m in _imports(f)
+                 if m == 'lab']
+    assert offenders == []
+
+
+def test_setup_installs_no_lab_package():
+    import re
+    from setuptools import find_packages
+    setup_text = (PACKAGE.parent / 'setup.py').read_text()
+    exclude = ast.literal_eval(re.search(r'find_packages\(exclude=(\[[^]]*\])\)',
+                                         setup_text).group(1))
+    installed = find_packages(where=str(PACKAGE.parent), exclude=exclude)
+    assert 'skidkin_ros' in installed
+    assert [name for name in installed if name.split('.')[0] != 'skidkin_ros'] == []

@@ -1,6 +1,6 @@
 """The ground-truth guard: ICP judged by its own quality, the IMU, and the wheels for gross errors.
 
-No robot geometry is needed (issue 11); skid and slip keep their ground truth (issue 15). Real
+No robot geometry is needed; skid and slip keep their ground truth. Real
 kiss-icp on simulated scans.
 """
 

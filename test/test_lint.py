@@ -4,7 +4,7 @@ from ament_flake8.main import main_with_errors as flake8_main
 from ament_pep257.main import main as pep257_main
 import pytest
 
-PATHS = ['skidkin_ros', 'test', 'bench', 'launch', 'setup.py']
+PATHS = ['skidkin_ros', 'test', 'lab', 'launch', 'setup.py']
 
 
 @pytest.mark.linter

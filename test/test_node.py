@@ -366,7 +366,7 @@ def test_float64_bag_replayed_through_the_node_reproduces_predict(make_rig, tmp_
 
 def test_params_file_the_offline_tools_refuse_stops_the_node_and_a_duplicate_warns(tmp_path,
                                                                                    capfd):
-    """Issue 12 items 7 and 9 (N33): an empty file started the node with Husky defaults."""
+    """N33: an empty file started the node with Husky defaults."""
     empty = tmp_path / 'empty.yaml'
     empty.write_text('# nothing here\n')
     assert main(['odom_node', '--ros-args', '--params-file', str(empty)]) == 2

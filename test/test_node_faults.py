@@ -322,7 +322,7 @@ def _set_pose(rig, x, y, variance=0.0):
 
 
 def test_n30_set_pose_the_odometry_cannot_hold_is_rejected_and_odom_goes_on(make_rig):
-    """Issue 12 item 4: x = y = 1e308 was taken, and no /odom came until ~/reset."""
+    """Red-team case: x = y = 1e308 was taken, and no /odom came until ~/reset."""
     rig = make_rig()
     t0 = start_ns()
     rig.send_joint(t0, 1.0, 1.0)
@@ -348,7 +348,7 @@ def test_n30_set_pose_the_odometry_cannot_hold_is_rejected_and_odom_goes_on(make
 
 
 def test_n31_driver_clock_stepping_back_resets_instead_of_locking_out(make_rig):
-    """Issue 12 item 5: a driver restart locked the node out until its stamps caught up."""
+    """Red-team case: a driver restart locked the node out until its stamps caught up."""
     rig = make_rig({'max_stamp_step_back': 2.0})
     t0 = start_ns()
     for k in range(5):
@@ -377,7 +377,7 @@ def test_n31_driver_clock_stepping_back_resets_instead_of_locking_out(make_rig):
 
 
 def test_n32_silent_publish_rate_or_empty_frame_refused_at_start_and_at_runtime(make_rig):
-    """Issue 12 item 6: max_rate 1e-300 silenced /odom; odom_frame_id '' was taken."""
+    """Red-team case: max_rate 1e-300 silenced /odom; odom_frame_id '' was taken."""
     with pytest.raises(ConfigError, match='max_rate'):
         make_rig({'max_rate': 1e-300})
     with pytest.raises(ConfigError, match='odom_frame_id'):
@@ -396,7 +396,7 @@ def test_n32_silent_publish_rate_or_empty_frame_refused_at_start_and_at_runtime(
 
 
 def test_n34_wheel_speed_jump_rejected_naming_the_side(make_rig):
-    """Issue 12 item 13: a 90 rad/s spike under max_wheel_speed was integrated."""
+    """Red-team case: a 90 rad/s spike under max_wheel_speed was integrated."""
     rig = make_rig()
     t0 = start_ns()
     step = 50_000_000

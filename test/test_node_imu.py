@@ -1,4 +1,4 @@
-"""The real node with a gyro (issue 14): same as predict, hostile Imu messages, stale gyro."""
+"""The real node with a gyro: same as predict, hostile Imu messages, stale gyro."""
 
 import math
 

@@ -50,7 +50,7 @@ def expected_yaw_rate(rig, omega_l, omega_r):
 
 
 def test_n23_wrong_position_count_is_refused_not_read_as_velocity(make_rig):
-    """Issue 12: position count 4 -> 9 made the reader return the efforts as wheel speeds."""
+    """Red-team case: position count 4 -> 9 made the reader return the efforts as wheel speeds."""
     rig = make_rig({'model': 'ideal_dd'})
     t0 = start_ns()
     rig.send(serialized(rig, t0, 1.0, 2.0))
@@ -78,7 +78,7 @@ def test_n24_message_cut_inside_the_effort_array_is_refused(make_rig):
 
 
 def test_n25_names_the_fast_reader_leaves_are_read_by_rclpy(make_rig):
-    """Issue 12: an unrelated joint's non-UTF-8 name (rclpy accepts it) made every message drop."""
+    """Red-team case: an unrelated joint's non-UTF-8 name (rclpy takes it) dropped all messages."""
     rig = make_rig({'model': 'ideal_dd'})
     t0 = start_ns()
     for i in range(3):
@@ -91,7 +91,7 @@ def test_n25_names_the_fast_reader_leaves_are_read_by_rclpy(make_rig):
 
 
 def test_n26_forged_name_count_is_refused_and_the_next_sample_integrated(make_rig):
-    """Issue 12: n_names = 2**32 - 1 and 1 MB of zeros stalled the node 0.25 s per MB."""
+    """Red-team case: n_names = 2**32 - 1 and 1 MB of zeros stalled the node 0.25 s per MB."""
     rig = make_rig({'model': 'ideal_dd'})
     t0 = start_ns()
     rig.send(serialized(rig, t0, 1.0, 2.0))

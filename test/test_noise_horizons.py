@@ -1,4 +1,4 @@
-"""Noise at every horizon and the calibration's own uncertainty (issues 11.6 and 17)."""
+"""Noise at every horizon and the calibration's own uncertainty."""
 
 from dataclasses import replace
 

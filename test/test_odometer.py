@@ -133,7 +133,7 @@ def test_limits_come_from_the_configuration():
 
 
 def test_a_pose_or_covariance_the_odometry_cannot_hold_is_refused_and_changes_nothing():
-    """Issue 12 item 4 (N30): a pose of 1e308 m was taken, and nothing was published after it."""
+    """N30: a pose of 1e308 m was taken, and nothing was published after it."""
     odo = odometer()
     odo.joint_sample(NOW, 1.0, 1.0, NOW)
     odo.joint_sample(NOW + DT, 1.0, 1.0, NOW + DT)
@@ -152,7 +152,7 @@ def test_a_pose_or_covariance_the_odometry_cannot_hold_is_refused_and_changes_no
 
 
 def test_a_stepped_back_input_clock_resets_once_confirmed_and_one_bad_stamp_is_refused():
-    """Issue 12 item 5 (N31): a driver restart locked the node out until its stamps caught up."""
+    """N31: a driver restart locked the node out until its stamps caught up."""
     odo = odometer()
     for k in range(50):
         odo.joint_sample(NOW + k * DT, 1.0, 1.0, NOW + k * DT)
@@ -174,7 +174,7 @@ def test_a_stepped_back_input_clock_resets_once_confirmed_and_one_bad_stamp_is_r
 
 
 def test_negative_and_stale_stamps_after_a_reset_are_refused():
-    """Issue 12 item 5: after ~/reset the first stamp was published whatever it was."""
+    """Red-team case: after ~/reset the first stamp was published whatever it was."""
     odo = odometer()
     for k in range(5):
         odo.joint_sample(NOW + k * DT, 1.0, 1.0, NOW + k * DT)
@@ -190,7 +190,7 @@ def test_negative_and_stale_stamps_after_a_reset_are_refused():
 
 
 def test_a_wheel_speed_that_jumps_is_rejected_naming_the_side():
-    """Issue 12 item 13: 90 rad/s spikes under max_wheel_speed were integrated."""
+    """Red-team case: 90 rad/s spikes under max_wheel_speed were integrated."""
     warnings = []
     odo = odometer(warn=lambda cause, message, error=False: warnings.append((cause, message)))
     speeds = [(2.0, 2.0)] * 5 + [(2.0, 90.0)] + [(2.0, 2.0)] * 5

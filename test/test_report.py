@@ -52,6 +52,35 @@ def test_report_page_and_figures(result, tmp_path):
     assert write_report(result, tmp_path / 'out', force=True) == page
 
 
+def test_segment_figure_draws_each_model_beside_the_true_path_on_one_scale(result):
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from skidkin_ros.report.figures import segment_paths_figure
+    fig = segment_paths_figure(result, count=4)
+    axes = fig.axes
+    assert len(axes) == 4
+    spans = set()
+    for ax in axes:
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        assert set(result.fits) <= set(lines)
+        truth = lines['ground truth'].get_xydata()
+        assert len(truth) > 5  # the whole true path, not only its end point
+        start = ax.get_lines()[-2].get_xydata()[0]  # the start marker
+        assert np.allclose(truth[0], start, atol=1e-9)
+        for name in result.fits:  # every model starts at the true start pose
+            assert np.allclose(lines[name].get_xydata()[0], start)
+        assert ax.get_aspect() == 1.0
+        spans.add((round(np.diff(ax.get_xlim())[0], 9), round(np.diff(ax.get_ylim())[0], 9)))
+    assert len(spans) == 1  # the same scale in every panel
+    plt.close(fig)
+
+
+def test_the_report_shows_no_fault_matrix_codes(result, tmp_path):
+    import re
+    text = write_report(result, tmp_path / 'codes').read_text()
+    assert re.findall(r'\([CN][0-9]+\)', text) == []
+
+
 def test_parameters_file_round_trip(result, tmp_path):
     flat = result_to_parameters(result, {'robot': 'synth'})
     assert flat['model'] == result.best

@@ -91,7 +91,7 @@ def test_tf_static_quaternion_becomes_the_same_rotation(tmp_path):
 
 
 def test_c30_wheel_spikes_are_blamed_on_the_wheels_not_the_lidar_ground_truth(tmp_path):
-    """Issue 12 item 13: 90 rad/s spikes got most lidar frames flagged and blamed on the lidar."""
+    """Red-team case: 90 rad/s spikes got most lidar frames flagged and blamed on the lidar."""
     from skidkin_ros.adapters.lidar_gt import IcpConfig
     from skidkin_ros.adapters.sim_writer import write_bag
     from skidkin_ros.sim import LidarConfig, SimConfig, simulate

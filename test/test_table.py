@@ -110,7 +110,7 @@ def _with(lines, row, column, value):
                                         (1.7e18, 'nanoseconds since 1970 (divide by 1e9)'),
                                         (-1e10, 'cannot be seconds')])
 def test_times_that_cannot_be_seconds_say_so(tmp_path, t0, needle):
-    """Issue 12 item 12 (C25): epoch milliseconds gave 't = -9.22e9 s after -9.22e9 s'."""
+    """C25: epoch milliseconds gave 't = -9.22e9 s after -9.22e9 s'."""
     lines = [HEADER] + _rows(0, 0)
     for k in range(1, len(lines)):
         _with(lines, k, 't', repr(t0 + k * (1e-3 * t0 if t0 > 0 else 1.0)))
@@ -135,7 +135,7 @@ def test_times_that_cannot_be_seconds_say_so(tmp_path, t0, needle):
     # C103: the gyro has its own limit (it was the wheel speeds' 1e4 rad/s)
     ('imu_yaw_rate', '500', "beyond any gyro's range")])
 def test_numbers_are_plain_decimals_within_physical_bounds(tmp_path, column, value, match):
-    """Issue 12 item 13 (C26): '1_0' read as 10; a row of 1e300 passed (overflow warnings)."""
+    """C26: '1_0' read as 10; a row of 1e300 passed (overflow warnings)."""
     lines = _with([HEADER] + _rows(0, 0), 3, column, value)
     with pytest.raises(RecordingError, match=match) as info:
         read_table(_write(tmp_path / 'bad.csv', lines))
@@ -167,7 +167,7 @@ def test_a_fast_but_real_gyro_rate_is_read(tmp_path):
 
 
 def test_byte_order_mark_and_repeated_columns(tmp_path):
-    """Issue 12 item 13 (C26): a UTF-8 byte-order mark hid the t column."""
+    """C26: a UTF-8 byte-order mark hid the t column."""
     path = tmp_path / 'bom.csv'
     path.write_bytes(('\ufeff' + '\n'.join([HEADER] + _rows(0, 0)) + '\n').encode('utf-8'))
     drives = read_table(path)

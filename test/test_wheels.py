@@ -129,7 +129,7 @@ def test_bag_reader_takes_a_side_speed_as_the_node_does(tmp_path):
     assert wheels.omega_l.tolist() == [side_speed([0.1, 0.2, 0.3])] * 3
 
 
-# ------------------------------------------------------------------ wheel_signal (issue 11 item 5)
+# ------------------------------------------------------------------ wheel_signal
 def _take(signal, t_s, left, right, velocity=(9.0, 9.0)):
     positions = None if left is None else (left, right)
     return signal.take(int(round(t_s * 1e9)), *velocity, positions)

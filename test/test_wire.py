@@ -152,7 +152,7 @@ def test_reader_reads_big_and_little_endian_cdr_from_rosbags() -> None:
 
 
 def test_reader_refuses_what_rclpy_refuses_in_the_issue_cases() -> None:
-    """Issue 12 item 1: a wrong position count read effort as velocity; a cut effort passed."""
+    """Red-team case: a wrong position count read effort as velocity; a cut effort passed."""
     data, at = _two_joints()
     diff = Differential()
     assert diff.check(data) == 'both read'
@@ -166,7 +166,7 @@ def test_reader_refuses_what_rclpy_refuses_in_the_issue_cases() -> None:
 
 
 def test_reader_leaves_to_rclpy_what_rclpy_decodes_its_own_way() -> None:
-    """Issue 12 item 2: names rclpy accepts but decodes by its own rules, other encodings."""
+    """Red-team case: names rclpy accepts but decodes by its own rules, other encodings."""
     odd_names = [b'\xff\xfeleg\x00', b'le\x00ft\x00', b'left', b'', b'\xed\xa0\x80\x00']
     diff = Differential()
     for odd in odd_names:
@@ -183,7 +183,7 @@ def test_reader_leaves_to_rclpy_what_rclpy_decodes_its_own_way() -> None:
 
 
 def _hostile_names(n_bytes: int) -> bytes:
-    """Issue 12 item 3: n_names = 2**32 - 1, then n_bytes of zeros (each a name of length 0)."""
+    """Red-team case: n_names = 2**32 - 1, then n_bytes of zeros (each a name of length 0)."""
     data, at = _two_joints()
     return _with_uint32(data[:at['names'] + 4], at['names'], 2**32 - 1) + bytes(n_bytes)
 

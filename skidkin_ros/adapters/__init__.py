@@ -1,1 +1,15 @@
 """Adapters that turn recordings (rosbag2 via rosbags) and lidar (kiss-icp) into core types."""
+
+# The modules of this package (the API is theirs; ``skidkin_ros`` re-exports the public part).
+__all__ = [
+    'bag_reader',
+    'bag_writer',
+    'bags',
+    'lidar_chunks',
+    'lidar_gt',
+    'lidar_guard',
+    'pointcloud',
+    'sim_writer',
+    'sources',
+    'table',
+]

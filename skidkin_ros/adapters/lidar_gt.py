@@ -94,7 +94,7 @@ class IcpConfig:
     'stride'); ``max_threads``: kiss-icp's threads per registration (1: the result does not
     depend on the machine or on how many run at once; 0: every core). ``quality_points``:
     source points sampled per frame to measure the registration's quality.
-    The defaults come from the speed/accuracy table of bench/icp_settings.py (README).
+    The defaults come from the speed/accuracy table of bench/icp_settings.py (docs/benchmarks.md).
     """
 
     max_range_m: float = 100.0

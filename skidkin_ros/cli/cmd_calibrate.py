@@ -140,7 +140,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--strict', action='store_true',
                         help='exit 4 when any fit is invalid, even one that was not selected '
                         '(default: a warning; the written model is always a valid fit)')
-    # Deprecated: an invalid fit that was not selected is a warning by default (issue 11), so
+    # Deprecated: an invalid fit that was not selected is a warning by default, so
     # the flag only undid --strict. Still taken (scripts keep working), with a note; not in --help.
     parser.add_argument('--accept-invalid', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--weighting', choices=WEIGHTINGS, default='iterated',

@@ -17,7 +17,7 @@ from skidkin_ros.cli import commands
 from skidkin_ros.core.parallel import one_blas_thread
 from skidkin_ros.errors import SkidkinError
 
-__all__ = ['main', 'build_parser']
+__all__ = ['main', 'build_parser', 'run_parser']
 
 # Longest error message printed: a message quoting a user's value must not flood the terminal.
 MAX_MESSAGE_CHARS = 2000
@@ -65,20 +65,28 @@ def _capped(text: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    return run_parser(build_parser(), argv)
+
+
+def run_parser(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` with a parser of subcommands and run the one chosen, as ``skidkin`` does.
+
+    Errors derived from SkidkinError become one line on stderr and their exit code; the lab's
+    command (``python -m lab.cli``) runs its studies through here too.
+    """
     args = parser.parse_args(argv)
     _configure_logging(args.verbose, args.quiet)
     try:
         with one_blas_thread():
             return int(args.run(args) or 0)
     except SkidkinError as err:
-        print(f'skidkin {args.command}: error: {_capped(str(err))}', file=sys.stderr)
+        print(f'{parser.prog} {args.command}: error: {_capped(str(err))}', file=sys.stderr)
         return err.exit_code
     except BrokenPipeError:  # output piped into `head`: not an error
         sys.stderr.close()
         return 0
     except KeyboardInterrupt:
-        print(f'skidkin {args.command}: interrupted; no partial output was written',
+        print(f'{parser.prog} {args.command}: interrupted; no partial output was written',
               file=sys.stderr)
         return 130
 

@@ -16,7 +16,7 @@ from skidkin_ros.core.kinematics.models import get_model  # noqa: E402
 from skidkin_ros.core.odometry.integrator import rollout_segments  # noqa: E402
 
 __all__ = ['save_figure', 'error_distributions', 'rotation_per_metre', 'angular_error_map',
-           'segment_paths', 'horizon_figure']
+           'segment_paths', 'segment_paths_figure', 'horizon_figure']
 
 
 def save_figure(fig, path: Path) -> Path:
@@ -99,11 +99,27 @@ def angular_error_map(result: CalibrationResult, path: Path, model: str | None =
 
 
 def segment_paths(result: CalibrationResult, path: Path, count: int = 4) -> Path:
-    """Predicted vs ground-truth end poses of a few evaluation segments, per model."""
+    """Draw a few evaluation segments: each model's predicted path beside the true path.
+
+    Every model starts at the segment's true start pose; the panels share one scale (equal
+    axes, the same span), so a model that turns too much looks it in every panel.
+    """
+    return save_figure(segment_paths_figure(result, count), path)
+
+
+def segment_paths_figure(result: CalibrationResult, count: int = 4):
+    """Return the matplotlib figure of :func:`segment_paths` (one panel per segment)."""
     seg = result.eval_segments
     pick = np.unique(np.linspace(0, len(seg) - 1, min(count, len(seg))).round().astype(int))
     sub = seg.subset(pick)
-    fig, axes = plt.subplots(1, len(pick), figsize=(3.2 * len(pick), 3.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(pick), figsize=(3.2 * len(pick), 3.6), squeeze=False)
+    extents = [[sub.start[i, :2], sub.end[i, :2]] for i in range(len(pick))]
+    for i, ax in enumerate(axes[0]):
+        track = _truth_path(result, sub, i)
+        if track is not None:
+            ax.plot(track[:, 0], track[:, 1], color='k', lw=2.2, alpha=0.6,
+                    label='ground truth')
+            extents[i].append(track)
     for name, fit in result.fits.items():
         model = get_model(name)
         k = model.vector(fit.values, result.geometry)
@@ -112,14 +128,35 @@ def segment_paths(result: CalibrationResult, path: Path, count: int = 4) -> Path
         for i, ax in enumerate(axes[0]):
             steps = int(sub.step_counts[i]) + 1
             ax.plot(poses[i, :steps, 0], poses[i, :steps, 1], label=name, lw=1)
+            extents[i].append(poses[i, :steps, :2])
+    span = max(float(np.ptp(np.vstack(e), axis=0).max()) for e in extents) * 0.55 + 0.05
     for i, ax in enumerate(axes[0]):
         ax.plot(*sub.start[i, :2], 'ko', ms=4)
-        ax.plot(*sub.end[i, :2], 'r*', ms=10, label='truth end')
-        ax.set_aspect('equal', adjustable='datalim')
+        ax.plot(*sub.end[i, :2], 'k*', ms=9)
+        centre = np.vstack(extents[i]).min(axis=0) / 2 + np.vstack(extents[i]).max(axis=0) / 2
+        ax.set_xlim(centre[0] - span, centre[0] + span)
+        ax.set_ylim(centre[1] - span, centre[1] + span)
+        ax.set_aspect('equal', adjustable='box')
+        ax.set_xlabel('x (m)', fontsize=8)
         ax.set_title(f'segment {int(pick[i])}', fontsize=9)
         ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel('y (m)', fontsize=8)
     axes[0][0].legend(fontsize=6)
-    return save_figure(fig, path)
+    fig.suptitle('Held-out segments from their true start pose: each model against the ground '
+                 'truth (dot: start, star: true end)', fontsize=9)
+    return fig
+
+
+def _truth_path(result: CalibrationResult, sub, i: int) -> np.ndarray | None:
+    """Return the (M, 2) ground-truth positions of segment ``i`` of ``sub``, or None."""
+    drive = int(sub.drive[i])
+    if drive >= len(result.eval_truth) or result.eval_truth[drive] is None:
+        return None
+    truth = result.eval_truth[drive]
+    inside = (truth.t_ns >= sub.t_a_ns[i]) & (truth.t_ns <= sub.t_b_ns[i])
+    if inside.sum() < 2:
+        return None
+    return np.column_stack([truth.x[inside], truth.y[inside]])
 
 
 def horizon_figure(study: HorizonStudy, path: Path) -> Path:

@@ -99,7 +99,7 @@ def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
     lines += ['', '## Fit status', '']
     rows = [[f'`{n}`', str(f.converged), str(f.segments_used), str(f.segments_trimmed),
              str(f.starts), _num(f.cost), f'{f.seconds:.2f}'] for n, f in result.fits.items()]
-    lines += _table(['model', 'converged', 'segments', 'trimmed (C15)', 'starts', 'cost',
+    lines += _table(['model', 'converged', 'segments', 'trimmed', 'starts', 'cost',
                      'time s'], rows)
     lines += ['', '## Noise model (variance growth) and consistency', '',
               'Consistency: share of held-out segment errors inside the predicted 95 % region '

@@ -1,1 +1,17 @@
 """Calibration: segments, one least-squares engine, fitting, evaluation, noise, the diagnosis."""
+
+# The modules of this package (the API is theirs; ``skidkin_ros`` re-exports the public part).
+__all__ = [
+    'diagnosis',
+    'engine',
+    'evaluation',
+    'fitting',
+    'gyro_fit',
+    'holdout',
+    'noise_fit',
+    'pipeline',
+    'predictor',
+    'segments',
+    'selection',
+    'weighting',
+]

@@ -53,7 +53,7 @@ from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError, FitError
 
 __all__ = ['GyroFit', 'fit_gyro', 'gyro_white_noise', 'fit_filter_noise', 'fit_adapt_yaw_scale',
-           'segment_windows', 'run_windows', 'window_nees', 'gyro_parameters',
+           'segment_windows', 'window_poses', 'run_windows', 'window_nees', 'gyro_parameters',
            'predict_drives',
            'odometry_segment_errors', 'ModeScore', 'evaluate_gyro_mode']
 
@@ -306,16 +306,22 @@ def segment_windows(drives: Sequence[Drive], segments: SegmentSet
                     ) -> dict[int, list[tuple[int, int, int]]]:
     """Return {drive index: [(i, j, k)]}: the segments k that can be run as windows.
 
-    A window is a segment that starts (wheel sample i) and ends (sample j) on wheel samples and
-    overlaps no earlier one of its drive: the odometer restarts after sample i from the true
-    start pose with a zero covariance (``Odometer.predict``'s ``restarts``) and is read at j.
+    A window runs from wheel sample i to wheel sample j, the samples nearest the segment's start
+    and end (within half a wheel period: a lidar's poses are never stamped on the wheel samples,
+    a table's usually are), and overlaps no earlier one of its drive: the odometer restarts after
+    sample i from the true pose at that sample with a zero covariance (``Odometer.predict``'s
+    ``restarts``) and is read at j (:func:`window_poses` gives the true poses there).
     """
     windows: dict[int, list[tuple[int, int, int]]] = {}
     for k in range(len(segments)):
         d = int(segments.drive[k])
         t = drives[d].wheels.t_ns
-        i, j = (int(np.searchsorted(t, s)) for s in (segments.t_a_ns[k], segments.t_b_ns[k]))
-        if j < len(t) and t[i] == segments.t_a_ns[k] and t[j] == segments.t_b_ns[k] and j > i:
+        if len(t) < 2:
+            continue
+        half_period = 0.5 * float(np.median(np.diff(t)))
+        i, j = (_nearest(t, int(s)) for s in (segments.t_a_ns[k], segments.t_b_ns[k]))
+        if (j > i and abs(int(t[i]) - int(segments.t_a_ns[k])) <= half_period
+                and abs(int(t[j]) - int(segments.t_b_ns[k])) <= half_period):
             windows.setdefault(d, []).append((i, j, k))
     for d, found in windows.items():
         kept, end = [], -1
@@ -325,6 +331,30 @@ def segment_windows(drives: Sequence[Drive], segments: SegmentSet
                 end = j
         windows[d] = kept
     return windows
+
+
+def _nearest(t: np.ndarray, stamp: int) -> int:
+    """Return the index of the stamp of ``t`` (sorted) nearest ``stamp``."""
+    i = int(np.searchsorted(t, stamp))
+    if i == len(t) or (i > 0 and stamp - int(t[i - 1]) < int(t[i]) - stamp):
+        return i - 1
+    return i
+
+
+def window_poses(drive: Drive, segments: SegmentSet, window: tuple[int, int, int]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Return the true (start, end) poses of a window, at its wheel samples i and j.
+
+    A segment end stamped on the wheel sample is the segment's own pose; otherwise the ground
+    truth is interpolated to the wheel sample (linear in x, y and unwrapped yaw: at 10 Hz and
+    walking speed, a fraction of a millimetre from the arc).
+    """
+    i, j, k = window
+    t = drive.wheels.t_ns
+    start = (segments.start[k] if t[i] == segments.t_a_ns[k]
+             else drive.truth.interpolate(t[i]))
+    end = segments.end[k] if t[j] == segments.t_b_ns[k] else drive.truth.interpolate(t[j])
+    return np.asarray(start, dtype=float), np.asarray(end, dtype=float)
 
 
 def run_windows(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet,
@@ -339,13 +369,13 @@ def run_windows(config: OdometryConfig, drives: Sequence[Drive], segments: Segme
     errors, covs, predictions = [], [], {}
     for d, found in windows.items():
         drive = drives[d]
-        restarts = {i: segments.start[k] for i, _, k in found}
+        poses = [window_poses(drive, segments, window) for window in found]
+        restarts = {i: start for (i, _, _), (start, _) in zip(found, poses)}
         pred = odometer.predict(drive.wheels, drive.truth.poses[0], drive.imu, restarts)
         predictions[d] = pred
-        for _, j, k in found:
-            errors.append(segment_frame_error(segments.start[k:k + 1], segments.end[k:k + 1],
-                                              pred.poses[j][None])[0])
-            c, s = np.cos(segments.start[k, 2]), np.sin(segments.start[k, 2])
+        for (_, j, _), (start, end) in zip(found, poses):
+            errors.append(segment_frame_error(start[None], end[None], pred.poses[j][None])[0])
+            c, s = np.cos(start[2]), np.sin(start[2])
             rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
             covs.append(rot @ pred.covariances[j] @ rot.T)
     return np.array(errors).reshape(-1, 3), np.array(covs).reshape(-1, 3, 3), predictions

@@ -62,7 +62,7 @@ from skidkin_ros.core.calibration.selection import (choose_by_likelihood, heldou
                                                     Likelihood, paper_scores, paper_ties,
                                                     segment_clusters)
 from skidkin_ros.core.calibration.weighting import fit_models_weighted, WEIGHTINGS
-from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.drive import Drive, PoseTrack
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig
@@ -159,6 +159,9 @@ class CalibrationResult:
     # Held-out median (eps_t m/m, eps_theta deg/m) of the best model under each convention tried.
     interval_errors: dict[str, tuple[float, float]] = field(default_factory=dict)
     gyro: GyroFit | None = None
+    # The evaluation drives' ground truth, indexed as eval_segments.drive (the report draws the
+    # true path of a segment beside each model's).
+    eval_truth: tuple[PoseTrack | None, ...] = field(default=(), repr=False)
 
     @property
     def counts(self) -> dict[str, Any]:
@@ -295,7 +298,8 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     provenance['selection'] = rule
     result = CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
                                tuple(warnings), train_seg, eval_seg, holdout, provenance,
-                               likelihood, window_end, rule, gyro=gyro)
+                               likelihood, window_end, rule, gyro=gyro,
+                               eval_truth=tuple(drive.truth for drive in evaluate))
     if gyro is not None:
         # adapt's filter noise: the written model and gyro on the drives the wheel noise is
         # fitted on (the evaluation drives), as the node would run them

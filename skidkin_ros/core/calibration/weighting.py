@@ -2,7 +2,7 @@
 
 Why: the paper's loss l(k) = sum_i e_i^T Sigma^-1 e_i is a Mahalanobis distance, meant with the
 covariance of the errors. With Sigma = identity (1 m weighs as much as 1 rad) on 2 m / 1 rad
-segments, the position errors dominate and heading is under-fitted (issue 11). The covariance
+segments, the position errors dominate and heading is under-fitted. The covariance
 of a segment's end-pose error is what the calibrated noise model predicts for it
 (:mod:`skidkin_ros.core.calibration.noise_fit`): it grows with the distance and the turning of
 that segment and couples heading to position through the lever arm. So, as a recipe:

@@ -1,6 +1,6 @@
 """Parameter specifications: one spec per parameter feeds everything else.
 
-The optimizer bounds, the ROS parameter descriptors, the parameters YAML and the README table
+The optimizer bounds, the ROS parameter descriptors, the parameters YAML and the docs tables
 are all generated from these specs, so a name, unit or bound is written exactly once.
 """
 

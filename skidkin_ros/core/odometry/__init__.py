@@ -4,3 +4,18 @@ The odometer (stamp rules, wheel pairing, integration, covariance, what is publi
 rules shared with the bag reader, the integrator, the process-noise model, covariance propagation
 and the node's configuration.
 """
+
+# The modules of this package (the API is theirs; ``skidkin_ros`` re-exports the public part).
+__all__ = [
+    'config',
+    'controller',
+    'gyro',
+    'integrator',
+    'interval',
+    'noise',
+    'odometer',
+    'propagation',
+    'reference',
+    'uncertainty',
+    'wheels',
+]

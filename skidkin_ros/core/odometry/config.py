@@ -465,8 +465,8 @@ class OdometryConfig:
         unknown = sorted(set(flat) - set(schema) - {'use_sim_time'}
                          - {n for n in flat if n.startswith(('provenance.', 'qos_overrides.'))})
         if unknown:
-            raise ParameterError(f'unknown parameter(s) {brief(unknown, 400)}; see the README for '
-                                 'the parameters the node accepts')
+            raise ParameterError(f'unknown parameter(s) {brief(unknown, 400)}; see docs/node.md '
+                                 'for the parameters the node accepts')
         values = {}
         defaults = {'interval': implied_interval(flat)}
         for name, entry in schema.items():

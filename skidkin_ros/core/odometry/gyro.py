@@ -1,4 +1,4 @@
-"""IMU-aided odometry: the gyro's yaw rate beside the kinematic model (issue 14).
+"""IMU-aided odometry: the gyro's yaw rate beside the kinematic model.
 
 Three pieces, used by :class:`~skidkin_ros.core.odometry.odometer.Odometer`, so the node and
 ``skidkin predict`` run the same code:

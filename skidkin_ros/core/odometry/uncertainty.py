@@ -4,7 +4,7 @@ After calibration the parameters k are known up to their covariance Sigma_k (the
 per model to the parameters file as ``models.<m>.parameter_covariance``). An error dk is the same
 for the whole drive, so the pose error it causes grows in proportion to the distance, not with
 its square root like the per-metre noise: over a whole drive it dominates, and a covariance
-without it is over-confident (issue 17: NEES 5.2 over 300 s drives). With S = d pose / d k, the
+without it is over-confident (NEES 5.2 over 300 s simulated drives). With S = d pose / d k, the
 sensitivity of the integrated pose to the parameters, the pose covariance gains S Sigma_k S^T.
 
 S is propagated alongside the pose covariance by the same step (first order):

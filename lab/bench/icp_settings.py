@@ -5,11 +5,11 @@ registers the same simulated drive in memory with kiss-icp on one thread: CPU ms
 process's CPU time; the machine's load disturbs it less than wall time) and the ground truth's
 own error against the simulator's truth, median over every 1 s and every 2 m increment
 (position cm, yaw mrad). Two scenes: the outdoor field with 400 trees and a VLP-16-like lidar
-at 1 deg (bench/gt_bench.py), and the courtyard of the project's demo (walls, boxes, pillars;
-0.5 deg). The defaults are chosen from this table (README, "Ground truth").
+at 1 deg (lab/bench/gt_bench.py), and the courtyard of the project's demo (walls, boxes, pillars;
+0.5 deg). The defaults are chosen from this table (docs/benchmarks.md, "Ground truth").
 
-    python bench/icp_settings.py                  # 60 s per scene, a few minutes
-    python bench/icp_settings.py --duration 20    # quicker
+    python lab/bench/icp_settings.py                  # 60 s per scene, a few minutes
+    python lab/bench/icp_settings.py --duration 20    # quicker
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from typing import Any, Sequence
 # One setting at a time, from the defaults: (label, IcpConfig changes).
 FOREST_ROWS: tuple[tuple[str, dict[str, Any]], ...] = (
     ('defaults', {}),
-    ('before issue 16: range 60 m, voxel 0.6 m, convergence 1e-4',
+    ('before the data-driven voxel: range 60 m, voxel 0.6 m, convergence 1e-4',
      {'max_range_m': 60.0, 'voxel_size_m': 0.6, 'convergence': 1e-4}),
     ('voxel 0.6 m', {'voxel_size_m': 0.6}),
     ('voxel 1.0 m', {'voxel_size_m': 1.0}),
@@ -41,7 +41,7 @@ FOREST_ROWS: tuple[tuple[str, dict[str, Any]], ...] = (
 )
 COURTYARD_ROWS: tuple[tuple[str, dict[str, Any]], ...] = (
     ('defaults', {}),
-    ('before issue 16: range 60 m, voxel 0.6 m, convergence 1e-4',
+    ('before the data-driven voxel: range 60 m, voxel 0.6 m, convergence 1e-4',
      {'max_range_m': 60.0, 'voxel_size_m': 0.6, 'convergence': 1e-4}),
     ('voxel 1.0 m', {'voxel_size_m': 1.0}),
     ('voxel 1.5 m', {'voxel_size_m': 1.5}),

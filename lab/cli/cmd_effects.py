@@ -1,11 +1,11 @@
-"""``skidkin effects``: the undeclared-effect study, printed as the README's Markdown table."""
+"""``python -m lab.cli effects``: the undeclared-effect study, the table of docs/results.md."""
 
 from __future__ import annotations
 
 import argparse
 
+from lab.studies.effects import CASE_NAMES, run_study, TABLE_HEADER
 from skidkin_ros.cli.common import say
-from skidkin_ros.studies.effects import CASE_NAMES, run_study, TABLE_HEADER
 
 __all__ = ['add_parser']
 

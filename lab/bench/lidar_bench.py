@@ -12,7 +12,7 @@ For each recording length a simulated drive with lidar is written to a rosbag2 (
   reports its peak resident set size, and the peak after the imports alone.
 
 Real-time factor = recording duration / (reading + ICP + fitting time).
-Run as ``python bench/lidar_bench.py memory BAG`` for the memory probe alone (JSON on stdout).
+Run as ``python lab/bench/lidar_bench.py memory BAG`` for the memory probe alone (JSON on stdout).
 """
 
 from __future__ import annotations

@@ -165,7 +165,7 @@ def _mrad(value: Any) -> str:
 def _gt_section(gt: Mapping[str, Any]) -> list[str]:
     import icp_settings
 
-    lines = ['## Ground truth on the outdoor scene (issue 16)', '']
+    lines = ['## Ground truth on the outdoor scene', '']
     if not gt.get('available'):
         return lines + [f'ground truth: {gt.get("reason", "not run")}', '']
     side = gt['side_by_side']
@@ -212,7 +212,7 @@ def _gt_section(gt: Mapping[str, Any]) -> list[str]:
               f'exit code {calib["exit_code"]}, {state}.', '',
               '### kiss-icp settings: speed and accuracy', '',
               'One setting changed at a time from the defaults; kiss-icp on one thread; '
-              '`python bench/icp_settings.py` runs this table alone.', '']
+              '`python lab/bench/icp_settings.py` runs this table alone.', '']
     return lines + icp_settings.markdown(gt['settings'])
 
 

@@ -15,7 +15,7 @@ VLP-16-like lidar: 16 rings, 360 columns, 10 Hz, per-point times, base -> lidar 
   (bag reading by skidkin's reader and by kiss-icp's, the guard).
 * **a 10-minute drive from bag to parameters file**: ``skidkin calibrate BAG`` wall time.
 
-Run as part of ``python bench/run.py`` (part ``groundtruth``).
+Run as part of ``python lab/bench/run.py`` (part ``groundtruth``).
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""``skidkin imu-study``: off, adapt and fuse on simulated ground changes, as the README table."""
+"""``python -m lab.cli imu-study``: off, adapt and fuse on simulated ground changes."""
 
 from __future__ import annotations
 
 import argparse
 
+from lab.studies.imu import CASES, run_study, TABLE_HEADER
 from skidkin_ros.cli.common import say
-from skidkin_ros.studies.imu import CASES, run_study, TABLE_HEADER
 
 __all__ = ['add_parser']
 

@@ -1,4 +1,4 @@
-"""``skidkin estimate``: check that the odometry covariance is honest and that a filter gains."""
+"""``python -m lab.cli estimate``: is the odometry covariance honest, and does a filter gain."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
+from lab.report.estimation import write_estimation_figures
+from lab.studies.estimation import run_estimation_study, StudyOptions
 from skidkin_ros.cli.common import check_report_dir, say
 from skidkin_ros.core.odometry.interval import INTERVALS
-from skidkin_ros.report.estimation import write_estimation_figures
-from skidkin_ros.studies.estimation import run_estimation_study, StudyOptions
 
 __all__ = ['add_parser']
 

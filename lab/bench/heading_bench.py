@@ -1,8 +1,8 @@
 """Heading at window ends on the Husky: the calibrated model against a plain window-end fit.
 
-Issue 11 found a calibrator that traded heading away. This bench keeps the comparison in every
+A calibrator with unit weights traded heading away. This bench keeps the comparison in every
 run, on the real Husky table (DRIVE windows of 2 s, split by ``calib_step``: even steps train,
-odd steps evaluate, as in the README):
+odd steps evaluate, as in docs/results.md):
 
 * **calibrated**: ``calibrate()`` with the default options, each trained model as written;
 * **plain window-end fit** (the reference): the same model fitted on the same training
@@ -31,7 +31,7 @@ from skidkin_ros.core.calibration.segments import cut_segments
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 
-HUSKY_CSV = Path(__file__).resolve().parents[1] / 'data' / 'husky' / 'drive_husky_windows.csv'
+HUSKY_CSV = Path(__file__).resolve().parents[2] / 'data' / 'husky' / 'drive_husky_windows.csv'
 HUSKY = Geometry(0.1651, 0.555)
 TRANSLATION_TOLERANCE = 0.05
 

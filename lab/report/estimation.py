@@ -1,6 +1,6 @@
 """Figures of the estimation study (matplotlib, Agg): errors and NEES against the chi2 band.
 
-The study (:mod:`skidkin_ros.studies.estimation`) returns its numbers; this module draws them.
+The study (:mod:`lab.studies.estimation`) returns its numbers; this module draws them.
 """
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Mapping
 
+from lab.studies.estimation import EstimationStudy, FilterRuns  # noqa: E402
 import matplotlib
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
@@ -16,7 +17,6 @@ from scipy import stats  # noqa: E402
 
 from skidkin_ros.core.estimation.nees import DriveNees, NeesSummary, SegmentNees  # noqa: E402
 from skidkin_ros.report.figures import save_figure  # noqa: E402
-from skidkin_ros.studies.estimation import EstimationStudy, FilterRuns  # noqa: E402
 
 __all__ = ['error_over_time', 'nees_over_time_figure', 'segment_nees_figure',
            'drive_nees_figure', 'write_estimation_figures']

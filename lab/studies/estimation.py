@@ -23,8 +23,8 @@ corrected
    odometry alone on every test drive from the true start pose: position and yaw RMSE, and the
    filter's NEES over time against the chi2 band for the number of runs;
 5. an :class:`EstimationStudy` with every number: its figures (error vs time, NEES vs time,
-   NEES per horizon) are drawn by :mod:`skidkin_ros.report.estimation`, its lines printed by
-   ``skidkin estimate``.
+   NEES per horizon) are drawn by :mod:`lab.report.estimation`, its lines printed by
+   ``python -m lab.cli estimate``.
 
 Why the default fix is a 3 cm position fix: the noise rates are calibrated on windows of h_e
 (2 m), and the rate model (variance growing linearly with distance) fits the odometry's real

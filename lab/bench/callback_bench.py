@@ -8,7 +8,7 @@ is what the executor hands it) and times it, next to what a bare relay costs per
 (rclpy deserializes the JointState, the callback builds an Odometry, copies the stamp and
 publishes it). Nothing subscribes, so ``publish`` costs only the serialization.
 
-Run: ``python bench/callback_bench.py`` (prints a Markdown table; about 20 s).
+Run: ``python lab/bench/callback_bench.py`` (prints a Markdown table; about 20 s).
 """
 
 from __future__ import annotations

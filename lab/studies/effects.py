@@ -18,9 +18,9 @@ without a time offset, and the diagnosis runs under it (:data:`SIM_INTERVAL`): i
 stamp-convention row. Under ``starting`` the speeds lag by half a period, under ``ending`` they
 lead by as much (:func:`convention_offset_s`).
 
-``skidkin effects`` prints the table in the README (:func:`run_study` yields the rows one case at
-a time; each :class:`EffectCase` gives its table row). A case is named ``none``, an effect, or
-effects joined by ``+``.
+``python -m lab.cli effects`` prints the table of docs/results.md (:func:`run_study` yields
+the rows one case at a time; each :class:`EffectCase` gives its table row). A case is named
+``none``, an effect, or effects joined by ``+``.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ WHEEL_PERIOD_S = 0.05
 STRENGTH_SEED = 7
 # The sample-interval convention that integrates the simulator's wheel speeds exactly.
 SIM_INTERVAL = 'midpoint'
-# Drives with two effects at once (the second row of issue 15's table).
+# Drives with two effects at once (the last row of the effects table in docs/results.md).
 PAIRS: tuple[tuple[str, ...], ...] = (('acceleration_slip', 'lateral_skid'),)
 CASE_NAMES: tuple[str, ...] = (('none',) + tuple(EFFECT_NAMES)
                                + tuple('+'.join(pair) for pair in PAIRS))
@@ -194,7 +194,7 @@ class EffectCase:
     truth_theta: ErrorStats
 
     def row(self) -> str:
-        """Return the case's row of the README table (held-out medians, base -> augmented)."""
+        """Return the case's row of the results table (held-out medians, base -> augmented)."""
         first, last = self.result.steps[0], self.result.steps[-1]
         found = ', '.join(self.result.extensions) or 'nothing'
         found += ''.join(f'; unexplained: {lead.signal} {lead.share:.0%}'

@@ -1,11 +1,11 @@
-"""Run the online calibration study and print its table (skidkin_ros.studies.online)."""
+"""Run the online calibration study and print its table (lab.studies.online)."""
 
 from __future__ import annotations
 
 import sys
 import time
 
-from skidkin_ros.studies.online import run_study, table
+from lab.studies.online import run_study, table
 
 
 def main() -> int:

@@ -28,7 +28,7 @@ The ladder climbs until the first step that loses more than 0.1 % of its message
 saturated SUT loses hundreds; one scheduler hiccup of a few ms on a shared machine loses a
 few, since the input queue holds 5) or that the driver cannot pace.
 
-Start one SUT by hand: ``python bench/node_bench.py sut odom -- --ros-args -p model:=roc``.
+Start one SUT by hand: ``python lab/bench/node_bench.py sut odom -- --ros-args -p model:=roc``.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ SERIALIZED_RELAY_LABEL = 'serialized rclpy relay (no message conversion)'
 
 
 # The node configurations measured besides the five models at their defaults (node parameters as
-# command-line strings). Shared by bench/run.py and bench/callback_bench.py.
+# command-line strings). Shared by lab/bench/run.py and lab/bench/callback_bench.py.
 CALIBRATED_CASE = ('edd_symmetric, calibrated covariance',
                    {'model': 'edd_symmetric', 'models.edd_symmetric.noise.calibrated': 'true'})
 AUGMENTED_VALUES = {
@@ -430,7 +430,7 @@ def pin_driver(cpus: Sequence[int]) -> int | None:
 
 def _main(argv: Sequence[str]) -> int:
     parser = argparse.ArgumentParser(description='Start one system under test of the node '
-                                     'benchmark (normally started by bench/run.py).')
+                                     'benchmark (normally started by lab/bench/run.py).')
     sub = parser.add_subparsers(dest='command', required=True)
     sut = sub.add_parser('sut', help='spin a relay or the odometry node')
     sut.add_argument('kind', choices=SUT_KINDS)

@@ -2,13 +2,13 @@
 
 Examples::
 
-    python bench/run.py --out bench/results            # full run (make bench), a few minutes
-    python bench/run.py --smoke --out /tmp/bench       # tiny sizes, seconds (CI, make bench-smoke)
-    python bench/run.py --out /tmp/bench --only node   # one part (node, calibration, lidar,
+    python lab/bench/run.py --out lab/bench/results  # full run (make bench), a few minutes
+    python lab/bench/run.py --smoke --out /tmp/bench  # tiny sizes, seconds (CI, make bench-smoke)
+    python lab/bench/run.py --out /tmp/bench --only node   # one part (node, calibration, lidar,
                                                        # groundtruth, diagnosis, heading); the
                                                        # others are left empty
 
-Parts: the odometry node against a bare relay (bench/node_bench.py), calibration time against
+Parts: the odometry node against a bare relay (lab/bench/node_bench.py), calibration time against
 distance (calib_bench.py), the lidar pipeline (lidar_bench.py), the ground truth on the outdoor
 scene against kiss_icp_pipeline and the kiss-icp settings table (gt_bench.py, icp_settings.py),
 the diagnosis (diag_bench.py) and heading at window ends on the Husky against a plain window-end
@@ -258,8 +258,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         description='Benchmark the skidkin_ros node, calibration, lidar pipeline and '
         'diagnosis; write results.json, results.md and cost_vs_size.png.',
         formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n\n')[1])
-    parser.add_argument('--out', type=Path, default=Path('bench/results'),
-                        help='output folder (default: bench/results)')
+    parser.add_argument('--out', type=Path, default=Path('lab/bench/results'),
+                        help='output folder (default: lab/bench/results)')
     parser.add_argument('--smoke', action='store_true',
                         help='tiny sizes: checks that everything runs, in seconds')
     parser.add_argument('--only', nargs='+', choices=PARTS, default=list(PARTS),
@@ -278,7 +278,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     domain_id = args.domain_id if args.domain_id is not None else 40 + os.getpid() % 60
-    command = 'python bench/run.py ' + ' '.join(sys.argv[1:] if argv is None else argv)
+    command = 'python lab/bench/run.py ' + ' '.join(sys.argv[1:] if argv is None else argv)
     overrides = {name: value for name, value in (('gt_outdoor_s', args.outdoor_s),
                                                  ('gt_drive_s', args.drive_s),
                                                  ('icp_settings_s', args.settings_s))

@@ -1,4 +1,4 @@
-"""Gyro study (issue 14): off, adapt and fuse on simulated drives that change ground.
+"""Gyro study: off, adapt and fuse on simulated drives that change ground.
 
 Training: effect-free drives of the simulator's default robot (true model ``edd_asymmetric``),
 exact ground truth; ``full_linear`` calibrated on them (:func:`calibrate`: fit on two drives,
@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Iterator, Sequence
 
+from lab.studies.effects import SIM_INTERVAL
 import numpy as np
 
 from skidkin_ros.core.calibration.evaluation import ErrorStats, evaluate_model, relative_errors
@@ -41,7 +42,6 @@ from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer, Prediction
 from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
-from skidkin_ros.studies.effects import SIM_INTERVAL
 
 __all__ = ['GEOMETRY', 'MODEL', 'CASES', 'ImuCase', 'run_case', 'run_study', 'TABLE_HEADER']
 
@@ -123,7 +123,7 @@ class ImuCase:
     nees: dict[str, tuple[float, tuple[float, float], int]]       # mode -> (mean, band, count)
 
     def rows(self) -> list[str]:
-        """Return the Markdown rows of the README table (one per group)."""
+        """Return the Markdown rows of the table in docs/results.md (one per group)."""
         out = []
         for group, modes in self.groups.items():
             cells = []

@@ -1,1 +1,0 @@
-"""Studies: simulated experiments whose results the README reports (they return data)."""
