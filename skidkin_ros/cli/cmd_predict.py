@@ -66,7 +66,9 @@ def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str,
     print_notes([loaded])
     _check_gyro(config, loaded.drives)
     wheels = loaded.drives[0].wheels
-    pred = Odometer.from_config(config).predict(wheels, imu=loaded.drives[0].imu)
+    # The reader applied the wheel-jump rule as the node does (encoder travel exempt).
+    pred = Odometer.from_config(config).predict(wheels, imu=loaded.drives[0].imu,
+                                                jumps_dropped=config['wheel_signal'] != 'velocity')
     out = io.StringIO()
     out.write('t,t_ns,x,y,yaw,vx,vy,wz,status,cov_xx,cov_xy,cov_xyaw,cov_yy,cov_yyaw,'
               'cov_yawyaw\n')

@@ -308,10 +308,12 @@ class Odometer:
             plural = 'positions' if taken.switched == 'position' else 'velocities'
             self._note(f'wheel signal: integrating the wheel {plural} (wheel_signal '
                        f'{self.signal.mode})')
+        if taken.warning is not None:
+            self._reject(*taken.warning)
         if taken.speeds is None:
             self._reject(taken.cause, taken.detail)
             return None
-        return self.update(t_ns, *taken.speeds, now_ns)
+        return self.update(t_ns, *taken.speeds, now_ns, check_jump=not taken.by_position)
 
     def wheel_sample(self, side: str, omega_rad_s: float, now_ns: int) -> Estimate | None:
         """Take one side's unstamped speed (a Float64 topic's) received at ``now_ns``."""
@@ -367,19 +369,19 @@ class Odometer:
         gyro = self.gyro
         wait_ns = (gyro.params.max_wait if gyro is not None else 0.0) * NS_PER_S
         while pending:
-            t_ns, omega_l, omega_r, arrived_ns = pending[0]
+            t_ns, omega_l, omega_r, arrived_ns, check_jump = pending[0]
             if (gyro is not None and not gyro.buffer.ready(t_ns)
                     and now_ns - arrived_ns <= wait_ns):
                 break
             pending.popleft()
-            estimate = self._update_now(t_ns, omega_l, omega_r)
+            estimate = self._update_now(t_ns, omega_l, omega_r, check_jump)
             if estimate is not None:
                 out.append(estimate)
         return out
 
     # ------------------------------------------------------------------ the pipeline
     def update(self, t_ns: int, omega_l: float, omega_r: float,
-               now_ns: int | None = None) -> Estimate | None:
+               now_ns: int | None = None, check_jump: bool = True) -> Estimate | None:
         """Integrate a stamped sample; return what to publish for it, if anything.
 
         With the gyro in use, a sample whose interval the gyro does not cover yet waits (at
@@ -389,20 +391,22 @@ class Odometer:
         if self.gyro is not None:
             arrived = t_ns if now_ns is None else now_ns
             if self._pending or not self.gyro.buffer.ready(t_ns):
-                self._pending.append((t_ns, omega_l, omega_r, arrived))
+                self._pending.append((t_ns, omega_l, omega_r, arrived, check_jump))
                 if len(self._pending) > MAX_PENDING:  # never hold more than a few seconds
-                    return self._update_now(*self._pending.popleft()[:3])
+                    t, left, right, _, check = self._pending.popleft()
+                    return self._update_now(t, left, right, check)
                 return None
-        return self._update_now(t_ns, omega_l, omega_r)
+        return self._update_now(t_ns, omega_l, omega_r, check_jump)
 
-    def _update_now(self, t_ns: int, omega_l: float, omega_r: float) -> Estimate | None:
+    def _update_now(self, t_ns: int, omega_l: float, omega_r: float,
+                    check_jump: bool = True) -> Estimate | None:
         last = self.last_input_t_ns
         if last is not None and last - t_ns > self._step_back_ns:
             if not self._clock_restarted(t_ns):
                 return None
         elif self._step_back_run:
             self._step_back_run.clear()
-        result = self.step(t_ns, omega_l, omega_r)
+        result = self.step(t_ns, omega_l, omega_r, check_jump)
         status = result.status
         if status is not SampleStatus.INTEGRATED:  # the usual case first: this runs per sample
             if not status.accepted:
@@ -441,9 +445,14 @@ class Odometer:
                    'the origin')
         return True
 
-    def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
-        """Integrate one sample and propagate the covariance; count and report the outcome."""
-        result = self.integrator.step(t_ns, omega_l, omega_r)
+    def step(self, t_ns: int, omega_l: float, omega_r: float,
+             check_jump: bool = True) -> StepResult:
+        """Integrate one sample and propagate the covariance; count and report the outcome.
+
+        ``check_jump`` False: the speeds are a travel between encoder positions, not readings
+        the wheel-jump rule applies to (or the reader applied it already).
+        """
+        result = self.integrator.step(t_ns, omega_l, omega_r, check_jump)
         status = result.status
         self.counters[status.value] += 1
         if status is SampleStatus.INTEGRATED:
@@ -521,7 +530,8 @@ class Odometer:
     # ------------------------------------------------------------------ offline
     def predict(self, wheels: WheelSamples, start: Sequence[float] = (0.0, 0.0, 0.0),
                 imu: ImuSamples | None = None,
-                restarts: Mapping[int, Sequence[float]] | None = None) -> 'Prediction':
+                restarts: Mapping[int, Sequence[float]] | None = None,
+                jumps_dropped: bool = False) -> 'Prediction':
         """Restart at ``start`` and run every sample through :meth:`step`, as the node does.
 
         With the gyro in use, ``imu`` samples arrive in stamp order, as the node receives them:
@@ -530,7 +540,10 @@ class Odometer:
         history and the learned gain and bias carry over from an earlier call (a drive cut in
         windows). ``restarts`` ({sample index: pose}): after that sample, the pose is set and its
         covariance zeroed, everything else kept (the windows of a NEES study); the prediction
-        then holds the pose covariance and the gain after every sample.
+        then holds the pose covariance and the gain after every sample. ``jumps_dropped``: the
+        reader applied the wheel-jump rule already, exempting speeds measured by encoder
+        positions as the node does (a bag read with wheel_signal position or auto); the
+        integrator then does not apply it again.
         """
         self.reset(start)
         poses = np.empty((len(wheels), 3))
@@ -546,7 +559,7 @@ class Odometer:
         for i, (t_ns, omega_l, omega_r) in enumerate(zip(wheels.t_ns.tolist(), wheels.omega_l,
                                                          wheels.omega_r)):
             feed.until(t_ns)
-            result = self.step(int(t_ns), omega_l, omega_r)
+            result = self.step(int(t_ns), omega_l, omega_r, not jumps_dropped)
             poses[i] = result.pose
             twists[i] = result.twist
             pose_covs[i] = self.covariance.pose_covariance_flat()
