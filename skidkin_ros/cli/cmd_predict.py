@@ -11,7 +11,7 @@ from pathlib import Path
 from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
-from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.config import check_model_given, OdometryConfig
 from skidkin_ros.core.odometry.gyro import IMU_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.errors import DataError, ParameterError
@@ -88,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
     config = OdometryConfig.from_file(args.params, args.model,
                                       {'use_parameter_covariance': False}
                                       if args.no_parameter_covariance else None)
+    if args.model is not None:
+        check_model_given(args.model, config.models_in_file, f'the file {args.params}')
     if args.imu_mode is not None:
         config = dataclasses.replace(config, values={**config.values, 'imu.mode': args.imu_mode})
     if config.imu.mode != 'off':

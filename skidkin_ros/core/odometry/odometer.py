@@ -41,7 +41,7 @@ import numpy as np
 
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.odometry.config import node_default, OdometryConfig
-from skidkin_ros.core.odometry.gyro import GyroAid, GyroStatus, ImuParams
+from skidkin_ros.core.odometry.gyro import GyroAid, GyroStatus, ImuParams, STEP_BACK_CONFIRM
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, step_scalar,
                                                   StepResult, StreamingIntegrator, TwistSource)
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
@@ -67,8 +67,6 @@ YAW_RESOLUTION_RAD = 1e-6
 YAW_LIMIT_RAD = YAW_RESOLUTION_RAD / float(np.finfo(float).eps)
 # Largest variance (m^2, rad^2) a set covariance may hold: beyond it, propagation overflows.
 VARIANCE_LIMIT = 1e12
-# Samples in a row that confirm a stepped-back input clock (one corrupt stamp is not a restart).
-STEP_BACK_CONFIRM = 3
 # Wheel samples that may wait for the gyro at once (beyond: the oldest goes on without it).
 MAX_PENDING = 1000
 Triple = tuple[float, float, float]
@@ -216,6 +214,9 @@ class Odometer:
         self._min_period_ns = NS_PER_S / rules.max_rate_hz if rules.max_rate_hz > 0.0 else 0.0
         self.pairer.tolerance_ns = rules.pair_tolerance_s * NS_PER_S
         self._step_back_ns = rules.max_stamp_step_back_s * NS_PER_S
+        gyro = getattr(self, 'gyro', None)
+        if gyro is not None:
+            gyro.buffer.max_step_back_ns = self._step_back_ns
 
     def configure(self, config: OdometryConfig) -> None:
         """Switch to a validated configuration; the pose and its covariance are kept."""
@@ -242,6 +243,8 @@ class Odometer:
                 and gyro.wheel_radius_m == float(wheel_radius_m)):
             return
         self.gyro = None if params.mode == 'off' else GyroAid(params, wheel_radius_m)
+        if self.gyro is not None:
+            self.gyro.buffer.max_step_back_ns = self._step_back_ns
         self.integrator.aid = self.gyro
         if self.gyro is None:
             self._pending.clear()
@@ -353,7 +356,12 @@ class Odometer:
         else:
             status = gyro.buffer.add(t_ns, yaw_rate)
             self.counters['imu_' + status.value] += 1
-            if status is not GyroStatus.ACCEPTED:
+            if status is GyroStatus.CLOCK_RESET:
+                self._warn('imu_clock_reset', f'the gyro clock stepped back by '
+                           f'{gyro.buffer.stepped_back_s:.3f} s ({STEP_BACK_CONFIRM} samples in a '
+                           'row; IMU driver restarted?): gyro history dropped, the gyro is used '
+                           'again from its new clock')
+            elif status is not GyroStatus.ACCEPTED:
                 self._warn('imu_' + status.value,
                            f'gyro sample {status.value} (yaw rate {yaw_rate!r} rad/s, stamp '
                            f'{t_ns / NS_PER_S:.3f} s): not used')
@@ -478,6 +486,9 @@ class Odometer:
         """
         last = gyro.last
         self.counters['imu_interval_' + last.status.value] += 1
+        if gyro.news:
+            self._warn('imu_contradicts', gyro.news, error=gyro.check.contradicts)
+            gyro.news = ''
         vx, vy, w = result.step_twist
         dt_s = result.dt_s
         noise = self.covariance.noise
