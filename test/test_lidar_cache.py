@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.lidar_chunks import bag_ground_truth, ChunkOptions
 from skidkin_ros.adapters.lidar_gt import IcpConfig
@@ -38,7 +39,6 @@ def test_an_unwritable_cache_folder_warns_once_and_keeps_every_chunk(tmp_path, c
 
 def test_clouds_without_x_y_z_are_named_as_the_cause_not_a_damaged_recording(tmp_path):
     import numpy as np
-    import pytest
     from skidkin_ros.adapters.bag_writer import BagWriter
     from skidkin_ros.adapters.pointcloud import pack_points
     from skidkin_ros.errors import RecordingError
@@ -60,3 +60,30 @@ def test_clouds_without_x_y_z_are_named_as_the_cause_not_a_damaged_recording(tmp
     text = str(err.value)
     assert "no field(s) ['x', 'y', 'z']" in text and 'The recording reads fine' in text
     assert 'recover' not in text and 'damaged' not in text
+
+
+@pytest.mark.heavy
+def test_ctrl_c_with_two_jobs_stops_the_workers_instead_of_waiting_for_their_chunks(tmp_path):
+    # A bound on a hang, not a speed target: the workers ignore Ctrl-C (left to the parent),
+    # which waited for their chunks (7 s with 5 s chunks, about 15 s with these 10 s ones).
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    sim = simulate(SimConfig(duration_s=30.0, seed=8, lidar=LidarConfig(
+        azimuth_resolution_deg=1.0, mount_xyz_m=(0.3, 0.1, 0.5), mount_yaw_rad=0.4),
+        internal_rate_hz=200.0))
+    bag, _ = write_bag(sim, tmp_path / 'drive')
+    command = [sys.executable, '-m', 'skidkin_ros.cli.main', 'groundtruth', str(bag), '--out',
+               str(tmp_path / 'gt.csv'), '--jobs', '2', '--no-cache', '--chunk-s', '10',
+               '--chunk-overlap', '2', '--no-progress']
+    run = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
+    time.sleep(6.0)   # imports, the bag read: the two workers are registering their chunks
+    assert run.poll() is None
+    interrupted = time.monotonic()
+    run.send_signal(signal.SIGINT)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130 and 'interrupted' in err and 'Traceback' not in err
+    assert time.monotonic() - interrupted < 5.0
+    assert not (tmp_path / 'gt.csv').exists()

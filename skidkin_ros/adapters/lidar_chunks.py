@@ -317,6 +317,12 @@ def _run_pool(tasks: Sequence[ChunkTask], jobs: int, tally: _Tally,
                     unfinished.append(task)
                 except Exception as err:  # noqa: B902 - a failed chunk is named, not fatal
                     store(_failed(task, err))
+    except KeyboardInterrupt:
+        # Ctrl-C: the workers ignore it (left to this process); stop them now rather than wait
+        # for their chunks (seconds each). What finished is cached already.
+        for process in list((getattr(executor, '_processes', None) or {}).values()):
+            process.terminate()
+        raise
     finally:
         executor.shutdown(wait=True, cancel_futures=True)
     return unfinished
