@@ -213,8 +213,9 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                     choices=INTERVALS),
         SchemaEntry('wheel_signal', 'string', 'velocity',
                     'what a JointState wheel reading integrates: velocity, position (the travel '
-                    'between two samples, wraps of continuous joints handled) or auto (positions '
-                    'when they change, velocities otherwise)', choices=WHEEL_SIGNALS),
+                    'between two samples, wraps of continuous joints handled) or auto (the '
+                    'positions as position does once they change; the velocities where they are '
+                    'missing, not finite or frozen)', choices=WHEEL_SIGNALS),
         SchemaEntry('input', 'string', 'joint_state',
                     'joint_state (sensor_msgs/JointState) or wheel_topics (two std_msgs/Float64)',
                     choices=INPUT_MODES),
