@@ -166,3 +166,21 @@ def test_diagnostics_warn_while_the_gyro_contradicts_the_wheels():
     assert 'imu_interval_contradicts' in status.message
     values = {kv.key: kv.value for kv in status.values}
     assert values['imu.contradicts_wheels'] == '1'
+
+
+def test_a_gyro_clock_far_ahead_of_the_wheels_is_said_not_silently_unused():
+    # The wheel driver restarts on a clock an hour behind, the IMU's does not: every gyro
+    # sample is later than every wheel interval (counted as no_history, silently).
+    warnings = []
+    odometer = _odometer('fuse', warnings)
+    rate = 0.6 * MODEL_RATE
+    ms10, ms50 = 10_000_000, 50_000_000
+    _feed(odometer, [HOUR + k * ms50 for k in range(100)],
+          [HOUR - NS + k * ms10 for k in range(600)], rate)
+    _feed(odometer, [10 * NS + k * ms50 for k in range(100)],
+          [HOUR + 5 * NS + k * ms10 for k in range(500)], rate)
+    counts = odometer.counters
+    assert counts['stamp_reset'] == 1 and counts['imu_interval_clock_ahead'] > 90
+    said = [m for cause, m, _ in warnings if cause == 'imu_clock_ahead']
+    assert len(said) == 1 and 's ahead of the wheel stamps' in said[0]
+    assert not odometer.gyro.last.yaw_from_gyro   # the model carries on

@@ -28,7 +28,7 @@ WARN_CAUSES = ('non_finite', 'implausible', 'wheel_jump', 'older', 'gap', 'zero_
                'set_pose_rejected', 'imu_non_finite', 'imu_saturated', 'imu_older',
                'imu_bad_stamp', 'imu_future_stamp', 'imu_no_rate', 'imu_interval_stale',
                'stale_position', 'position_range', 'imu_clock_reset',
-               'imu_interval_contradicts')
+               'imu_interval_contradicts', 'imu_interval_clock_ahead')
 ERROR_CAUSES = ('non_finite_state', 'non_finite_output', 'callback_error')
 
 

@@ -198,6 +198,7 @@ class GyroStatus(enum.Enum):
     GAP = 'gap'                      # a gap longer than imu.max_gap between usable samples
     SATURATED_INSIDE = 'saturated_inside'  # a saturated sample inside the interval
     NO_HISTORY = 'no_history'        # the interval starts before the oldest kept sample
+    CLOCK_AHEAD = 'clock_ahead'      # ... by more than max_stamp_step_back: another clock
 
 
 class GyroBuffer:
@@ -224,6 +225,10 @@ class GyroBuffer:
     @property
     def newest_ns(self) -> int | None:
         return self._t[-1] if self._t else None
+
+    @property
+    def oldest_ns(self) -> int | None:
+        return self._t[0] if self._t else None
 
     def _restarted(self, t_ns: int, rate: float) -> bool:
         """Take a stamp far behind the newest: True once a clock restart is confirmed.
@@ -608,6 +613,7 @@ class GyroAid:
         self.counts: collections.Counter[str] = collections.Counter()
         self.last = AidStep()
         self.check = GyroCheck()
+        self._ahead_said = False
         self.news = ''   # what the check last said, for the odometer to report (then cleared)
         self.last_usable_ns: int | None = None
         # calibration: a list to collect (gyro rate - learned bias, w_mid) of every covered
@@ -629,6 +635,10 @@ class GyroAid:
         travel = 0.25 * self.wheel_radius_m * (abs(l0) + abs(r0) + abs(l1) + abs(r1)) * dt_s
         moving = max(abs(l0), abs(r0), abs(l1), abs(r1)) >= p.standstill
         status, rate = self.buffer.mean_rate(t0_ns, t1_ns)
+        if status is GyroStatus.NO_HISTORY:
+            status = self._no_history(t1_ns)
+        elif status is GyroStatus.COVERED:
+            self._ahead_said = False
         kf = self.filter
         kf.predict(travel, dt_s, status is GyroStatus.STALE)
         covered = status is GyroStatus.COVERED
@@ -653,6 +663,24 @@ class GyroAid:
             w = kf.gain * w_model
         self.last = AidStep(status, from_gyro, w_model, dt_s)
         return vx, vy, w
+
+    def _no_history(self, t1_ns: int) -> GyroStatus:
+        """Tell a gyro whose whole history lies far after the interval (its clock is ahead).
+
+        After the wheels' clock stepped back (their driver restarted, the IMU's did not) every
+        gyro sample is later than every wheel interval: said once, not used until they agree.
+        """
+        buffer = self.buffer
+        oldest = buffer.oldest_ns
+        ahead_ns = (oldest - (t1_ns + buffer._offset_ns())) if oldest is not None else 0
+        if ahead_ns <= buffer.max_step_back_ns:
+            return GyroStatus.NO_HISTORY
+        if not self._ahead_said:
+            self._ahead_said = True
+            self.news = (f'the gyro stamps are {ahead_ns / NS_PER_S:.3f} s ahead of the wheel '
+                         'stamps (one driver restarted on another clock?): the gyro is not used '
+                         'until the clocks agree')
+        return GyroStatus.CLOCK_AHEAD
 
     def yaw_step_variance(self, model_variance: float) -> float:
         """Variance of the last interval's heading increment (rad^2), by where it came from.

@@ -487,7 +487,9 @@ class Odometer:
         last = gyro.last
         self.counters['imu_interval_' + last.status.value] += 1
         if gyro.news:
-            self._warn('imu_contradicts', gyro.news, error=gyro.check.contradicts)
+            cause = ('imu_clock_ahead' if last.status is GyroStatus.CLOCK_AHEAD
+                     else 'imu_contradicts')
+            self._warn(cause, gyro.news, error=gyro.check.contradicts)
             gyro.news = ''
         vx, vy, w = result.step_twist
         dt_s = result.dt_s
