@@ -57,7 +57,12 @@ class StatusReport:
         self._counters_at_start = collections.Counter(counters)
         self._start_mono_ns = now
         level, summary = _level(recent, stale)
-        if imu is not None and level == DiagnosticStatus.OK and imu.get('at_bound'):
+        if imu is not None and level != DiagnosticStatus.STALE and imu.get('contradicts_wheels'):
+            level = max(level, DiagnosticStatus.WARN)
+            summary = (f'the gyro contradicts the wheels (it turns {imu.get("turn_ratio", 0.0):.3g}'
+                       ' times what the model says): not used, the model runs alone; check the '
+                       'IMU mounting (z up) and its unit (rad/s)')
+        elif imu is not None and level == DiagnosticStatus.OK and imu.get('at_bound'):
             level = DiagnosticStatus.WARN
             summary = ('imu gain at its bound (imu.adapt.gain_min/gain_max): the model or the '
                        'gyro calibration is far off')
