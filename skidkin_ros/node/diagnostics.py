@@ -59,7 +59,8 @@ class StatusReport:
         level, summary = _level(recent, stale)
         if imu is not None and level != DiagnosticStatus.STALE and imu.get('contradicts_wheels'):
             level = max(level, DiagnosticStatus.WARN)
-            summary = (f'the gyro contradicts the wheels (it turns {imu.get("turn_ratio", 0.0):.3g}'
+            ratio = imu.get('turn_ratio', 0.0)
+            summary = (f'the gyro contradicts the wheels (it turns {ratio:.3g}'
                        ' times what the model says): not used, the model runs alone; check the '
                        'IMU mounting (z up) and its unit (rad/s)')
         elif imu is not None and level == DiagnosticStatus.OK and imu.get('at_bound'):
