@@ -184,10 +184,15 @@ def test_auto_uses_positions_that_change_and_velocities_otherwise():
     for i in range(3):
         taken = _take(signal, 0.1 * i, (0.0,), (0.0,), velocity=(1.0, 2.0))
         assert taken.speeds == (1.0, 2.0) and not taken.switched
-    # positions that change: used from the first interval they measure, and said so once
+    # positions that change: they take over, said once; the interval of the first change is
+    # still the velocities' (the count it holds was partly integrated by them already)
     taken = _take(signal, 0.3, (0.5,), (0.2,), velocity=(1.0, 2.0))
-    assert taken.speeds == pytest.approx((5.0, 2.0)) and taken.switched == 'position'
-    assert not _take(signal, 0.4, (1.0,), (0.4,)).switched
+    assert taken.speeds == (1.0, 2.0) and taken.switched == 'position'
+    taken = _take(signal, 0.4, (1.0,), (0.4,))
+    assert taken.speeds == pytest.approx((5.0, 2.0)) and not taken.switched
+    # a repeated position is no travel (a quantised encoder between counts), not a switch
+    taken = _take(signal, 0.45, (1.0,), (0.4,))
+    assert taken.speeds == (0.0, 0.0) and not taken.switched
     # mixed: a message without positions (or with non-finite ones) uses its velocities, and
     # the next positions are differenced from a new reference, never across that interval
     taken = _take(signal, 0.5, None, None, velocity=(3.0, 3.0))

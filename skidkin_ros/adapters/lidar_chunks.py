@@ -49,12 +49,13 @@ from typing import Any, Callable, Mapping, Sequence, Union
 
 import numpy as np
 
+from skidkin_ros.adapters import cluster
 from skidkin_ros.adapters.lidar_gt import (FrameGrid, GroundTruth, guarded_truth, IcpConfig,
                                            register_frames, Registration)
 from skidkin_ros.atomic import atomic_write_bytes
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
-from skidkin_ros.errors import DataError, ParameterError
+from skidkin_ros.errors import DataError, OutputError, ParameterError
 
 __all__ = ['CACHE_VERSION', 'ChunkOptions', 'ChunkTask', 'bag_identity', 'bag_ground_truth',
            'join_chunks', 'plan_chunks', 'run_chunk']
@@ -239,14 +240,16 @@ def _read_cached(path: Path, key: str) -> Registration | None:
         return None
 
 
-def _write_cached(path: Path, key: str, registration: Registration) -> None:
+def _write_cached(path: Path, key: str, registration: Registration) -> str:
+    """Cache one chunk; return why it could not be (a cache is a help, never a failure)."""
     buffer = io.BytesIO()
     np.savez(buffer, key=np.array(key), **registration.to_arrays())
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, buffer.getvalue(), force=True)
-    except OSError as err:
-        _LOG.warning('could not write the ground-truth cache %s: %s', path, err)
+    except (OSError, OutputError) as err:
+        return str(err)
+    return ''
 
 
 # -- running the tasks --------------------------------------------------------------------------
@@ -315,6 +318,12 @@ def _run_pool(tasks: Sequence[ChunkTask], jobs: int, tally: _Tally,
                     unfinished.append(task)
                 except Exception as err:  # noqa: B902 - a failed chunk is named, not fatal
                     store(_failed(task, err))
+    except KeyboardInterrupt:
+        # Ctrl-C: the workers ignore it (left to this process); stop them now rather than wait
+        # for their chunks (seconds each). What finished is cached already.
+        for process in list((getattr(executor, '_processes', None) or {}).values()):
+            process.terminate()
+        raise
     finally:
         executor.shutdown(wait=True, cancel_futures=True)
     return unfinished
@@ -332,22 +341,14 @@ def _run_isolated(tasks: Sequence[ChunkTask], tally: _Tally,
 
 def _run_dask(tasks: Sequence[ChunkTask], address: str, tally: _Tally,
               store: Callable[[ChunkOutcome], None]) -> None:
+    # The address checked, a deadline on the connection, workers waited for (adapters.cluster).
+    client = cluster.connect(address)
     try:
-        from distributed import as_completed, Client
-    except ImportError as err:
-        raise ParameterError('--cluster needs Dask distributed: pip install distributed '
-                             '(or the skidkin_ros[cluster] extra)') from err
-    try:
-        client = Client(address, timeout=30)
-    except (OSError, TimeoutError) as err:
-        raise DataError(f'cannot reach the Dask scheduler at {address}: {err}; start one with '
-                        '`dask scheduler` and workers with `dask worker ADDRESS --nthreads 1`'
-                        ) from err
-    try:
+        cluster.wait_for_workers(client, address)
         futures = {client.submit(run_chunk, task, pure=False,
                                  key=f'skidkin-chunk-{task.index}-{os.getpid()}-{id(task)}'):
                    task for task in tasks}
-        for future in as_completed(list(futures)):
+        for future in cluster.finished(client, list(futures), address):
             task = futures[future]
             if future.status == 'error':
                 store(_failed(task, future.exception()))
@@ -378,13 +379,21 @@ def run_chunks(tasks: Sequence[ChunkTask], options: ChunkOptions, *,
                 continue
         todo.append(task)
 
+    unwritable: list[str] = []
+
     def store(outcome: ChunkOutcome) -> None:
         outcomes[outcome.task.index] = outcome
         if outcome.registration is not None:
             tally.update(outcome.task.index, len(outcome.registration))
-            if outcome.task.index in keys:
-                _write_cached(_cache_path(cache_dir, keys[outcome.task.index]),
-                              keys[outcome.task.index], outcome.registration)
+            if outcome.task.index in keys and not unwritable:
+                why = _write_cached(_cache_path(cache_dir, keys[outcome.task.index]),
+                                    keys[outcome.task.index], outcome.registration)
+                if why:  # said once; the other chunks are not tried (nor failed) either
+                    unwritable.append(why)
+                    _LOG.warning('the ground-truth cache %s cannot be written (%s): the ground '
+                                 'truth is computed and written as usual, but not cached; '
+                                 'give a writable --cache-dir to resume an interrupted run',
+                                 cache_dir, why)
         else:
             _LOG.warning('chunk %d failed: %s', outcome.task.index, outcome.error)
 

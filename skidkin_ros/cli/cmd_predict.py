@@ -11,7 +11,7 @@ from pathlib import Path
 from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
-from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.config import check_model_given, OdometryConfig
 from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.gyro import GYRO_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
@@ -87,8 +87,10 @@ def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str,
     drive = loaded.drives[0]
     wheels = drive.wheels
     odometer = online_odometer(config)
+    # The reader applied the wheel-jump rule as the node does (encoder travel exempt).
     pred = odometer.predict(wheels, imu=drive.imu, reference=drive.truth
-                            if args.reference is not None else None)
+                            if args.reference is not None else None,
+                            jumps_dropped=config['wheel_signal'] != 'velocity')
     if odometer.learner is not None:
         summary = odometer.learner.summary()
         say(f'online calibration: {int(summary["grounds"])} ground(s), '
@@ -118,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
                                  'ground truth')
         overrides['online.enabled'] = True
     config = OdometryConfig.from_file(args.params, args.model, overrides or None)
+    if args.model is not None:
+        check_model_given(args.model, config.models_in_file, f'the file {args.params}')
     if args.imu_mode is not None:
         config = dataclasses.replace(config, values={**config.values, 'imu.mode': args.imu_mode})
     if config.imu.mode != 'off':

@@ -13,6 +13,7 @@ from pathlib import Path
 import sys
 from typing import Any, Iterable, Sequence
 
+from skidkin_ros.adapters.cluster import check_cluster_address
 from skidkin_ros.adapters.lidar_chunks import ChunkOptions
 from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, LoadedSource, SourceOptions
@@ -24,7 +25,7 @@ from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY, Geometry
 from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.core.parallel import usable_cpus
-from skidkin_ros.errors import ConfigError
+from skidkin_ros.errors import ConfigError, ParameterError
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
            'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'stride_arg', 'RoundBars',
@@ -57,6 +58,14 @@ def _whole_number(text: str, expected: str) -> int:
 def jobs_arg(text: str) -> int:
     """Parse --jobs: a whole number of processes, at least 1."""
     return _whole_number(text, 'a whole number of processes >= 1')
+
+
+def cluster_arg(text: str) -> str:
+    """Parse --cluster: a Dask scheduler address, checked before any work."""
+    try:
+        return check_cluster_address(text)
+    except ParameterError as err:
+        raise argparse.ArgumentTypeError(str(err).removeprefix('--cluster ')) from err
 
 
 def stride_arg(text: str) -> int:
@@ -167,7 +176,7 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
                            help='processes for the lidar chunks (default: every usable CPU)')
     except argparse.ArgumentError:
         pass  # the command has its own --jobs (diagnose): the same number serves both
-    group.add_argument('--cluster', metavar='ADDRESS',
+    group.add_argument('--cluster', metavar='ADDRESS', type=cluster_arg,
                        help='run the lidar chunks on this Dask scheduler (tcp://host:8786) '
                        'instead of local processes')
     group.add_argument('--cache-dir', type=Path, default=None,

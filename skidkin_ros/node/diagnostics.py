@@ -27,7 +27,9 @@ WARN_CAUSES = ('non_finite', 'implausible', 'wheel_jump', 'older', 'gap', 'zero_
                'set_pose_rejected', 'imu_non_finite', 'imu_saturated', 'imu_older',
                'imu_bad_stamp', 'imu_future_stamp', 'imu_no_rate', 'imu_interval_stale',
                'reference_non_finite', 'reference_bad_stamp', 'reference_older',
-               'reference_frame', 'reference_jump', 'reference_stall', 'online_inconsistent')
+               'reference_frame', 'reference_jump', 'reference_stall', 'online_inconsistent',
+               'stale_position', 'position_range', 'imu_clock_reset',
+               'imu_interval_contradicts', 'imu_interval_clock_ahead')
 ERROR_CAUSES = ('non_finite_state', 'non_finite_output', 'callback_error')
 
 
@@ -58,7 +60,13 @@ class StatusReport:
         self._counters_at_start = collections.Counter(counters)
         self._start_mono_ns = now
         level, summary = _level(recent, stale)
-        if imu is not None and level == DiagnosticStatus.OK and imu.get('at_bound'):
+        if imu is not None and level != DiagnosticStatus.STALE and imu.get('contradicts_wheels'):
+            level = max(level, DiagnosticStatus.WARN)
+            ratio = imu.get('turn_ratio', 0.0)
+            summary = (f'the gyro contradicts the wheels (it turns {ratio:.3g}'
+                       ' times what the model says): not used, the model runs alone; check the '
+                       'IMU mounting (z up) and its unit (rad/s)')
+        elif imu is not None and level == DiagnosticStatus.OK and imu.get('at_bound'):
             level = DiagnosticStatus.WARN
             summary = ('imu gain at its bound (imu.adapt.gain_min/gain_max): the model or the '
                        'gyro calibration is far off')

@@ -91,7 +91,7 @@ from rclpy.qos import (qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
-from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.config import check_model_given, models_given, OdometryConfig
 from skidkin_ros.core.odometry.odometer import Estimate
 from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
                                               DuplicateJointError, joint_indices,
@@ -161,6 +161,13 @@ class OdomNode(Node):
             self.destroy_node()
             raise
         config = self._config
+        # Models whose parameters were given (file, command line, later at runtime): the only
+        # ones `model` may switch to (the others would run their defaults, an ideal drive).
+        self._models_given = set(models_given(self._parameter_overrides))
+        if config.model not in self._models_given and config.model != 'augmented':
+            self.get_logger().warning(
+                f'model {config.model!r} runs its default parameters (an ideal drive): no '
+                f'models.{config.model}.* parameter was given; load a calibrated file')
         self._odometer = online_odometer(config, counters=self.counters, warn=self._warn,
                                          fresh=self._mark_fresh, note=self._note_signal)
         self._last_accepted_mono_ns: int | None = None
@@ -236,13 +243,19 @@ class OdomNode(Node):
             return SetParametersResult(successful=True)
         flat = current_flat(self, self._schema)
         flat.update(changes)
+        given = self._models_given | set(models_given(changes))
         try:
             config = OdometryConfig.from_flat(flat)
+            if 'model' in changes and changes['model'] != self._config.model:
+                check_model_given(changes['model'], given,
+                                  'the parameters the node was given (set its models.'
+                                  f'{changes["model"]}.* parameters first)')
         except ConfigError as err:
             self.get_logger().warning(f'parameter change rejected: {err}')
             return SetParametersResult(successful=False, reason=str(err))
         with self._lock:
             self._apply_config(config)
+            self._models_given = given
         self.get_logger().info(f'parameters changed: {sorted(changes)}; model {config.model}')
         return SetParametersResult(successful=True)
 
@@ -260,6 +273,9 @@ class OdomNode(Node):
             self._odometer.attach_learner(learner)
         else:
             attach_online(self._odometer, config, self._warn)
+        if any(config[name] != old[name] for name in ('left_wheel_joints', 'right_wheel_joints')):
+            # other joints: their positions are not differenced against the old joints' ones
+            self._odometer.signal.clear()
         self._sync_imu_subscription(config)
         self._sync_reference_subscription(config)
         self._joint_names = None  # the wheel joints may have changed

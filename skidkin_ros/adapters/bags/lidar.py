@@ -58,7 +58,8 @@ class LidarMixin:
                 try:
                     xyz, raw, is_integer, _ = read_xyz_and_times(msg, time_field)
                 except RecordingError as err:
-                    skipped = self._skip(chosen, 'malformed cloud', err, skipped)
+                    # The message decoded: its cloud is unusable, the storage is not damaged.
+                    skipped = self._skip_cloud(chosen, err, skipped, kept)
                     continue
                 offset = t_ns - stamp
                 if (last_offset is not None

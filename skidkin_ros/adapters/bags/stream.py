@@ -31,6 +31,20 @@ class StreamMixin:
                 f'{storage_remedy(self.files[0]) if self.files else "re-record it"}') from err
         return skipped
 
+    def _skip_cloud(self, topic: str, err: RecordingError, skipped: int, kept: int) -> int:
+        """Count a cloud that decoded but cannot be used; past max_corrupt, say why."""
+        skipped += 1
+        self.counts[(topic, 'malformed cloud')] += 1
+        LOG.warning('%s: skipped a malformed cloud (%s)', topic, err)
+        if skipped > self.max_corrupt:
+            raise RecordingError(
+                f'lidar: {skipped} clouds on {topic} cannot be used ({kept} could), the last '
+                f'because: {err}. The recording reads fine: its clouds do not hold what the '
+                'lidar ground truth needs (fields x, y, z as float32 or float64, consistent '
+                'with point_step and the data); check the driver, or name another --lidar-topic'
+            ) from err
+        return skipped
+
     def _raw_stream(self, connections: Sequence[Connection], what: str,
                     start_ns: int | None = None, stop_ns: int | None = None
                     ) -> Iterator[tuple[Connection, int, bytes]]:

@@ -17,6 +17,7 @@ from skidkin_ros.core.odometry.wheels import (check_position_count, check_veloci
                                               drop_jumps, DuplicateJointError, joint_indices,
                                               MalformedMessageError, MissingJointError,
                                               positions_at, speeds_at, WheelSignal)
+from skidkin_ros.core.timeunits import ns_to_s
 from skidkin_ros.errors import RecordingError
 
 
@@ -68,13 +69,17 @@ class WheelsMixin:
                 chosen = self.select(JOINT_STATE, topic, 'wheel speeds')
                 wheels = self._read_joint_states(chosen, left_joints, right_joints,
                                                  max_wheel_speed_rad_s, wheel_signal)
-        return self._drop_jumps(wheels, max_wheel_acceleration, max_dt_s)
+        return self._drop_jumps(wheels, max_wheel_acceleration, max_dt_s,
+                                self.wheel_input.pop('by_position', None))
 
     def _drop_jumps(self, wheels: WheelSamples, max_acceleration: float,
-                    max_dt_s: float) -> WheelSamples:
-        """Drop samples whose speed jumps, as the node rejects them; name the wheel at fault."""
+                    max_dt_s: float, by_position: Sequence[bool] | None = None) -> WheelSamples:
+        """Drop samples whose speed jumps, as the node rejects them; name the wheel at fault.
+
+        Speeds measured by encoder positions (``by_position``) are exempt, as in the node.
+        """
         keep, sides = drop_jumps(wheels.t_ns, wheels.omega_l, wheels.omega_r, max_acceleration,
-                                 max_dt_s)
+                                 max_dt_s, by_position)
         dropped = len(keep) - sum(keep)
         if not dropped:
             return wheels
@@ -197,11 +202,17 @@ class WheelsMixin:
         omega_l = np.asarray(wheels.omega_l, dtype=float).copy()
         omega_r = np.asarray(wheels.omega_r, dtype=float).copy()
         used: Counter[str] = Counter()
+        by_position = np.zeros(len(wheels), dtype=bool)
         for i, t_ns in enumerate(wheels.t_ns.tolist()):
             taken = signal.take(t_ns, omega_l[i], omega_r[i], positions[i])
+            by_position[i] = taken.by_position
+            if taken.warning is not None:
+                self.notes.append(f'wheel speeds: {topic} at {ns_to_s(t_ns):.3f} s: '
+                                  f'{taken.warning[1]}')
             if taken.speeds is None:
                 self._drop(topic, {'no_position': 'without positions',
                                    'non_finite': 'non-finite position',
+                                   'position_range': 'position beyond float resolution',
                                    'implausible': 'position jump beyond max_wheel_speed'
                                    }[taken.cause])
                 continue
@@ -212,4 +223,5 @@ class WheelsMixin:
                           + ', '.join(f'{n} intervals from the joint {kind}s'
                                       for kind, n in sorted(used.items())))
         self.wheel_input['wheel_signal_used'] = dict(used)
+        self.wheel_input['by_position'] = by_position[keep].tolist()
         return WheelSamples(wheels.t_ns[keep], omega_l[keep], omega_r[keep])

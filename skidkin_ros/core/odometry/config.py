@@ -12,7 +12,7 @@ import datetime
 import logging
 import math
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 from skidkin_ros import __version__
@@ -44,6 +44,8 @@ __all__ = [
     'flatten',
     'nest',
     'parse_extensions',
+    'models_given',
+    'check_model_given',
     'implied_interval',
     'read_params_file',
     'read_params_document',
@@ -61,6 +63,16 @@ MIN_RATE_HZ = 0.1
 # A parameters file is a few kB; anything near this is not one (and would be read into memory).
 MAX_PARAMS_FILE_BYTES = 8 * 1024 * 1024
 FRAME_PARAMETERS = ('odom_frame_id', 'base_frame_id')
+# ROS integer parameters are 64-bit; a YAML integer beyond them cannot be a parameter (and
+# overflows a float: 10**400).
+INT64_MAX = 2 ** 63 - 1
+# Largest variance (m^2, rad^2, or per metre, second, radian) a covariance parameter may hold:
+# beyond it the propagated covariance overflows and the odometry is never published again
+# (set_pose's covariance has the same bound).
+VARIANCE_LIMIT = 1e12
+# A model parameter whose range is open-ended is still a length or a coefficient of a robot:
+# beyond this magnitude its twists overflow the covariance propagation.
+MAGNITUDE_LIMIT = 1e9
 
 LOG = logging.getLogger(__name__)
 
@@ -203,8 +215,9 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                     choices=INTERVALS),
         SchemaEntry('wheel_signal', 'string', 'velocity',
                     'what a JointState wheel reading integrates: velocity, position (the travel '
-                    'between two samples, wraps of continuous joints handled) or auto (positions '
-                    'when they change, velocities otherwise)', choices=WHEEL_SIGNALS),
+                    'between two samples, wraps of continuous joints handled) or auto (the '
+                    'positions as position does once they change; the velocities where they are '
+                    'missing, not finite or frozen)', choices=WHEEL_SIGNALS),
         SchemaEntry('input', 'string', 'joint_state',
                     'joint_state (sensor_msgs/JointState), wheel_topics (two std_msgs/Float64) '
                     "or odometry (a drive controller's nav_msgs/Odometry twist, with its "
@@ -282,7 +295,67 @@ def _number(spec: ParamSpec, value: Any, prefix: str = '') -> float:
     return check_value(spec, value, prefix=prefix)
 
 
+def models_given(names: Iterable[str]) -> tuple[str, ...]:
+    """Return the models whose parameters ``names`` set (ideal_dd needs none), in order."""
+    names = set(names)
+    return tuple(m.name for m in MODELS.values()
+                 if not m.params or any(f'models.{m.name}.{p.name}' in names for p in m.params))
+
+
+def check_model_given(model: str, given: Iterable[str], source: str) -> None:
+    """Refuse to switch to a model whose parameters ``source`` does not hold.
+
+    Its defaults are the ideal differential drive: run under a calibrated model's name, they
+    would look calibrated. An augmented model needs its base model's parameters.
+    """
+    given = tuple(given)
+    wanted = model
+    if model == AUGMENTED_NAME:
+        return
+    if wanted not in given:
+        raise ParameterError(
+            f'model {wanted!r} is not in {source} (it holds {", ".join(given) or "none"}): its '
+            'parameters would be the defaults (an ideal drive), not a calibration; calibrate '
+            'it, load a file that holds it, or choose one of those')
+
+
+def _check_integers(flat: Mapping[str, Any]) -> None:
+    """Refuse integers no ROS parameter holds (beyond 64 bits), in values and in lists."""
+    for name, value in flat.items():
+        items = value if isinstance(value, (list, tuple)) else [value]
+        for item in items:
+            if (isinstance(item, int) and not isinstance(item, bool)
+                    and not -INT64_MAX - 1 <= item <= INT64_MAX):
+                raise ParameterError(
+                    f'parameter {brief(name)} holds an integer of {len(str(abs(item)))} '
+                    'digits, beyond the 64-bit integers a ROS parameter holds (|n| < 9.2e18); '
+                    'write the value meant (a number within its range, e.g. 1.0)')
+
+
+def _check_magnitude(entry: SchemaEntry, value: Any) -> None:
+    """Refuse values the odometry cannot propagate without overflowing.
+
+    Covariances beyond VARIANCE_LIMIT, open-ended values beyond MAGNITUDE_LIMIT; checked
+    before anything adds or multiplies them (1e308 + 1e308 is inf).
+    """
+    variance = entry.kind in ('matrix', 'double_array') or '.noise.' in entry.name
+    if not variance and (entry.spec is None or entry.kind != 'double'
+                         or math.isfinite(entry.spec.lower) and math.isfinite(entry.spec.upper)):
+        return
+    items = value if isinstance(value, (list, tuple)) else [value]
+    numbers = [float(v) for v in items if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    largest = max((abs(v) for v in numbers if math.isfinite(v)), default=0.0)
+    limit = VARIANCE_LIMIT if variance else MAGNITUDE_LIMIT
+    if largest > limit:
+        what = 'variance' if variance else 'robot parameter'
+        raise ParameterError(
+            f'parameter {entry.name!r} holds {largest:g}, beyond {limit:g} (the largest '
+            f'{what} the odometry can propagate without overflowing: it would never publish '
+            f'again); give values within {limit:g}')
+
+
 def _check_entry(entry: SchemaEntry, value: Any) -> Any:
+    _check_magnitude(entry, value)
     if entry.spec is not None:
         if entry.kind == 'int':
             if isinstance(value, bool) or not isinstance(value, int):
@@ -456,6 +529,7 @@ class OdometryConfig:
 
         Missing names take the schema default; an unknown name is an error.
         """
+        _check_integers(flat)
         geometry_values = {}
         for spec in GEOMETRY_SPECS:
             geometry_values[spec.name] = _number(spec, flat.get(
@@ -503,9 +577,7 @@ class OdometryConfig:
         if values['model'] != AUGMENTED_NAME:
             get_model(values['model'])
         _check_online(values)
-        given = tuple(m.name for m in MODELS.values()
-                      if not m.params or any(f'models.{m.name}.{p.name}' in flat
-                                             for p in m.params))
+        given = models_given(flat)
         return cls(values['model'], geometry, model_values, noise, values,
                    values['augmented.base'], extensions, augmented_values, given)
 

@@ -5,7 +5,11 @@ Three pieces, used by :class:`~skidkin_ros.core.odometry.odometer.Odometer`, so 
 
 * :class:`GyroBuffer` keeps the recent gyro samples (NaN/inf, older and duplicate stamps are
   counted and not kept; saturated ones are kept as holes; a lone sample further than
-  ``imu.spike`` from both neighbours, on the same side, is a glitch and skipped) and answers
+  ``imu.spike`` from both neighbours, on the same side, is a glitch and skipped; a stamp more
+  than ``max_stamp_step_back`` behind the newest, confirmed by ``STEP_BACK_CONFIRM`` such
+  samples in a row, is the IMU driver's clock stepping back (a restart): the history is
+  dropped and the gyro is used again from its new clock, never locked out until the new clock
+  passes the old one) and answers
   one question,
   :meth:`GyroBuffer.mean_rate`: the corrected mean yaw rate over a wheel interval [t0, t1], or why
   there is none. The interval is whatever the integrator integrates (its wheel convention picks
@@ -15,7 +19,13 @@ Three pieces, used by :class:`~skidkin_ros.core.odometry.odometer.Odometer`, so 
   ``z = gamma w_mid + beta`` with ``w_mid`` the model's yaw rate at the interval's midpoint.
 * :class:`GyroAid` applies the mode to each integrated interval: ``fuse`` integrates the gyro's
   bias-corrected yaw rate (the model's translation), ``adapt`` the model's yaw rate times the
-  learned gain; an interval without gyro falls back to the learned gain in both.
+  learned gain; an interval without gyro falls back to the learned gain in both. A gyro that
+  contradicts the wheels beyond what any skid allows (mounted z-down: the other way round;
+  read in deg/s: 57 times too fast) is not used: :class:`GyroCheck` compares the gyro's turn
+  with the model's over every ``CHECK_TURN_RAD`` of the model's turning; while the ratio lies
+  outside ``PLAUSIBLE_RATIO`` (a skid turns the robot less than the model says, never the
+  other way, never several times more) both modes run the calibrated model (gain 1) and say
+  so; a later window that agrees takes the gyro back.
 
 The offline tools that read a recorded gyro (the gyro calibration, the ground-truth guard) take
 it under the same rules in batch: :func:`usable_gyro` (the buffer's sample rules) and
@@ -44,7 +54,8 @@ import numpy as np
 from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 
-__all__ = ['GYRO_MODES', 'GYRO_SPECS', 'GYRO_RATE_LIMIT', 'GyroParams', 'GyroStatus', 'GyroBuffer',
+__all__ = ['GYRO_MODES', 'GYRO_SPECS', 'GYRO_RATE_LIMIT', 'STEP_BACK_CONFIRM', 'GyroCheck',
+           'CHECK_TURN_RAD', 'PLAUSIBLE_RATIO', 'GyroParams', 'GyroStatus', 'GyroBuffer',
            'GainBiasFilter', 'usable_gyro', 'GyroIntegral',
            'GyroAid', 'AidStep']
 
@@ -52,6 +63,17 @@ GYRO_MODES = ('off', 'adapt', 'fuse')
 # |yaw rate| no gyro measures (rad/s): the widest MEMS ranges are +-20 000 deg/s (349 rad/s).
 # A recorded rate beyond it is a corrupt value, not a saturated sample.
 GYRO_RATE_LIMIT = 400.0
+# Samples in a row that confirm a stepped-back clock (one corrupt stamp is not a restart); the
+# wheels' rule (the odometer imports it from here).
+STEP_BACK_CONFIRM = 3
+# The gyro is checked against the model over windows of this much model turning (rad), from
+# intervals where the model turns faster than CHECK_MIN_RATE (rad/s; slower, a small bias
+# would decide). The gyro's turn over the model's (signed): a skid turns the robot less than
+# the model says (a calibrated model: about as much), so a ratio outside this range is a gyro
+# mounted the other way round (about -1) or read in the wrong unit (57 for deg/s).
+CHECK_TURN_RAD = 0.3
+CHECK_MIN_RATE = 0.05
+PLAUSIBLE_RATIO = (-0.3, 3.0)
 
 # Node parameters imu.<name> (units in the descriptor, not the name; ranges as the node checks).
 GYRO_SPECS: tuple[ParamSpec, ...] = (
@@ -167,6 +189,8 @@ class GyroStatus(enum.Enum):
     NON_FINITE = 'non_finite'        # NaN or inf: not kept
     SATURATED = 'saturated'          # |rate| >= imu.saturation: kept as a hole
     OLDER = 'older'                  # stamp older than the newest kept: rejected
+    CONTRADICTS = 'contradicts'      # interval: covered, but the gyro contradicts the wheels
+    CLOCK_RESET = 'clock_reset'      # the gyro clock stepped back (confirmed): history dropped
     DUPLICATE = 'duplicate'          # same stamp as the newest kept: rejected
     COVERED = 'covered'              # interval: the mean rate is known
     NOT_YET = 'not_yet'              # interval end not (yet) bracketed by checked samples
@@ -174,6 +198,7 @@ class GyroStatus(enum.Enum):
     GAP = 'gap'                      # a gap longer than imu.max_gap between usable samples
     SATURATED_INSIDE = 'saturated_inside'  # a saturated sample inside the interval
     NO_HISTORY = 'no_history'        # the interval starts before the oldest kept sample
+    CLOCK_AHEAD = 'clock_ahead'      # ... by more than max_stamp_step_back: another clock
 
 
 class GyroBuffer:
@@ -185,15 +210,46 @@ class GyroBuffer:
         self._g: list[float] = []   # NaN marks a saturated sample (a hole)
         self._keep_ns = s_to_ns(keep_s)
         self.counts: collections.Counter[str] = collections.Counter()
+        # A stamp further behind the newest than this (ns) may be a restarted clock (the
+        # odometer sets it from max_stamp_step_back); the run of such stamps seen so far.
+        self.max_step_back_ns = 3.0 * NS_PER_S
+        self._back_run: list[tuple[int, float]] = []
+        self.stepped_back_s = 0.0   # by how much the last confirmed step went back
 
     def clear(self) -> None:
         """Forget every sample (the clock jumped)."""
         self._t.clear()
         self._g.clear()
+        self._back_run.clear()
 
     @property
     def newest_ns(self) -> int | None:
         return self._t[-1] if self._t else None
+
+    @property
+    def oldest_ns(self) -> int | None:
+        return self._t[0] if self._t else None
+
+    def _restarted(self, t_ns: int, rate: float) -> bool:
+        """Take a stamp far behind the newest: True once a clock restart is confirmed.
+
+        ``STEP_BACK_CONFIRM`` such stamps in a row, increasing and each within imu.timeout of
+        the previous, confirm it (the wheels' rule, with the gyro's own spacing); the history is
+        then dropped and the confirming samples are kept, on the new clock.
+        """
+        run = self._back_run
+        if run and not 0 < t_ns - run[-1][0] <= self.params.timeout * NS_PER_S:
+            run.clear()
+        run.append((t_ns, rate))
+        if len(run) < STEP_BACK_CONFIRM:
+            return False
+        self.stepped_back_s = (self._t[-1] - t_ns) / NS_PER_S
+        kept = list(run)
+        self.clear()
+        for t_kept, rate_kept in kept:
+            self._t.append(t_kept)
+            self._g.append(rate_kept if abs(rate_kept) < self.params.saturation else math.nan)
+        return True
 
     def add(self, t_ns: int, rate_rad_s: float) -> GyroStatus:
         """Keep one raw sample (stamp in ns on the gyro's clock); return what happened to it."""
@@ -202,6 +258,10 @@ class GyroBuffer:
         if not math.isfinite(rate):
             status = GyroStatus.NON_FINITE
         elif self._t and t_ns < self._t[-1]:
+            if (self._t[-1] - t_ns > self.max_step_back_ns
+                    and self._restarted(t_ns, rate)):
+                self.counts[GyroStatus.CLOCK_RESET.value] += 1
+                return GyroStatus.CLOCK_RESET
             status = GyroStatus.OLDER
         elif self._t and t_ns == self._t[-1]:
             status = GyroStatus.DUPLICATE
@@ -211,6 +271,8 @@ class GyroBuffer:
             status = GyroStatus.ACCEPTED
         self.counts[status.value] += 1
         if status in (GyroStatus.ACCEPTED, GyroStatus.SATURATED):
+            if self._back_run:
+                self._back_run.clear()
             self._t.append(t_ns)
             self._g.append(rate if status is GyroStatus.ACCEPTED else math.nan)
             if len(self._t) > 64 and self._t[0] < t_ns - 2 * self._keep_ns:
@@ -482,6 +544,46 @@ class GainBiasFilter:
         self.updates += 1
 
 
+class GyroCheck:
+    """Tell whether the gyro turns the way the wheels say, by a plausible amount.
+
+    ``add(gyro_rate, model_rate, dt_s)`` per covered interval in motion; returns a message when
+    the verdict changes (``contradicts`` says the current one; the first window decides).
+    """
+
+    def __init__(self) -> None:
+        self.contradicts = False
+        self.ratio = math.nan   # of the last complete window
+        self._gyro = 0.0
+        self._model = 0.0
+
+    def add(self, gyro_rate: float, model_rate: float, dt_s: float) -> str:
+        if not abs(model_rate) > CHECK_MIN_RATE:
+            return ''
+        sign = 1.0 if model_rate > 0.0 else -1.0
+        self._gyro += sign * gyro_rate * dt_s
+        self._model += abs(model_rate) * dt_s
+        if self._model < CHECK_TURN_RAD:
+            return ''
+        ratio = self._gyro / self._model
+        self.ratio = ratio
+        self._gyro = self._model = 0.0
+        low, high = PLAUSIBLE_RATIO
+        contradicts = not low <= ratio <= high
+        if contradicts == self.contradicts:
+            return ''
+        self.contradicts = contradicts
+        if contradicts:
+            hint = ('the other way round: mounted upside down (z down) or the wrong frame?'
+                    if ratio < 0 else 'far faster: a rate in deg/s, or a wrong imu.scale?')
+            return (f'the gyro contradicts the wheels beyond any skid: over the last '
+                    f'{CHECK_TURN_RAD:g} rad of turning it turned {ratio:.3g} times what the '
+                    f'model says (a skid allows {low:g} to {high:g}), {hint} The gyro is not '
+                    'used: the odometry runs the calibrated model until the gyro agrees again')
+        return (f'the gyro agrees with the wheels again (it turned {ratio:.3g} times what the '
+                'model says over the last window): the gyro is used again')
+
+
 @dataclass
 class AidStep:
     """What the aid did to the last integrated interval (for the covariance and diagnostics)."""
@@ -510,6 +612,9 @@ class GyroAid:
         self.filter = GainBiasFilter(params)
         self.counts: collections.Counter[str] = collections.Counter()
         self.last = AidStep()
+        self.check = GyroCheck()
+        self._ahead_said = False
+        self.news = ''   # what the check last said, for the odometer to report (then cleared)
         self.last_usable_ns: int | None = None
         # calibration: a list to collect (gyro rate - learned bias, w_mid) of every covered
         # interval in motion, the filter's measurement and its model (None: not collected)
@@ -530,10 +635,21 @@ class GyroAid:
         travel = 0.25 * self.wheel_radius_m * (abs(l0) + abs(r0) + abs(l1) + abs(r1)) * dt_s
         moving = max(abs(l0), abs(r0), abs(l1), abs(r1)) >= p.standstill
         status, rate = self.buffer.mean_rate(t0_ns, t1_ns)
-        self.counts[status.value] += 1
+        if status is GyroStatus.NO_HISTORY:
+            status = self._no_history(t1_ns)
+        elif status is GyroStatus.COVERED:
+            self._ahead_said = False
         kf = self.filter
         kf.predict(travel, dt_s, status is GyroStatus.STALE)
         covered = status is GyroStatus.COVERED
+        if covered and moving:
+            news = self.check.add(rate - kf.bias, w_model, dt_s)
+            if news:
+                self.news = news
+                kf.reset()   # a gain learned from that gyro means nothing
+        if covered and self.check.contradicts:
+            status, covered = GyroStatus.CONTRADICTS, False
+        self.counts[status.value] += 1
         if covered:
             if self.record is not None and moving:
                 self.record.append((rate - kf.bias, w_mid))
@@ -541,10 +657,30 @@ class GyroAid:
         from_gyro = p.mode == 'fuse' and covered
         if from_gyro:
             w = rate - kf.bias if moving else 0.0
+        elif status is GyroStatus.CONTRADICTS:
+            w = w_model   # the calibrated model: the gyro is not used at all
         else:
             w = kf.gain * w_model
         self.last = AidStep(status, from_gyro, w_model, dt_s)
         return vx, vy, w
+
+    def _no_history(self, t1_ns: int) -> GyroStatus:
+        """Tell a gyro whose whole history lies far after the interval (its clock is ahead).
+
+        After the wheels' clock stepped back (their driver restarted, the IMU's did not) every
+        gyro sample is later than every wheel interval: said once, not used until they agree.
+        """
+        buffer = self.buffer
+        oldest = buffer.oldest_ns
+        ahead_ns = (oldest - (t1_ns + buffer._offset_ns())) if oldest is not None else 0
+        if ahead_ns <= buffer.max_step_back_ns:
+            return GyroStatus.NO_HISTORY
+        if not self._ahead_said:
+            self._ahead_said = True
+            self.news = (f'the gyro stamps are {ahead_ns / NS_PER_S:.3f} s ahead of the wheel '
+                         'stamps (one driver restarted on another clock?): the gyro is not used '
+                         'until the clocks agree')
+        return GyroStatus.CLOCK_AHEAD
 
     def yaw_step_variance(self, model_variance: float) -> float:
         """Variance of the last interval's heading increment (rad^2), by where it came from.
@@ -580,4 +716,6 @@ class GyroAid:
         kf = self.filter
         return {'gain': kf.gain, 'gain_sigma': math.sqrt(max(kf.p00, 0.0)), 'bias': kf.bias,
                 'bias_sigma': math.sqrt(max(kf.p11, 0.0)), 'updates': float(kf.updates),
-                'inflated': float(kf.inflated)}
+                'inflated': float(kf.inflated),
+                'contradicts_wheels': float(self.check.contradicts),
+                'turn_ratio': self.check.ratio}

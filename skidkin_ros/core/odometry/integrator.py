@@ -468,7 +468,9 @@ class StreamingIntegrator:
         return _scalar_twist(self.source, interval_speed(held_l, omega_l, interval),
                              interval_speed(held_r, omega_r, interval)), None
 
-    def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
+    def step(self, t_ns: int, omega_l: float, omega_r: float,
+             check_jump: bool = True) -> StepResult:
+        """Integrate one sample; ``check_jump`` False: speeds measured by encoder positions."""
         omega_l = float(omega_l)
         omega_r = float(omega_r)
         max_speed = self.limits.max_wheel_speed_rad_s
@@ -496,7 +498,7 @@ class StreamingIntegrator:
                                 'not integrated across')
         held_l, held_r = self.held_speeds
         limit = jump_limit(dt_s, self.limits.max_wheel_acceleration_rad_s2)
-        if not (abs(omega_l - held_l) <= limit and abs(omega_r - held_r) <= limit):
+        if check_jump and not (abs(omega_l - held_l) <= limit and abs(omega_r - held_r) <= limit):
             return self._jump(omega_l, omega_r, dt_s)
         if dt_ns == 0:
             if self._deferred:  # a zero-length interval still runs the source, as in batch

@@ -45,7 +45,7 @@ from skidkin_ros.core.drive import ImuSamples, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY
 from skidkin_ros.core.odometry.config import node_default, OdometryConfig
 from skidkin_ros.core.odometry.controller import ControllerGeometry, NonFiniteTwistError
-from skidkin_ros.core.odometry.gyro import GyroAid, GyroParams, GyroStatus
+from skidkin_ros.core.odometry.gyro import GyroAid, GyroParams, GyroStatus, STEP_BACK_CONFIRM
 from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus, step_scalar,
                                                   StepResult, StreamingIntegrator, TwistSource)
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
@@ -71,8 +71,6 @@ YAW_RESOLUTION_RAD = 1e-6
 YAW_LIMIT_RAD = YAW_RESOLUTION_RAD / float(np.finfo(float).eps)
 # Largest variance (m^2, rad^2) a set covariance may hold: beyond it, propagation overflows.
 VARIANCE_LIMIT = 1e12
-# Samples in a row that confirm a stepped-back input clock (one corrupt stamp is not a restart).
-STEP_BACK_CONFIRM = 3
 # Wheel samples that may wait for the gyro at once (beyond: the oldest goes on without it).
 MAX_PENDING = 1000
 Triple = tuple[float, float, float]
@@ -247,6 +245,9 @@ class Odometer:
         self._min_period_ns = NS_PER_S / rules.max_rate_hz if rules.max_rate_hz > 0.0 else 0.0
         self.pairer.tolerance_ns = rules.pair_tolerance_s * NS_PER_S
         self._step_back_ns = rules.max_stamp_step_back_s * NS_PER_S
+        gyro = getattr(self, 'gyro', None)
+        if gyro is not None:
+            gyro.buffer.max_step_back_ns = self._step_back_ns
 
     def configure(self, config: OdometryConfig) -> None:
         """Switch to a validated configuration; the pose and its covariance are kept."""
@@ -274,6 +275,8 @@ class Odometer:
                 and gyro.wheel_radius_m == float(wheel_radius_m)):
             return
         self.gyro = None if params.mode == 'off' else GyroAid(params, wheel_radius_m)
+        if self.gyro is not None:
+            self.gyro.buffer.max_step_back_ns = self._step_back_ns
         self.integrator.aid = self.gyro
         if self.gyro is None:
             self._pending.clear()
@@ -387,10 +390,12 @@ class Odometer:
             plural = 'positions' if taken.switched == 'position' else 'velocities'
             self._note(f'wheel signal: integrating the wheel {plural} (wheel_signal '
                        f'{self.signal.mode})')
+        if taken.warning is not None:
+            self._reject(*taken.warning)
         if taken.speeds is None:
             self._reject(taken.cause, taken.detail)
             return None
-        return self.update(t_ns, *taken.speeds, now_ns)
+        return self.update(t_ns, *taken.speeds, now_ns, check_jump=not taken.by_position)
 
     def twist_sample(self, t_ns: int, v_m_s: float, w_rad_s: float, now_ns: int
                      ) -> Estimate | None:
@@ -451,7 +456,12 @@ class Odometer:
         else:
             status = gyro.buffer.add(t_ns, yaw_rate)
             self.counters['imu_' + status.value] += 1
-            if status is not GyroStatus.ACCEPTED:
+            if status is GyroStatus.CLOCK_RESET:
+                self._warn('imu_clock_reset', f'the gyro clock stepped back by '
+                           f'{gyro.buffer.stepped_back_s:.3f} s ({STEP_BACK_CONFIRM} samples in a '
+                           'row; IMU driver restarted?): gyro history dropped, the gyro is used '
+                           'again from its new clock')
+            elif status is not GyroStatus.ACCEPTED:
                 self._warn('imu_' + status.value,
                            f'gyro sample {status.value} (yaw rate {yaw_rate!r} rad/s, stamp '
                            f'{t_ns / NS_PER_S:.3f} s): not used')
@@ -467,19 +477,19 @@ class Odometer:
         gyro = self.gyro
         wait_ns = (gyro.params.max_wait if gyro is not None else 0.0) * NS_PER_S
         while pending:
-            t_ns, omega_l, omega_r, arrived_ns = pending[0]
+            t_ns, omega_l, omega_r, arrived_ns, check_jump = pending[0]
             if (gyro is not None and not gyro.buffer.ready(t_ns)
                     and now_ns - arrived_ns <= wait_ns):
                 break
             pending.popleft()
-            estimate = self._update_now(t_ns, omega_l, omega_r)
+            estimate = self._update_now(t_ns, omega_l, omega_r, check_jump)
             if estimate is not None:
                 out.append(estimate)
         return out
 
     # ------------------------------------------------------------------ the pipeline
     def update(self, t_ns: int, omega_l: float, omega_r: float,
-               now_ns: int | None = None) -> Estimate | None:
+               now_ns: int | None = None, check_jump: bool = True) -> Estimate | None:
         """Integrate a stamped sample; return what to publish for it, if anything.
 
         With the gyro in use, a sample whose interval the gyro does not cover yet waits (at
@@ -489,20 +499,22 @@ class Odometer:
         if self.gyro is not None:
             arrived = t_ns if now_ns is None else now_ns
             if self._pending or not self.gyro.buffer.ready(t_ns):
-                self._pending.append((t_ns, omega_l, omega_r, arrived))
+                self._pending.append((t_ns, omega_l, omega_r, arrived, check_jump))
                 if len(self._pending) > MAX_PENDING:  # never hold more than a few seconds
-                    return self._update_now(*self._pending.popleft()[:3])
+                    t, left, right, _, check = self._pending.popleft()
+                    return self._update_now(t, left, right, check)
                 return None
-        return self._update_now(t_ns, omega_l, omega_r)
+        return self._update_now(t_ns, omega_l, omega_r, check_jump)
 
-    def _update_now(self, t_ns: int, omega_l: float, omega_r: float) -> Estimate | None:
+    def _update_now(self, t_ns: int, omega_l: float, omega_r: float,
+                    check_jump: bool = True) -> Estimate | None:
         last = self.last_input_t_ns
         if last is not None and last - t_ns > self._step_back_ns:
             if not self._clock_restarted(t_ns):
                 return None
         elif self._step_back_run:
             self._step_back_run.clear()
-        result = self.step(t_ns, omega_l, omega_r)
+        result = self.step(t_ns, omega_l, omega_r, check_jump)
         status = result.status
         if status is not SampleStatus.INTEGRATED:  # the usual case first: this runs per sample
             if not status.accepted:
@@ -541,9 +553,14 @@ class Odometer:
                    'the origin')
         return True
 
-    def step(self, t_ns: int, omega_l: float, omega_r: float) -> StepResult:
-        """Integrate one sample and propagate the covariance; count and report the outcome."""
-        result = self.integrator.step(t_ns, omega_l, omega_r)
+    def step(self, t_ns: int, omega_l: float, omega_r: float,
+             check_jump: bool = True) -> StepResult:
+        """Integrate one sample and propagate the covariance; count and report the outcome.
+
+        ``check_jump`` False: the speeds are a travel between encoder positions, not readings
+        the wheel-jump rule applies to (or the reader applied it already).
+        """
+        result = self.integrator.step(t_ns, omega_l, omega_r, check_jump)
         status = result.status
         self.counters[status.value] += 1
         if status is SampleStatus.INTEGRATED:
@@ -576,6 +593,11 @@ class Odometer:
         """
         last = gyro.last
         self.counters['imu_interval_' + last.status.value] += 1
+        if gyro.news:
+            cause = ('imu_clock_ahead' if last.status is GyroStatus.CLOCK_AHEAD
+                     else 'imu_contradicts')
+            self._warn(cause, gyro.news, error=gyro.check.contradicts)
+            gyro.news = ''
         vx, vy, w = result.step_twist
         dt_s = result.dt_s
         noise = self.covariance.noise
@@ -629,7 +651,8 @@ class Odometer:
     def predict(self, wheels: WheelSamples, start: Sequence[float] = (0.0, 0.0, 0.0),
                 imu: ImuSamples | None = None,
                 restarts: Mapping[int, Sequence[float]] | None = None,
-                reference: PoseTrack | None = None) -> 'Prediction':
+                reference: PoseTrack | None = None,
+                jumps_dropped: bool = False) -> 'Prediction':
         """Restart at ``start`` and run every sample through :meth:`step`, as the node does.
 
         With the gyro in use, ``imu`` samples arrive in stamp order, as the node receives them:
@@ -641,6 +664,10 @@ class Odometer:
         then holds the pose covariance and the gain after every sample. ``reference`` (online
         calibration, a learner attached): reference poses handed over in stamp order, those
         stamped up to a wheel sample's stamp before it, as the node receives them.
+        ``jumps_dropped``: the
+        reader applied the wheel-jump rule already, exempting speeds measured by encoder
+        positions as the node does (a bag read with wheel_signal position or auto); the
+        integrator then does not apply it again.
         """
         self._restart(start)
         poses = np.empty((len(wheels), 3))
@@ -658,7 +685,7 @@ class Odometer:
                                                          wheels.omega_r)):
             feed.until(t_ns)
             references.until(t_ns)
-            result = self.step(int(t_ns), omega_l, omega_r)
+            result = self.step(int(t_ns), omega_l, omega_r, not jumps_dropped)
             poses[i] = result.pose
             twists[i] = result.twist
             pose_covs[i] = self.covariance.pose_covariance_flat()

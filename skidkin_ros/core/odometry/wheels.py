@@ -34,11 +34,25 @@ node would not reproduce the offline prediction:
    more than half a turn has wrapped: its travel is taken the short way round. A side whose
    speed would exceed ``max_wheel_speed`` is rejected like a bad speed, and the differences start
    again from the new positions (a driver that reset its counters is followed, not refused
-   forever); a non-finite position is rejected and the last good one kept. ``auto`` uses the
-   positions when they change and are finite, the velocities otherwise (a driver whose positions
-   never change, or a message without positions), and says which it uses when that changes; an
-   interval is always measured by one signal (using a velocity moves the position reference to
-   that sample).
+   forever); a non-finite position is rejected and the last good one kept, and so is one beyond
+   ``POSITION_LIMIT_RAD``, where float64 no longer resolves a count (at 1e16 rad neighbouring
+   floats are 2 rad apart: every travel would read 0). Positions that stay put while the
+   velocities say the wheel turned more than ``STALE_TRAVEL_RAD`` (a quarter turn: every encoder
+   counts more often) are frozen: ``position`` keeps integrating them (the user chose them) and
+   warns once (cause ``stale_position``).
+
+   ``auto`` measures the distance as ``position`` does wherever the positions are usable. Real
+   encoders are quantised: between two counts the position repeats while the wheel turns, and the
+   count that follows holds travel of several intervals. So once auto integrates positions, a
+   repeated position is zero travel, as under ``position``, never a switch to the velocity (that
+   counted the same travel twice: once by the velocity, once by the next count). The velocities
+   are integrated only where the positions cannot measure: a message without positions, a
+   non-finite or unresolvable one (the reference is then dropped), positions that never changed
+   yet (a driver that does not fill them), and frozen positions as above (said once). Back from
+   the velocities, the first changed position starts a new reference and its interval is still
+   measured by the velocity (the count it holds was partly integrated already), unless the
+   reference is the previous sample. auto says which signal it uses when that changes; an
+   interval is always measured by one signal.
 
 Times are integer nanoseconds; speeds rad/s.
 """
@@ -73,6 +87,8 @@ __all__ = [
     'positions_at',
     'SignalResult',
     'WheelSignal',
+    'POSITION_LIMIT_RAD',
+    'STALE_TRAVEL_RAD',
 ]
 
 WHEEL_SIGNALS = ('velocity', 'position', 'auto')
@@ -81,6 +97,12 @@ SIDES = ('left', 'right')
 # Wheel accelerations are measured over at least this long (s): at kHz rates one encoder count
 # between two samples is a large acceleration, not a glitch.
 MIN_JUMP_INTERVAL_S = 0.01
+# Beyond this |position| (rad), neighbouring float64 values are more than 1e-6 rad apart: a
+# count (1e-3 rad at 4096 counts per turn) is no longer resolved (the yaw limit's reasoning).
+POSITION_LIMIT_RAD = 1e-6 / 2.220446049250313e-16
+# Positions that do not change while the velocities integrate more than this (rad, a quarter
+# turn) are frozen: an encoder with four counts per turn or more changes within it.
+STALE_TRAVEL_RAD = math.pi / 2
 # Longest text of a name list echoed in a message (a hostile list may hold millions of names).
 NAMES_SHOWN_CHARS = 400
 
@@ -242,19 +264,23 @@ def jumped_sides(held: tuple[float, float], omega_l: float, omega_r: float, dt_s
 
 
 def drop_jumps(t_ns: Sequence[int], omega_l: Sequence[float], omega_r: Sequence[float],
-               max_acceleration: float, max_dt_s: float) -> tuple[list[bool], dict[str, int]]:
+               max_acceleration: float, max_dt_s: float,
+               by_position: Sequence[bool] | None = None) -> tuple[list[bool], dict[str, int]]:
     """Return which samples to keep (stamps increasing) and how many jumps each side had.
 
     The integrator's rule, run over a recording: a sample that jumps from the last kept one is
-    dropped; after a gap longer than ``max_dt_s`` the next sample is kept as it is.
+    dropped; after a gap longer than ``max_dt_s`` the next sample is kept as it is. Samples
+    ``by_position`` (speeds measured by encoder positions) are never dropped, and are the
+    reference of the next one, as in the node.
     """
     keep = []
     sides = {'left': 0, 'right': 0}
     last_t: int | None = None
     held = (0.0, 0.0)
-    for t, wl, wr in zip(t_ns, omega_l, omega_r):
+    exempt = [False] * len(t_ns) if by_position is None else list(by_position)
+    for t, wl, wr, measured in zip(t_ns, omega_l, omega_r, exempt):
         t = int(t)
-        if last_t is not None and (t - last_t) * 1e-9 <= max_dt_s:
+        if last_t is not None and not measured and (t - last_t) * 1e-9 <= max_dt_s:
             jumped = jumped_sides(held, wl, wr, (t - last_t) * 1e-9, max_acceleration)
             if jumped:
                 for side, _, _ in jumped:
@@ -295,14 +321,32 @@ class SignalResult(NamedTuple):
     """What :meth:`WheelSignal.take` made of one sample.
 
     ``speeds``: (omega_l, omega_r) to integrate, or None when the sample is rejected (``cause``:
-    'no_position', 'non_finite' or 'implausible', with ``detail``); ``switched``: the signal now
-    in use, when it changed with this sample.
+    'no_position', 'non_finite', 'position_range' or 'implausible', with ``detail``);
+    ``switched``: the signal now in use, when it changed with this sample; ``warning``: a
+    (cause, message) to report about an accepted sample (frozen positions); ``by_position``:
+    the speeds are a travel between positions (the jump rule is not theirs: one encoder count
+    over a short interval is a large change of speed, not a glitch).
     """
 
     speeds: tuple[float, float] | None
     cause: str = ''
     detail: str = ''
     switched: str = ''
+    warning: tuple[str, str] | None = None
+    by_position: bool = False
+
+
+def _usable(positions: tuple[Sequence[float], Sequence[float]] | None) -> str:
+    """Return why positions cannot measure travel ('' when they can)."""
+    if positions is None:
+        return 'no_position'
+    for side in positions:
+        for v in side:
+            if not math.isfinite(v):
+                return 'non_finite'
+            if abs(v) > POSITION_LIMIT_RAD:
+                return 'position_range'
+    return ''
 
 
 class WheelSignal:
@@ -321,10 +365,18 @@ class WheelSignal:
         self.in_use = 'position' if mode == 'position' else 'velocity'
         self._reference: tuple[int, tuple[float, ...], tuple[float, ...]] | None = None
         self._speeds = (0.0, 0.0)
+        # Frozen-position watch: the last stamp, the velocities' travel (rad per side) since the
+        # positions last changed, and whether that was already reported.
+        self._last_t_ns: int | None = None
+        self._unmeasured = [0.0, 0.0]
+        self._frozen = False
 
     def clear(self) -> None:
-        """Forget the position reference (after a reset or a clock change)."""
+        """Forget the position reference (after a reset, a clock change or new joints)."""
         self._reference = None
+        self._last_t_ns = None
+        self._unmeasured = [0.0, 0.0]
+        self._frozen = False
 
     def _use(self, signal: str) -> str:
         if signal == self.in_use:
@@ -337,28 +389,71 @@ class WheelSignal:
         mode = self.mode
         if mode == 'velocity':
             return SignalResult((omega_l, omega_r))
-        finite = positions is not None and all(
-            math.isfinite(v) for side in positions for v in side)
-        if mode == 'auto':
-            reference = self._reference
-            if not finite or reference is None or (tuple(positions[0]), tuple(positions[1])) == (
-                    reference[1], reference[2]):
-                self._reference = ((t_ns, tuple(positions[0]), tuple(positions[1])) if finite
-                                   else None)
+        why = _usable(positions)
+        if why:
+            if mode == 'auto':
+                self.clear()
                 return SignalResult((omega_l, omega_r), switched=self._use('velocity'))
-        elif positions is None:
-            return SignalResult(None, 'no_position', 'JointState has no positions but '
-                                'wheel_signal is position; sample rejected: publish the joint '
-                                'positions, or set wheel_signal to velocity or auto')
-        elif not finite:
-            return SignalResult(None, 'non_finite', f'wheel joint positions {positions} are not '
-                                'all finite (expected finite rad); sample rejected, the last '
-                                'finite positions kept')
-        return self._difference(t_ns, omega_l, omega_r, positions)
-
-    def _difference(self, t_ns: int, omega_l: float, omega_r: float,
-                    positions: tuple[Sequence[float], Sequence[float]]) -> SignalResult:
+            return SignalResult(None, why, _UNUSABLE[why].format(positions=positions,
+                                                                 limit=POSITION_LIMIT_RAD))
         left, right = tuple(positions[0]), tuple(positions[1])
+        previous_t = self._last_t_ns
+        frozen = self._watch(t_ns, omega_l, omega_r, left, right)
+        if mode == 'position':
+            result = self._difference(t_ns, omega_l, omega_r, left, right)
+            if frozen:
+                return result._replace(warning=('stale_position', frozen))
+            return result
+        return self._auto(t_ns, omega_l, omega_r, left, right, previous_t, frozen)
+
+    def _watch(self, t_ns: int, omega_l: float, omega_r: float, left: tuple[float, ...],
+               right: tuple[float, ...]) -> str:
+        """Track the velocities' travel while the positions stay put; say when they froze."""
+        reference = self._reference
+        last = self._last_t_ns
+        if last is None or t_ns > last:
+            self._last_t_ns = t_ns
+        if reference is None or (left, right) != (reference[1], reference[2]):
+            self._unmeasured = [0.0, 0.0]
+            self._frozen = False
+            return ''
+        if last is None or t_ns <= last:
+            return ''
+        dt_s = (t_ns - last) * 1e-9
+        for k, omega in enumerate((omega_l, omega_r)):
+            if math.isfinite(omega):
+                self._unmeasured[k] += omega * dt_s
+        travel = max(abs(v) for v in self._unmeasured)
+        if self._frozen or not travel > STALE_TRAVEL_RAD:
+            return ''
+        self._frozen = True
+        return (f'wheel joint positions {list(left)} / {list(right)} rad have not changed while '
+                f'the wheel velocities say the wheels turned {travel:.3g} rad (more than '
+                f'{STALE_TRAVEL_RAD:.3g} rad, a quarter turn): the encoder positions look frozen')
+
+    def _auto(self, t_ns: int, omega_l: float, omega_r: float, left: tuple[float, ...],
+              right: tuple[float, ...], previous_t: int | None, frozen: str) -> SignalResult:
+        reference = self._reference
+        if reference is None:  # nothing to difference yet: the velocities measure
+            self._reference = (t_ns, left, right)
+            return SignalResult((omega_l, omega_r), switched=self._use('velocity'))
+        changed = (left, right) != (reference[1], reference[2])
+        if self.in_use == 'position':
+            if frozen:   # the positions froze: the velocities measure until they move again
+                return SignalResult((omega_l, omega_r), switched=self._use('velocity'),
+                                    warning=('stale_position', frozen + '; wheel_signal auto '
+                                             'integrates the velocities until they change'))
+            return self._difference(t_ns, omega_l, omega_r, left, right)
+        if not changed:
+            return SignalResult((omega_l, omega_r))
+        if reference[0] != previous_t:
+            # The count this sample adds was partly integrated by the velocities already.
+            self._reference = (t_ns, left, right)
+            return SignalResult((omega_l, omega_r), switched=self._use('position'))
+        return self._difference(t_ns, omega_l, omega_r, left, right)
+
+    def _difference(self, t_ns: int, omega_l: float, omega_r: float, left: tuple[float, ...],
+                    right: tuple[float, ...]) -> SignalResult:
         reference = self._reference
         if reference is None:  # the first positions: nothing to difference yet
             self._reference = (t_ns, left, right)
@@ -366,7 +461,7 @@ class WheelSignal:
             return SignalResult(speeds, switched=self._use('position'))
         dt_ns = t_ns - reference[0]
         if dt_ns <= 0:  # a duplicate or older stamp: the integrator says which, and skips it
-            return SignalResult(self._speeds)
+            return SignalResult(self._speeds, by_position=True)
         dt_s = dt_ns * 1e-9
         speeds = []
         for side, before, after in (('left', reference[1], left), ('right', reference[2], right)):
@@ -381,4 +476,15 @@ class WheelSignal:
             speeds.append(speed)
         self._reference = (t_ns, left, right)
         self._speeds = (speeds[0], speeds[1])
-        return SignalResult(self._speeds, switched=self._use('position'))
+        return SignalResult(self._speeds, switched=self._use('position'), by_position=True)
+
+
+_UNUSABLE = {
+    'no_position': ('JointState has no positions but wheel_signal is position; sample rejected: '
+                    'publish the joint positions, or set wheel_signal to velocity or auto'),
+    'non_finite': ('wheel joint positions {positions} are not all finite (expected finite rad); '
+                   'sample rejected, the last finite positions kept'),
+    'position_range': ('wheel joint positions {positions} lie beyond {limit:.3g} rad, where '
+                       'float64 no longer resolves an encoder count (every travel would read '
+                       '0); sample rejected: make the driver wrap or reset its counters'),
+}
