@@ -41,11 +41,12 @@ import icp_settings
 import lidar_bench
 import node_bench
 import report
+import segments_bench
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.models import MODEL_NAMES
 from skidkin_ros.core.parallel import one_blas_thread, usable_cpus
 
-PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis', 'heading')
+PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis', 'heading', 'segments')
 
 
 @dataclass(frozen=True)
@@ -196,6 +197,8 @@ def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
 def _empty(part: str) -> dict[str, Any]:
     if part == 'node':
         return {'suts': [], 'not_run': {}, 'ladder_hz': [], 'plan': []}
+    if part == 'segments':
+        return {'rows': []}
     if part in ('diagnosis', 'heading'):
         return {'available': False, 'reason': 'not run (--only)', 'rows': []}
     if part == 'lidar':
@@ -243,6 +246,10 @@ def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
     if 'heading' in parts:
         print('heading benchmark (Husky, plain window-end reference)', flush=True)
         results['heading'] = heading_bench.run()
+    if 'segments' in parts:
+        print('window ends on the Husky and a Warthog-like simulation (written vs plain)',
+              flush=True)
+        results['segments'] = segments_bench.run(sim_steps=30 if smoke else 150)
     results['elapsed_s'] = time.perf_counter() - tic
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / 'results.json', json.dumps(results, indent=1, default=str),

@@ -75,6 +75,7 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.core.odometry.noise import NOISE_SPECS
+from skidkin_ros.core.parallel import fork_map, usable_cpus
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
 __all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best', 'noise_warnings',
@@ -110,6 +111,7 @@ class CalibrationOptions(HorizonOptions):
     selection: str = 'likelihood'
     window_s: float = 2.0
     segments: str = 'rotation'
+    jobs: int = 0   # models calibrated in parallel; 0: every usable CPU (no effect on results)
 
     def __post_init__(self) -> None:
         if self.segments not in TRAIN_SEGMENTS:
@@ -247,10 +249,10 @@ def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
     train, evaluate, holdout = resolve_holdout(train, evaluate, options.holdout_every,
                                                options.holdout_mode, options.holdout_block_s,
                                                options.holdout_key)
-    first = _calibrate_resolved(train, evaluate, holdout, geometry,
-                                replace(options, interval=intervals[0]))
+    first, gyro = _calibrate_resolved(train, evaluate, holdout, geometry,
+                                      replace(options, interval=intervals[0]), gyro=True)
     if len(intervals) == 1:
-        return _add_plain_reference(_add_gyro(first, train, evaluate), train, evaluate)
+        return _add_plain_reference(_add_gyro(first, train, evaluate, gyro), train, evaluate)
     model = first.best
     errors = {intervals[0]: _median_errors(first.evaluation[model])}
     for interval in intervals[1:]:
@@ -258,9 +260,10 @@ def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
                                             replace(options, interval=interval))
     chosen, _ = choose_interval(errors)
     if chosen != intervals[0]:
-        first = _calibrate_resolved(train, evaluate, holdout, geometry,
-                                    replace(options, interval=chosen))
-    result = _with_interval_errors(_add_gyro(first, train, evaluate), errors)
+        # the gyro fit does not depend on the convention: kept
+        first, _ = _calibrate_resolved(train, evaluate, holdout, geometry,
+                                       replace(options, interval=chosen))
+    result = _with_interval_errors(_add_gyro(first, train, evaluate, gyro), errors)
     return _add_plain_reference(result, train, evaluate)
 
 
@@ -344,37 +347,45 @@ def calibrate(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     train, evaluate, holdout = resolve_holdout(train, evaluate, options.holdout_every,
                                                options.holdout_mode, options.holdout_block_s,
                                                options.holdout_key)
-    result = _calibrate_resolved(train, evaluate, holdout, geometry, options)
-    return _add_plain_reference(_add_gyro(result, train, evaluate), train, evaluate)
+    result, gyro = _calibrate_resolved(train, evaluate, holdout, geometry, options, gyro=True)
+    return _add_plain_reference(_add_gyro(result, train, evaluate, gyro), train, evaluate)
 
 
 def _calibrate_resolved(train: Sequence[Drive], evaluate: Sequence[Drive], holdout: str,
-                        geometry: Geometry, options: CalibrationOptions) -> CalibrationResult:
-    """Steps 1-5 of the recipe on drives already split into training and evaluation."""
+                        geometry: Geometry, options: CalibrationOptions,
+                        gyro: bool = False
+                        ) -> tuple[CalibrationResult, GyroFit | str | None]:
+    """Steps 1-5 of the recipe on drives already split into training and evaluation.
+
+    ``gyro``: also fit the gyro on the training drives (step 6's first part, independent of
+    the models), as one more parallel task. Returns (result, the gyro fit or why there is none;
+    None when not asked or without a gyro), for :func:`_add_gyro`.
+    """
     train_seg = usable_segments(train, options.train_segments(), 'training',
                                 needed_by='a calibration')
     eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation',
                                needed_by='a calibration')
     models = tuple(dict.fromkeys(('ideal_dd',) + tuple(options.models)))
-    fits = fit_models_weighted(geometry, train_seg, options.fit_options(), models,
-                               options.weighting)
-    evaluation = evaluate_models({m: f.values for m, f in fits.items()}, geometry, eval_seg,
-                                 options.min_eval_path_m)
     windows = cut_segments(evaluate, replace(options.eval_segments(), horizon_s=options.window_s))
-    window_end = {m: window_end_errors(m, f.values, geometry, windows) for m, f in fits.items()}
-    noise = {}
-    warnings = [w for fit in fits.values() for w in fit.warnings]
     other = {h: cut_segments(evaluate, seg) for h, seg in options.noise_horizons().items()}
-    for name, fit in fits.items():
-        param_cov = fit.covariance if options.parameter_covariance else None
-        try:
-            noise[name] = calibrate_noise(name, fit.values, geometry, eval_seg, other, param_cov,
-                                          options.h_e, options.noise_constant,
-                                          options.noise_time)
-        except DataError as err:
-            warnings.append(f'{name}: noise model not calibrated: {err}')
-            continue
-        warnings += noise_warnings(noise[name])
+    clusters = None
+    if options.selection == 'likelihood':
+        clusters = segment_clusters(eval_seg, evaluate, options.holdout_key)
+    work = _ModelWork(geometry, options, train_seg, eval_seg, windows, other, clusters,
+                      tuple(train) if gyro else ())
+    # The costliest tasks first, so the workers finish together.
+    order = sorted(models, key=lambda m: -len(get_model(m).params))
+    if gyro and any(drive.imu is not None for drive in train):
+        order = [_GYRO_TASK] + order
+    done = dict(zip(order, fork_map(work, order, _jobs(options.jobs))))
+    gyro_outcome = done.pop(_GYRO_TASK, None)
+    fits = {m: done[m].fit for m in models}
+    evaluation = {m: done[m].evaluation for m in models}
+    window_end = {m: done[m].window_end for m in models}
+    noise = {m: done[m].noise for m in models if done[m].noise is not None}
+    warnings = [w for m in models for w in fits[m].warnings]
+    for m in models:
+        warnings += done[m].noise_warnings
     counts = train_seg.counts
     if counts.stationary:
         warnings.append(f'{counts.stationary} training segment(s) without motion were excluded')
@@ -382,8 +393,7 @@ def _calibrate_resolved(train: Sequence[Drive], evaluate: Sequence[Drive], holdo
     likelihood, rule = {}, 'paper'
     if options.selection == 'likelihood':
         try:
-            best, likelihood = _choose_by_likelihood(fits, geometry, eval_seg, evaluate,
-                                                     options.holdout_key)
+            best, likelihood = _choose_by_likelihood(fits, done, clusters)
             rule = 'likelihood'
         except DataError as err:
             warnings.append(f'best model chosen on eps_t and eps_theta: {err}')
@@ -402,20 +412,20 @@ def _calibrate_resolved(train: Sequence[Drive], evaluate: Sequence[Drive], holdo
     result = CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
                                tuple(warnings), train_seg, eval_seg, holdout, provenance,
                                likelihood, window_end, rule)
-    return result
+    return result, gyro_outcome
 
 
-def _add_gyro(result: CalibrationResult, train: Sequence[Drive],
-              evaluate: Sequence[Drive]) -> CalibrationResult:
+def _add_gyro(result: CalibrationResult, train: Sequence[Drive], evaluate: Sequence[Drive],
+              outcome: GyroFit | str | None = None) -> CalibrationResult:
     """Step 6 of the recipe: the gyro, when the training drives have one."""
     warnings = list(result.warnings)
     gyro = None
     if any(drive.imu is not None for drive in train):
-        try:
-            gyro = fit_gyro(train)
-        except (DataError, FitError) as err:
-            warnings.append(f'gyro not calibrated (imu.* not written): {err}')
+        outcome = outcome if outcome is not None else _fit_gyro_outcome(train)
+        if isinstance(outcome, str):
+            warnings.append(f'gyro not calibrated (imu.* not written): {outcome}')
         else:
+            gyro = outcome
             if gyro.at_grid_edge:
                 warnings.append(f'gyro time offset {gyro.time_offset:+.3f} s is at the edge of '
                                 'the searched range: the gyro and wheel clocks may differ by '
@@ -430,7 +440,8 @@ def _add_gyro(result: CalibrationResult, train: Sequence[Drive],
             r_floor, r_rel, count = fit_filter_noise(config, evaluate)
             gyro = replace(gyro, r_floor=r_floor, r_rel=r_rel, r_intervals=count)
             config = replace(config, values={**config.values, **gyro_parameters(gyro)})
-            scale, windows = fit_adapt_yaw_scale(config, evaluate, eval_seg)
+            scale, windows = fit_adapt_yaw_scale(config, evaluate, eval_seg,
+                                                 _jobs(result.options.jobs))
             gyro = replace(gyro, adapt_yaw_scale=scale, scale_windows=windows)
         except (DataError, FitError, ParameterError) as err:
             result = replace(result, warnings=result.warnings + (
@@ -440,13 +451,89 @@ def _add_gyro(result: CalibrationResult, train: Sequence[Drive],
     return result
 
 
-def _choose_by_likelihood(fits: Mapping[str, FitResult], geometry: Geometry,
-                          eval_seg: SegmentSet, evaluate: Sequence[Drive],
-                          key: str | None) -> tuple[str, dict[str, Likelihood]]:
+_GYRO_TASK = '(gyro)'
+
+
+def _fit_gyro_outcome(train: Sequence[Drive]) -> GyroFit | str:
+    """Return the gyro fit on the training drives, or why there is none."""
+    try:
+        return fit_gyro(train)
+    except (DataError, FitError) as err:
+        return str(err)
+
+
+@dataclass(frozen=True)
+class _ModelResult:
+    """Everything :func:`calibrate` computes for one model on its own (one task)."""
+
+    fit: FitResult
+    evaluation: ModelEvaluation
+    window_end: WindowEnd
+    noise: NoiseFit | None
+    noise_warnings: tuple[str, ...]
+    nll: np.ndarray | None
+    nll_error: str | None
+
+
+@dataclass(frozen=True)
+class _ModelWork:
+    """One model's fit, scores, noise and held-out likelihood: independent of the others.
+
+    So the models are calibrated in parallel (forked workers,
+    :func:`skidkin_ros.core.parallel.fork_map`); the result does not depend on their number.
+    """
+
+    geometry: Geometry
+    options: CalibrationOptions
+    train_seg: SegmentSet
+    eval_seg: SegmentSet
+    windows: SegmentSet
+    other: Mapping[float, SegmentSet]
+    clusters: np.ndarray | None
+    gyro_train: tuple[Drive, ...] = ()
+
+    def __call__(self, name: str) -> _ModelResult | GyroFit | str:
+        if name == _GYRO_TASK:
+            return _fit_gyro_outcome(self.gyro_train)
+        options, geometry = self.options, self.geometry
+        fit = fit_models_weighted(geometry, self.train_seg, options.fit_options(), (name,),
+                                  options.weighting)[name]
+        evaluation = evaluate_models({name: fit.values}, geometry, self.eval_seg,
+                                     options.min_eval_path_m)[name]
+        window_end = window_end_errors(name, fit.values, geometry, self.windows)
+        param_cov = fit.covariance if options.parameter_covariance else None
+        noise, notes = None, []
+        try:
+            noise = calibrate_noise(name, fit.values, geometry, self.eval_seg, self.other,
+                                    param_cov, options.h_e, options.noise_constant,
+                                    options.noise_time)
+            notes = noise_warnings(noise)
+        except DataError as err:
+            notes = [f'{name}: noise model not calibrated: {err}']
+        nll, nll_error = None, None
+        if self.clusters is not None and fit.valid:
+            try:
+                nll = heldout_nll(name, fit.values, geometry, self.eval_seg, self.clusters)
+            except DataError as err:
+                nll_error = str(err)
+        return _ModelResult(fit, evaluation, window_end, noise, tuple(notes), nll, nll_error)
+
+
+def _jobs(jobs: int) -> int:
+    return usable_cpus() if jobs <= 0 else jobs
+
+
+def _choose_by_likelihood(fits: Mapping[str, FitResult], done: Mapping[str, _ModelResult],
+                          clusters: np.ndarray) -> tuple[str, dict[str, Likelihood]]:
     """Held-out NLL of every valid fit, then the rule of selection.choose_by_likelihood."""
-    clusters = segment_clusters(eval_seg, evaluate, key)
     valid = [m for m, f in fits.items() if f.valid]
-    nll = {m: heldout_nll(m, fits[m].values, geometry, eval_seg, clusters) for m in valid}
+    errors = [done[m].nll_error for m in valid if done[m].nll_error]
+    if errors:
+        raise DataError(errors[0])
+    if np.unique(clusters).size < 2:
+        raise DataError('the held-out likelihood needs evaluation data from at least 2 drives '
+                        'or hold-out groups')
+    nll = {m: done[m].nll for m in valid}
     return choose_by_likelihood(nll, clusters, {m: len(get_model(m).params) for m in valid})
 
 
