@@ -5,7 +5,8 @@ transients), each split by ``calib_step`` (even steps train, odd steps evaluate)
 
 * **husky**: the real Husky table of ``data/husky``;
 * **warthog_sim**: a Warthog-like robot simulated by
-  :func:`skidkin_ros.sim.windows.simulate_windows` (r = 0.3 m, b = 1.2 m, asymmetric treads, acceleration slip, a first-order body lag and a
+  :func:`skidkin_ros.sim.windows.simulate_windows` (r = 0.3 m, b = 1.2 m, asymmetric treads,
+  acceleration slip, a first-order body lag and a
   yaw-rate loss at high wheel-speed ratios: transients and effects no kinematic model has).
 
 For each training-segment scheme (``rotation``, ``paper``, ``time``) the calibration is run as

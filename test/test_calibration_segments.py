@@ -21,7 +21,7 @@ WARTHOG = Geometry(WARTHOG_LIKE.wheel_radius, WARTHOG_LIKE.track_width)
 
 @pytest.fixture(scope='module')
 def windows():
-    """A small DRIVE-like recording of the Warthog-like robot: 40 steps of 3 windows."""
+    """Simulate a small DRIVE-like Warthog recording: 40 steps of 3 windows."""
     return simulate_windows(replace(WARTHOG_LIKE, steps=40, seed=5))
 
 
@@ -70,6 +70,18 @@ def test_the_written_model_is_shown_beside_its_plain_window_end_fit(windows):
     assert written.yaw_rad <= result.plain_window_end.yaw_rad
     assert min(written.position_m / result.plain_window_end.position_m,
                written.yaw_rad / result.plain_window_end.yaw_rad) <= 0.9
+    # C174: where the written covariance is outside its NEES band, the calibrator says why
+    fit = result.noise[result.best]
+    outside = [c for c in fit.consistency.horizons
+               if c.verdict in ('conservative', 'over-confident')]
+    assert outside  # measured here: conservative at every horizon (coverage scale > 1)
+    notes = [w for w in result.warnings if w.startswith(f'{result.best}: ')
+             and ('cannot be inside the band' in w or 'shorter than their horizon' in w)]
+    for check in outside:
+        assert any(f'{check.horizon_m:g}' in note for note in notes), check
+    if any(c.verdict == 'conservative' for c in outside):
+        assert fit.coverage_scale > 1.0
+        assert any('heavier-tailed than a Gaussian' in note for note in notes)
 
 
 @pytest.mark.heavy

@@ -151,7 +151,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--segments', choices=TRAIN_SEGMENTS, default='rotation',
                         help='training segments: rotation (default: closed after --h-t of path '
                         'or 1 rad of turning, whichever comes first, so spins are fitted too), '
-                        "paper (after --h-t of path only, as Baril et al. 2020) or time "
+                        'paper (after --h-t of path only, as Baril et al. 2020) or time '
                         '(windows of 2 s)')
     parser.add_argument('--selection', choices=SELECTIONS, default='likelihood',
                         help='best-model rule: held-out likelihood (counts heading) or the '

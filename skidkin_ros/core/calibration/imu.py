@@ -373,6 +373,7 @@ def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segment
     if count < MIN_WINDOWS:
         raise DataError(f'{count} held-out segments start and end on wheel samples; the '
                         f"scale of adapt's heading noise needs at least {MIN_WINDOWS}")
+
     def heading(share: float) -> tuple[np.ndarray, np.ndarray]:
         values = {**config.values, 'imu.mode': 'adapt', 'imu.adapt.yaw_noise_scale': share}
         errors, covs, _ = run_windows(replace(config, values=values), drives, segments, windows)

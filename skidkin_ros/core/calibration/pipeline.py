@@ -78,7 +78,7 @@ from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.core.parallel import fork_map, usable_cpus
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
-__all__ = ['CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best', 'noise_warnings',
+__all__ = ['band_notes', 'CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best', 'noise_warnings',
            'calibrate_interval', 'choose_interval', 'INTERVAL_SEARCHES', 'TRAIN_SEGMENTS',
            'plain_window_fit',
            'result_to_parameters', 'horizon_study', 'HorizonStudy', 'SELECTIONS']
@@ -324,7 +324,7 @@ def _with_interval_errors(result: CalibrationResult,
 def _calibrate_interval_full(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
                              geometry: Geometry, options: CalibrationOptions,
                              intervals: tuple[str, ...]) -> CalibrationResult:
-    """The earlier search: the whole recipe under every convention (``interval_search='full'``)."""
+    """Run the earlier search: the whole recipe per convention (``interval_search='full'``)."""
     first = calibrate(train, evaluate, geometry, replace(options, interval=intervals[0]))
     if len(intervals) == 1:
         return first
@@ -355,7 +355,7 @@ def _calibrate_resolved(train: Sequence[Drive], evaluate: Sequence[Drive], holdo
                         geometry: Geometry, options: CalibrationOptions,
                         gyro: bool = False
                         ) -> tuple[CalibrationResult, GyroFit | str | None]:
-    """Steps 1-5 of the recipe on drives already split into training and evaluation.
+    """Run steps 1-5 of the recipe on drives already split into training and evaluation.
 
     ``gyro``: also fit the gyro on the training drives (step 6's first part, independent of
     the models), as one more parallel task. Returns (result, the gyro fit or why there is none;
@@ -397,6 +397,9 @@ def _calibrate_resolved(train: Sequence[Drive], evaluate: Sequence[Drive], holdo
             rule = 'likelihood'
         except DataError as err:
             warnings.append(f'best model chosen on eps_t and eps_theta: {err}')
+    if best in noise:
+        sets = {**other, options.h_e: eval_seg}
+        warnings += band_notes(noise[best], {h: s.path_m for h, s in sets.items()})
     provenance = {
         'tool': f'skidkin_ros {__version__}',
         'train_drives': len(train), 'evaluate_drives': len(evaluate),
@@ -535,6 +538,45 @@ def _choose_by_likelihood(fits: Mapping[str, FitResult], done: Mapping[str, _Mod
                         'or hold-out groups')
     nll = {m: done[m].nll for m in valid}
     return choose_by_likelihood(nll, clusters, {m: len(get_model(m).params) for m in valid})
+
+
+def band_notes(fit: NoiseFit, path_m: Mapping[float, np.ndarray]) -> list[str]:
+    """Say why the written model's covariance is outside its NEES band where it is.
+
+    ``path_m``: the held-out segments' path lengths by horizon. Two reasons are stated when the
+    numbers show them: a coverage scale > 1 (errors heavier-tailed than a Gaussian: at the
+    maximum-likelihood scale fewer than 95 % fit inside, so the covariance that holds 95 %
+    is conservative on average); and horizons whose segments are mostly whole windows shorter
+    than the horizon (a windowed recording), where the check repeats the shorter ones.
+    """
+    out = []
+    checks = [c for c in fit.consistency.horizons if c.verdict in ('conservative',
+                                                                   'over-confident')]
+    conservative = [c for c in checks if c.verdict == 'conservative']
+    if conservative and fit.coverage_scale > 1.0:
+        where = ', '.join(f'{c.horizon_m:g}' for c in conservative)
+        nees = ', '.join(f'{c.mean_nees:.2f}' for c in conservative)
+        out.append(f'{fit.model}: the covariance is conservative at {where} m (average NEES '
+                   f'{nees}; band about [{conservative[0].band[0]:.2f}, '
+                   f'{conservative[0].band[1]:.2f}]) and cannot be inside the band while it '
+                   f'holds 95 % of the held-out errors: it is scaled by '
+                   f'{fit.coverage_scale:.2f} to hold them, because these errors are '
+                   'heavier-tailed than a Gaussian (at the maximum-likelihood scale fewer than '
+                   '95 % fit inside); the 95 % coverage is kept')
+    short = {}
+    for check in checks:
+        paths = path_m.get(check.horizon_m)
+        if paths is not None and paths.size:
+            share = float(np.mean(paths < 0.9 * check.horizon_m))
+            if share > 0.5:
+                short[check.horizon_m] = share
+    if short:
+        out.append(f'{fit.model}: ' + ' / '.join(f'{v * 100:.0f} %' for v in short.values())
+                   + ' of the held-out ' + ' / '.join(f'{h:g}' for h in short)
+                   + ' m segments are whole drives or windows shorter than their horizon (a '
+                   'windowed recording): the checks there test the covariance on those '
+                   'shorter stretches, not at these lengths')
+    return out
 
 
 def noise_warnings(fit: NoiseFit) -> list[str]:
