@@ -249,20 +249,23 @@ def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
     train, evaluate, holdout = resolve_holdout(train, evaluate, options.holdout_every,
                                                options.holdout_mode, options.holdout_block_s,
                                                options.holdout_key)
-    first, gyro = _calibrate_resolved(train, evaluate, holdout, geometry,
-                                      replace(options, interval=intervals[0]), gyro=True)
+    stage = _fit_stage(train, evaluate, holdout, geometry,
+                       replace(options, interval=intervals[0]), gyro=True)
+    gyro = stage.gyro
     if len(intervals) == 1:
-        return _add_plain_reference(_add_gyro(first, train, evaluate, gyro), train, evaluate)
-    model = first.best
-    errors = {intervals[0]: _median_errors(first.evaluation[model])}
+        return _add_plain_reference(_add_gyro(_noise_stage(stage), train, evaluate, gyro),
+                                    train, evaluate)
+    model = stage.best
+    errors = {intervals[0]: _median_errors(stage.done[model].evaluation)}
     for interval in intervals[1:]:
         errors[interval] = _interval_errors(model, train, evaluate, geometry,
                                             replace(options, interval=interval))
     chosen, _ = choose_interval(errors)
     if chosen != intervals[0]:
-        # the gyro fit does not depend on the convention: kept
-        first, _ = _calibrate_resolved(train, evaluate, holdout, geometry,
-                                       replace(options, interval=chosen))
+        # the gyro fit does not depend on the convention: kept; the noise is calibrated
+        # only under the convention that is written
+        stage = _fit_stage(train, evaluate, holdout, geometry, replace(options, interval=chosen))
+    first = _noise_stage(stage)
     result = _with_interval_errors(_add_gyro(first, train, evaluate, gyro), errors)
     return _add_plain_reference(result, train, evaluate)
 
@@ -361,6 +364,32 @@ def _calibrate_resolved(train: Sequence[Drive], evaluate: Sequence[Drive], holdo
     the models), as one more parallel task. Returns (result, the gyro fit or why there is none;
     None when not asked or without a gyro), for :func:`_add_gyro`.
     """
+    stage = _fit_stage(train, evaluate, holdout, geometry, options, gyro)
+    return _noise_stage(stage), stage.gyro
+
+
+@dataclass(frozen=True)
+class _Stage:
+    """The fits, scores and model choice of one convention, before the noise (step 4)."""
+
+    train: Sequence[Drive]
+    evaluate: Sequence[Drive]
+    holdout: str
+    options: CalibrationOptions
+    work: '_ModelWork'
+    models: tuple[str, ...]
+    done: Mapping[str, '_ModelResult']
+    best: str
+    scores: dict[str, float]
+    likelihood: dict[str, Likelihood]
+    rule: str
+    selection_warnings: tuple[str, ...]
+    gyro: GyroFit | str | None
+
+
+def _fit_stage(train: Sequence[Drive], evaluate: Sequence[Drive], holdout: str,
+               geometry: Geometry, options: CalibrationOptions, gyro: bool = False) -> _Stage:
+    """Steps 1-3 and 5: fit, score and choose, every model a parallel task (and the gyro)."""
     train_seg = usable_segments(train, options.train_segments(), 'training',
                                 needed_by='a calibration')
     eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation',
@@ -380,42 +409,54 @@ def _calibrate_resolved(train: Sequence[Drive], evaluate: Sequence[Drive], holdo
     done = dict(zip(order, fork_map(work, order, _jobs(options.jobs))))
     gyro_outcome = done.pop(_GYRO_TASK, None)
     fits = {m: done[m].fit for m in models}
-    evaluation = {m: done[m].evaluation for m in models}
-    window_end = {m: done[m].window_end for m in models}
-    noise = {m: done[m].noise for m in models if done[m].noise is not None}
-    warnings = [w for m in models for w in fits[m].warnings]
-    for m in models:
-        warnings += done[m].noise_warnings
-    counts = train_seg.counts
-    if counts.stationary:
-        warnings.append(f'{counts.stationary} training segment(s) without motion were excluded')
-    best, scores = choose_best(fits, evaluation)
-    likelihood, rule = {}, 'paper'
+    best, scores = choose_best(fits, {m: done[m].evaluation for m in models})
+    likelihood, rule, notes = {}, 'paper', []
     if options.selection == 'likelihood':
         try:
             best, likelihood = _choose_by_likelihood(fits, done, clusters)
             rule = 'likelihood'
         except DataError as err:
-            warnings.append(f'best model chosen on eps_t and eps_theta: {err}')
+            notes.append(f'best model chosen on eps_t and eps_theta: {err}')
+    return _Stage(train, evaluate, holdout, options, work, models, done, best, scores,
+                  likelihood, rule, tuple(notes), gyro_outcome)
+
+
+def _noise_stage(stage: _Stage) -> CalibrationResult:
+    """Step 4 for every model (parallel tasks), then the result of steps 1-5."""
+    options, work, models, done = stage.options, stage.work, stage.models, stage.done
+    fits = {m: done[m].fit for m in models}
+    order = sorted(models, key=lambda m: -len(get_model(m).params))
+    calibrated = dict(zip(order, fork_map(work, [(_NOISE_TASK, m, fits[m]) for m in order],
+                                          _jobs(options.jobs))))
+    noise = {m: calibrated[m][0] for m in models if calibrated[m][0] is not None}
+    warnings = [w for m in models for w in fits[m].warnings]
+    for m in models:
+        warnings += calibrated[m][1]
+    counts = work.train_seg.counts
+    if counts.stationary:
+        warnings.append(f'{counts.stationary} training segment(s) without motion were excluded')
+    warnings += stage.selection_warnings
+    best = stage.best
     if best in noise:
-        sets = {**other, options.h_e: eval_seg}
+        sets = {**work.other, options.h_e: work.eval_seg}
         warnings += band_notes(noise[best], {h: s.path_m for h, s in sets.items()})
     provenance = {
         'tool': f'skidkin_ros {__version__}',
-        'train_drives': len(train), 'evaluate_drives': len(evaluate),
-        'train_segments': len(train_seg), 'evaluate_segments': len(eval_seg),
-        'holdout': holdout, 'options': options.as_dict(),
+        'train_drives': len(stage.train), 'evaluate_drives': len(stage.evaluate),
+        'train_segments': len(work.train_seg), 'evaluate_segments': len(work.eval_seg),
+        'holdout': stage.holdout, 'options': options.as_dict(),
         'noise_coverage_scale': {name: round(nf.coverage_scale, 4) for name, nf in noise.items()},
         'noise_heldout_horizons_m': [options.h_e * f for f in
                                      sorted(set(options.noise_horizon_factors) | {1.0})],
         'noise_heldout_nees': {name: [round(c.mean_nees, 3) for c in nf.consistency.horizons]
                                for name, nf in noise.items()},
     }
-    provenance['selection'] = rule
-    result = CalibrationResult(geometry, options, fits, evaluation, noise, best, scores,
-                               tuple(warnings), train_seg, eval_seg, holdout, provenance,
-                               likelihood, window_end, rule)
-    return result, gyro_outcome
+    provenance['selection'] = stage.rule
+    return CalibrationResult(work.geometry, options, fits,
+                             {m: done[m].evaluation for m in models}, noise, best, stage.scores,
+                             tuple(warnings), work.train_seg, work.eval_seg, stage.holdout,
+                             provenance, stage.likelihood,
+                             {m: done[m].window_end for m in models}, stage.rule)
 
 
 def _add_gyro(result: CalibrationResult, train: Sequence[Drive], evaluate: Sequence[Drive],
@@ -455,6 +496,7 @@ def _add_gyro(result: CalibrationResult, train: Sequence[Drive], evaluate: Seque
 
 
 _GYRO_TASK = '(gyro)'
+_NOISE_TASK = '(noise)'
 
 
 def _fit_gyro_outcome(train: Sequence[Drive]) -> GyroFit | str:
@@ -472,15 +514,13 @@ class _ModelResult:
     fit: FitResult
     evaluation: ModelEvaluation
     window_end: WindowEnd
-    noise: NoiseFit | None
-    noise_warnings: tuple[str, ...]
     nll: np.ndarray | None
     nll_error: str | None
 
 
 @dataclass(frozen=True)
 class _ModelWork:
-    """One model's fit, scores, noise and held-out likelihood: independent of the others.
+    """One model's fit, scores, held-out likelihood, or noise: independent of the others.
 
     So the models are calibrated in parallel (forked workers,
     :func:`skidkin_ros.core.parallel.fork_map`); the result does not depend on their number.
@@ -495,31 +535,40 @@ class _ModelWork:
     clusters: np.ndarray | None
     gyro_train: tuple[Drive, ...] = ()
 
-    def __call__(self, name: str) -> _ModelResult | GyroFit | str:
-        if name == _GYRO_TASK:
+    def __call__(self, item):
+        """Run one task: a model's fit and scores, a model's noise (a tuple), or the gyro."""
+        if item == _GYRO_TASK:
             return _fit_gyro_outcome(self.gyro_train)
+        if isinstance(item, tuple):
+            _, name, fit = item
+            return self.noise(name, fit)
+        return self.fit(item)
+
+    def fit(self, name: str) -> _ModelResult:
         options, geometry = self.options, self.geometry
         fit = fit_models_weighted(geometry, self.train_seg, options.fit_options(), (name,),
                                   options.weighting)[name]
         evaluation = evaluate_models({name: fit.values}, geometry, self.eval_seg,
                                      options.min_eval_path_m)[name]
         window_end = window_end_errors(name, fit.values, geometry, self.windows)
-        param_cov = fit.covariance if options.parameter_covariance else None
-        noise, notes = None, []
-        try:
-            noise = calibrate_noise(name, fit.values, geometry, self.eval_seg, self.other,
-                                    param_cov, options.h_e, options.noise_constant,
-                                    options.noise_time)
-            notes = noise_warnings(noise)
-        except DataError as err:
-            notes = [f'{name}: noise model not calibrated: {err}']
         nll, nll_error = None, None
         if self.clusters is not None and fit.valid:
             try:
                 nll = heldout_nll(name, fit.values, geometry, self.eval_seg, self.clusters)
             except DataError as err:
                 nll_error = str(err)
-        return _ModelResult(fit, evaluation, window_end, noise, tuple(notes), nll, nll_error)
+        return _ModelResult(fit, evaluation, window_end, nll, nll_error)
+
+    def noise(self, name: str, fit: FitResult) -> tuple[NoiseFit | None, tuple[str, ...]]:
+        options = self.options
+        param_cov = fit.covariance if options.parameter_covariance else None
+        try:
+            noise = calibrate_noise(name, fit.values, self.geometry, self.eval_seg, self.other,
+                                    param_cov, options.h_e, options.noise_constant,
+                                    options.noise_time)
+        except DataError as err:
+            return None, (f'{name}: noise model not calibrated: {err}',)
+        return noise, tuple(noise_warnings(noise))
 
 
 def _jobs(jobs: int) -> int:
