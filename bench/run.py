@@ -11,8 +11,10 @@ Examples::
 Parts: the odometry node against a bare relay (bench/node_bench.py), calibration time against
 distance (calib_bench.py), the lidar pipeline (lidar_bench.py), the ground truth on the outdoor
 scene against kiss_icp_pipeline and the kiss-icp settings table (gt_bench.py, icp_settings.py),
-the diagnosis (diag_bench.py) and heading at window ends on the Husky against a plain window-end
-fit (heading_bench.py). Absolute numbers depend on the machine and its load; ratios measured in
+the diagnosis (diag_bench.py), heading at window ends on the Husky against a plain window-end
+fit (heading_bench.py), and position and heading at window ends on the Husky and a Warthog-like
+simulation, the written model beside its plain window-end fit (segments_bench.py). Absolute
+numbers depend on the machine and its load; ratios measured in
 the same run are what to compare.
 """
 
@@ -249,7 +251,8 @@ def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
     if 'segments' in parts:
         print('window ends on the Husky and a Warthog-like simulation (written vs plain)',
               flush=True)
-        results['segments'] = segments_bench.run(sim_steps=30 if smoke else 150)
+        results['segments'] = (segments_bench.run(('rotation',), sim_steps=30) if smoke
+                               else segments_bench.run())
     results['elapsed_s'] = time.perf_counter() - tic
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / 'results.json', json.dumps(results, indent=1, default=str),

@@ -78,7 +78,8 @@ from skidkin_ros.core.odometry.noise import NOISE_SPECS
 from skidkin_ros.core.parallel import fork_map, usable_cpus
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
-__all__ = ['band_notes', 'CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best', 'noise_warnings',
+__all__ = ['band_notes', 'CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best',
+           'noise_warnings',
            'calibrate_interval', 'choose_interval', 'INTERVAL_SEARCHES', 'TRAIN_SEGMENTS',
            'plain_window_fit',
            'result_to_parameters', 'horizon_study', 'HorizonStudy', 'SELECTIONS']
@@ -389,7 +390,7 @@ class _Stage:
 
 def _fit_stage(train: Sequence[Drive], evaluate: Sequence[Drive], holdout: str,
                geometry: Geometry, options: CalibrationOptions, gyro: bool = False) -> _Stage:
-    """Steps 1-3 and 5: fit, score and choose, every model a parallel task (and the gyro)."""
+    """Run steps 1-3 and 5: fit, score and choose, each model a parallel task (and the gyro)."""
     train_seg = usable_segments(train, options.train_segments(), 'training',
                                 needed_by='a calibration')
     eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation',
