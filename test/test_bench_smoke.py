@@ -59,6 +59,15 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
     assert rows[1]['wheel_samples'] > rows[0]['wheel_samples']
     assert all(_finite(row['calibrate_s']) and row['calibrate_s'] > 0 for row in rows)
     assert all(set(row['fit_s_by_model']) >= {'ideal_dd', 'full_linear'} for row in rows)
+    # today's calibration path timed beside the earlier one, with the same written model
+    speed = results['calibration']['before_after']
+    assert speed['same_result'] is True and _finite(speed['ratio']) and speed['ratio'] > 0
+
+    # Window ends: the written model beside its plain fit, on the simulation (and the Husky)
+    window_rows = {row['data']: row for row in results['segments']['rows']}
+    assert 'warthog_sim' in window_rows
+    for row in window_rows.values():
+        assert _finite(row['position_ratio']) and _finite(row['yaw_ratio'])
 
     # Lidar: every frame was read and registered, the memory probe reported a peak.
     lidar = results['lidar']['rows']
@@ -110,7 +119,8 @@ def test_bench_smoke_writes_results_table_json_and_plot(tmp_path):
     for needle in ('| bare rclpy relay |', '| odom_node full_linear |',
                    '| odom_node roc | not run in the smoke run', '## Calibration',
                    '## Lidar pipeline', '| km | drives | 1 process s |',
-                   '## Ground truth on the outdoor scene', '### kiss-icp settings'):
+                   '## Ground truth on the outdoor scene', '### kiss-icp settings',
+                   '## Held-out window ends', 'the earlier path and today'):
         assert needle in text, needle
     assert (out / 'cost_vs_size.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
 

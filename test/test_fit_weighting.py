@@ -48,9 +48,10 @@ def test_roc_fit_range_keeps_the_icr_distance_away_from_the_singularity_clamp():
             assert np.all(y0 < 999.0 * b)  # never on the clamp [b/1000, 1000 b]
 
 
-def test_a_roc_fit_that_wants_a_negative_beta_2_ends_on_its_bound_and_is_invalid():
-    # C31: the truth's ICR gain grows along the path (beta_2 = -0.05, outside Wang et al.'s
-    # range): the fit stops on beta_2 = 0 and says the data want a value outside the model
+def test_a_roc_fit_on_beta_2_zero_is_a_valid_constrained_minimum_equal_to_edd_symmetric():
+    # C31/C170: the truth's ICR gain grows along the path (beta_2 = -0.05, outside Wang et al.'s
+    # range): the fit stops on beta_2 = 0, which is part of the model (a gain that does not
+    # decay), so the fit is valid and is edd_symmetric with b_hat = b (1 + beta_1)
     sim = simulate(SimConfig(
         duration_s=150.0, seed=3, wheel_radius=0.3, track_width=1.2, true_model='roc',
         true_params={'alpha': 0.9, 'beta_1': 0.6, 'beta_2': -0.05}, max_wheel_speed_rad_s=5.0,
@@ -58,8 +59,29 @@ def test_a_roc_fit_that_wants_a_negative_beta_2_ends_on_its_bound_and_is_invalid
     segments = cut_segments([sim.drive('train')], HorizonOptions().train_segments())
     fit = fit_model('roc', WARTHOG, segments)
     assert fit.values['beta_2'] == pytest.approx(0.0, abs=1e-9)  # measured: 2e-25
-    assert not fit.valid
-    assert any('beta_2 sit on a bound' in w and 'outside the model' in w for w in fit.warnings)
+    assert fit.valid and fit.on_bound == () and fit.at_constraint == ('beta_2',)
+    assert not any('sit on a bound' in w for w in fit.warnings)
+    sym = fit_model('edd_symmetric', WARTHOG, segments)
+    assert sym.values['alpha'] == pytest.approx(fit.values['alpha'], rel=1e-4)
+    assert sym.values['b_hat'] == pytest.approx(
+        WARTHOG.track_width * (1.0 + fit.values['beta_1']), rel=1e-4)
+    assert fit.cost == pytest.approx(sym.cost, rel=1e-6)
+    # a constrained minimum: moving beta_2 into the model (> 0) only raises the cost
+    model = get_model('roc')
+    k = model.vector(fit.values, WARTHOG)
+    base = (segment_errors(model, k, WARTHOG, segments) ** 2).sum()
+    for step in (1e-3, 1e-2, 1e-1):
+        moved = (segment_errors(model, k + np.array([0.0, 0.0, step]), WARTHOG,
+                                segments) ** 2).sum()
+        assert moved > base
+
+
+def test_roc_with_beta_1_on_its_guard_is_still_invalid():
+    # the upper end of beta_1 (1000) is a guard against the clamp, not part of the model
+    spec = get_model('roc').params[1]
+    assert spec.on_bound(ROC_MAX_GAIN) and not spec.at_constraint(ROC_MAX_GAIN)
+    assert get_model('roc').params[2].at_constraint(0.0)
+    assert not get_model('roc').params[2].on_bound(0.0)
 
 
 def test_an_old_file_with_a_negative_beta_2_still_loads():
@@ -146,54 +168,60 @@ def test_iterated_fit_recovers_the_true_parameters_at_least_as_well_as_identity(
 
 
 @pytest.fixture(scope='module')
-def roc_invalid_table(tmp_path_factory):
-    """Write a Warthog-like drive with a constant ICR gain (roc's beta_2 ends on its bound 0)."""
+def one_invalid_table(tmp_path_factory):
+    """Write a Warthog-like drive whose left side wants alpha_l > 1 at the given radius.
+
+    The table is calibrated with a wheel radius 5 % too small: edd_asymmetric's alpha_l wants
+    1.05 and ends on its bound 1 (invalid), edd_symmetric's alpha about 0.95 (valid).
+    """
     folder = tmp_path_factory.mktemp('warthog')
-    return write_truth_csv(warthog(3, 150.0), folder / 'warthog.csv')
+    true = {'alpha_l': 1.0, 'alpha_r': 0.8, 'x_v': -0.08, 'y_l': 0.95, 'y_r': -1.0}
+    return write_truth_csv(warthog(3, 150.0, true), folder / 'warthog.csv')
 
 
 def _calibrate(table, out, *extra):
-    return main(['calibrate', str(table), '--wheel-radius', '0.3', '--track-width', '1.2',
-                 '--models', 'edd_symmetric', 'roc', '--out', str(out), *extra])
+    return main(['calibrate', str(table), '--wheel-radius', '0.285', '--track-width', '1.2',
+                 '--models', 'edd_symmetric', 'edd_asymmetric', '--out', str(out), *extra])
 
 
 def test_an_invalid_model_that_was_not_selected_is_a_warning_unless_strict(
-        roc_invalid_table, tmp_path, capsys):
+        one_invalid_table, tmp_path, capsys):
     out = tmp_path / 'p.yaml'
-    assert _calibrate(roc_invalid_table, out) == 0
+    assert _calibrate(one_invalid_table, out) == 0
     text = capsys.readouterr()
-    assert 'roc' in text.out and 'were not written' in text.out and '--strict' in text.out
+    assert 'edd_asymmetric' in text.out and 'were not written' in text.out
+    assert '--strict' in text.out
     flat = read_params_file(out)
     assert flat['model'] == 'edd_symmetric'
-    assert not any(name.startswith('models.roc.') for name in flat)
+    assert not any(name.startswith('models.edd_asymmetric.') for name in flat)
     OdometryConfig.from_flat(flat)  # the node loads what was written
     strict = tmp_path / 'strict.yaml'
-    assert _calibrate(roc_invalid_table, strict, '--strict') == 4
-    assert 'roc' in capsys.readouterr().err
+    assert _calibrate(one_invalid_table, strict, '--strict') == 4
+    assert 'edd_asymmetric' in capsys.readouterr().err
     # the deprecated --accept-invalid still undoes --strict (scripts keep working) and says so
-    assert _calibrate(roc_invalid_table, tmp_path / 'accept.yaml', '--strict',
+    assert _calibrate(one_invalid_table, tmp_path / 'accept.yaml', '--strict',
                       '--accept-invalid') == 0
     assert '--accept-invalid is deprecated (it undoes --strict' in capsys.readouterr().err
-    assert _calibrate(roc_invalid_table, tmp_path / 'plain.yaml', '--accept-invalid') == 0
+    assert _calibrate(one_invalid_table, tmp_path / 'plain.yaml', '--accept-invalid') == 0
     assert '--accept-invalid is deprecated (it does nothing' in capsys.readouterr().err
 
 
-def test_evaluate_refuses_a_model_the_file_does_not_hold(roc_invalid_table, tmp_path, capsys):
+def test_evaluate_refuses_a_model_the_file_does_not_hold(one_invalid_table, tmp_path, capsys):
     out = tmp_path / 'p.yaml'
-    assert _calibrate(roc_invalid_table, out) == 0
+    assert _calibrate(one_invalid_table, out) == 0
     capsys.readouterr()
-    assert main(['evaluate', str(roc_invalid_table), '--params', str(out), '--models',
-                 'roc']) == 2
+    assert main(['evaluate', str(one_invalid_table), '--params', str(out), '--models',
+                 'edd_asymmetric']) == 2
     err = capsys.readouterr().err
     assert 'not in the file' in err and 'Traceback' not in err
     # C33: the error names the models the file does hold, to pick from
     held = err.split('(it holds ', 1)[1].split(')', 1)[0].split(', ')
-    assert 'edd_symmetric' in held and 'roc' not in held
-    assert main(['evaluate', str(roc_invalid_table), '--params', str(out)]) == 0
+    assert 'edd_symmetric' in held and 'edd_asymmetric' not in held
+    assert main(['evaluate', str(one_invalid_table), '--params', str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert any('not in the file' in line and 'roc' in line for line in lines)
+    assert any('not in the file' in line and 'edd_asymmetric' in line for line in lines)
     scored = [line.split()[0] for line in lines if line.split()]
-    assert 'edd_symmetric' in scored and 'roc' not in scored
+    assert 'edd_symmetric' in scored and 'edd_asymmetric' not in scored
 
 
 def test_fixed_weighting_is_still_available_and_the_iterated_fit_is_the_gls_optimum(

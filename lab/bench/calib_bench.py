@@ -12,6 +12,7 @@ from dataclasses import replace
 import time
 from typing import Any, Sequence
 
+import calib_speed
 from skidkin_ros.core.calibration.pipeline import calibrate, CalibrationOptions
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.parallel import usable_cpus
@@ -93,8 +94,12 @@ def run(sizes_km: Sequence[float], drive_s: float, holdout_block_s: float = 60.0
         })
     per_km = [row['s_per_km'] for row in rows]
     blas = blas_threads(first_km(drives, min(sizes_km)), geometry, options)
+    # as skidkin calibrate runs it: today's path beside the earlier one (calib_speed.py)
+    speed_km = 2.0 if 2.0 in sizes_km else max(sizes_km)
+    speed = {'km': speed_km, **calib_speed.before_after(first_km(drives, speed_km), geometry,
+                                                        options)}
     return {
-        'blas': blas,
+        'blas': blas, 'before_after': speed,
         'rows': rows, 'simulate_s': simulate_s, 'drive_s': drive_s,
         'holdout_block_s': holdout_block_s, 'n_starts': options.n_starts,
         'per_km_ratio_largest_smallest': per_km[-1] / per_km[0] if per_km else float('nan'),

@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import segments_bench
 from skidkin_ros.atomic import atomic_write_text
 
 LATENCY_GOAL = 1.2
@@ -130,6 +131,14 @@ def _calib_section(calib: Mapping[str, Any]) -> list[str]:
                   f'{blas["one_thread_s"]:.2f} s with one '
                   f'(what the CLI uses, `core.parallel.one_blas_thread`): ratio '
                   f'{blas["ratio"]:.2f}.', '']
+    speed = calib.get('before_after')
+    if speed:
+        lines += [f'`skidkin calibrate` of {speed["km"]:g} km, the earlier path and today\'s in '
+                  f'the same run (calib_speed.py, {speed["rounds"]} round(s), '
+                  f'{speed["cpus"]} CPUs): earlier {speed["earlier_s"]:.2f} s, today '
+                  f'{speed["today_s"]:.2f} s (fits {speed["fit_s_today"]:.2f} s): '
+                  f'{speed["ratio"]:.2f}x faster; same written model and values: '
+                  f'{"yes" if speed["same_result"] else "NO"}.', '']
     return lines
 
 
@@ -231,6 +240,17 @@ def _diag_section(diag: Mapping[str, Any]) -> list[str]:
     return lines + ['']
 
 
+def _segments_section(segments: Mapping[str, Any]) -> list[str]:
+    lines = ['## Held-out window ends: the written model beside its plain window-end fit', '']
+    if not segments.get('rows'):
+        return lines + ['Not run.', '']
+    lines += ['Husky table and a simulated Warthog-like windowed recording, split by '
+              '`calib_step`; median position (m) and heading (rad) errors at the ends of the '
+              'held-out 2 s windows (segments_bench.py).', '',
+              segments_bench.table(segments), '']
+    return lines
+
+
 def _heading_section(heading: Mapping[str, Any]) -> list[str]:
     lines = ['## Heading at window ends: calibrated against a plain window-end fit (Husky)', '']
     if not heading.get('available'):
@@ -276,6 +296,7 @@ def write_markdown(results: Mapping[str, Any], path: Path) -> None:
     lines += _gt_section(results.get('groundtruth', {'available': False}))
     lines += _diag_section(results['diagnosis'])
     lines += _heading_section(results.get('heading', {}))
+    lines += _segments_section(results.get('segments', {}))
     atomic_write_text(path, '\n'.join(lines), force=True)
 
 

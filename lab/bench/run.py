@@ -11,8 +11,10 @@ Examples::
 Parts: the odometry node against a bare relay (lab/bench/node_bench.py), calibration time against
 distance (calib_bench.py), the lidar pipeline (lidar_bench.py), the ground truth on the outdoor
 scene against kiss_icp_pipeline and the kiss-icp settings table (gt_bench.py, icp_settings.py),
-the diagnosis (diag_bench.py) and heading at window ends on the Husky against a plain window-end
-fit (heading_bench.py). Absolute numbers depend on the machine and its load; ratios measured in
+the diagnosis (diag_bench.py), heading at window ends on the Husky against a plain window-end
+fit (heading_bench.py), and position and heading at window ends on the Husky and a Warthog-like
+simulation, the written model beside its plain window-end fit (segments_bench.py). Absolute
+numbers depend on the machine and its load; ratios measured in
 the same run are what to compare.
 """
 
@@ -41,11 +43,12 @@ import icp_settings
 import lidar_bench
 import node_bench
 import report
+import segments_bench
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.models import MODEL_NAMES
 from skidkin_ros.core.parallel import one_blas_thread, usable_cpus
 
-PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis', 'heading')
+PARTS = ('node', 'calibration', 'lidar', 'groundtruth', 'diagnosis', 'heading', 'segments')
 
 
 @dataclass(frozen=True)
@@ -196,6 +199,8 @@ def run_node(sizes: Sizes, domain_id: int, smoke: bool) -> dict[str, Any]:
 def _empty(part: str) -> dict[str, Any]:
     if part == 'node':
         return {'suts': [], 'not_run': {}, 'ladder_hz': [], 'plan': []}
+    if part == 'segments':
+        return {'rows': []}
     if part in ('diagnosis', 'heading'):
         return {'available': False, 'reason': 'not run (--only)', 'rows': []}
     if part == 'lidar':
@@ -243,6 +248,11 @@ def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
     if 'heading' in parts:
         print('heading benchmark (Husky, plain window-end reference)', flush=True)
         results['heading'] = heading_bench.run()
+    if 'segments' in parts:
+        print('window ends on the Husky and a Warthog-like simulation (written vs plain)',
+              flush=True)
+        results['segments'] = (segments_bench.run(('rotation',), sim_steps=30) if smoke
+                               else segments_bench.run())
     results['elapsed_s'] = time.perf_counter() - tic
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / 'results.json', json.dumps(results, indent=1, default=str),

@@ -13,7 +13,7 @@ from skidkin_ros.cli.common import (add_geometry_args, add_source_args, calibrat
                                     print_calibration, print_notes, say, source_options)
 from skidkin_ros.core.calibration.pipeline import (calibrate_interval, CalibrationOptions,
                                                    horizon_study, result_to_parameters,
-                                                   SELECTIONS)
+                                                   SELECTIONS, TRAIN_SEGMENTS)
 from skidkin_ros.core.calibration.weighting import WEIGHTINGS
 from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.odometry.config import write_params_file
@@ -39,7 +39,8 @@ def _options(args: argparse.Namespace) -> CalibrationOptions:
         h_t=args.h_t, h_e=args.h_e, loss=args.loss, f_scale=args.f_scale,
         n_starts=args.starts, seed=args.seed, models=tuple(args.models),
         sigma_diag=tuple(args.sigma), holdout_every=2 if args.split_by else args.holdout_every,
-        holdout_key=args.split_by, weighting=args.weighting, selection=args.selection)
+        holdout_key=args.split_by, weighting=args.weighting, selection=args.selection,
+        segments=args.segments)
 
 
 def _print_interval(result) -> None:
@@ -147,6 +148,11 @@ def add_parser(subparsers) -> None:
                         help='loss weights: iterated (each segment by the covariance the noise '
                         'model predicts for it, refitted until the parameters settle) or fixed '
                         '(--sigma for every segment)')
+    parser.add_argument('--segments', choices=TRAIN_SEGMENTS, default='rotation',
+                        help='training segments: rotation (default: closed after --h-t of path '
+                        'or 1 rad of turning, whichever comes first, so spins are fitted too), '
+                        'paper (after --h-t of path only, as Baril et al. 2020) or time '
+                        '(windows of 2 s)')
     parser.add_argument('--selection', choices=SELECTIONS, default='likelihood',
                         help='best-model rule: held-out likelihood (counts heading) or the '
                         "paper's eps_t + eps_theta")

@@ -30,7 +30,7 @@ from skidkin_ros.errors import ConfigError, ParameterError
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
            'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'stride_arg', 'RoundBars',
            'check_report_dir', 'input_parameters', 'calibration_provenance',
-           'print_calibration', 'controller_from_args']
+           'print_calibration', 'controller_from_args', 'plain_reference_lines']
 
 
 def say(*parts: object) -> None:
@@ -275,6 +275,25 @@ def calibration_provenance(result: CalibrationResult, train: Sequence[LoadedSour
     return prov
 
 
+def plain_reference_lines(result: CalibrationResult) -> str:
+    """Return the written model beside its plain window-end fit, at held-out window ends."""
+    written = result.window_end.get(result.best)
+    plain = result.plain_window_end
+    if written is None or plain is None:
+        return ''
+    width = len(result.best) + 28
+    lines = [f'\nheld-out ends of {written.windows} windows of {result.options.window_s:g} s '
+             '(median):  position m  heading rad',
+             f'  {(result.best + " (written, " + result.options.weighting + ")"):<{width}}'
+             f'  {written.position_m:10.3f}  {written.yaw_rad:11.3f}',
+             f'  {(result.best + " plain window-end fit"):<{width}}  {plain.position_m:10.3f}'
+             f'  {plain.yaw_rad:11.3f}',
+             f'  {"ratio written / plain":<{width}}  '
+             f'{written.position_m / plain.position_m:9.2f}x  '
+             f'{written.yaw_rad / plain.yaw_rad:10.2f}x']
+    return '\n'.join(lines)
+
+
 def print_calibration(result: CalibrationResult) -> None:
     """Print a calibration: segments, the error table, the fitted parameters, the warnings."""
     say(f'\nsegments: {len(result.train_segments)} training (h_t = {result.options.h_t:g} m), '
@@ -290,6 +309,7 @@ def print_calibration(result: CalibrationResult) -> None:
     else:
         say('best model: eps_t and eps_theta relative to the best (a model with fewer '
             'parameters within 2 %)')
+    say(plain_reference_lines(result))
     say('\nfitted parameters (± standard error):')
     for line in parameter_lines(result.fits):
         say(line)

@@ -86,7 +86,9 @@ def parameter_lines(fits: Mapping[str, FitResult]) -> list[str]:
         parts = []
         for param, value in fit.values.items():
             err = fit.std_errors.get(param, math.nan) if fit.std_errors else math.nan
-            parts.append(f'{param}={value:.4g}' + (f' ±{err:.2g}' if math.isfinite(err) else ''))
+            parts.append(f'{param}={value:.4g}' + (f' ±{err:.2g}' if math.isfinite(err) else '')
+                         + (' (on its constraint: a valid constrained minimum)'
+                            if param in fit.at_constraint else ''))
         lines.append(f'  {name:<15} ' + ', '.join(parts))
     return lines
 

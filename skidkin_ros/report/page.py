@@ -85,6 +85,8 @@ def render_page(result: CalibrationResult, images: dict[str, str]) -> str:
             flag = ''
             if spec.name in fit.on_bound:
                 flag = 'on bound'
+            if spec.name in fit.at_constraint:
+                flag = 'on its constraint (valid)'
             if spec.name in fit.unobservable:
                 flag = 'not observable'
             value = _num(fit.values[spec.name], 5)

@@ -154,6 +154,8 @@ class FitResult:
     status: str
     starts: int
     on_bound: tuple[str, ...] = ()
+    # on a lower bound that is part of the model (a valid constrained minimum: roc's beta_2 = 0)
+    at_constraint: tuple[str, ...] = ()
     unobservable: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
     seconds: float = 0.0
@@ -355,6 +357,8 @@ def assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
         warnings.append(f'{model.name}: parameter(s) {", ".join(on_bound)} sit on a bound '
                         f'({ranges}): the data want a value outside the model; the fit is '
                         'marked invalid')
+    at_constraint = tuple(spec.name for spec, value in zip(specs, sol.x)
+                          if spec.at_constraint(value))
     unobservable = set(_null_space_params(model, geometry, sol.jac, options.null_space_tol))
     excitation = measure_excitation(used, options)
     for gap in excitation.missing(options):
@@ -392,7 +396,8 @@ def assess_fit(model: KinematicModel, geometry: Geometry, used: SegmentSet,
         std_errors={n: float(s) for n, s in zip(names, se)},
         cost=float(sol.cost), rms_error=tuple(float(v) for v in np.sqrt((err ** 2).mean(0))),
         segments_used=len(used), segments_trimmed=trimmed, converged=converged,
-        status=str(sol.message), starts=n_starts, on_bound=on_bound, unobservable=ordered,
+        status=str(sol.message), starts=n_starts, on_bound=on_bound, at_constraint=at_constraint,
+        unobservable=ordered,
         warnings=tuple(warnings), seconds=seconds, trimmed_mask=~kept, covariance=param_cov,
         weighting=weighting)
 

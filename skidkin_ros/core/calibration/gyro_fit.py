@@ -49,6 +49,7 @@ from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.gyro import GyroIntegral, usable_gyro
 from skidkin_ros.core.odometry.odometer import Odometer, Prediction
+from skidkin_ros.core.parallel import fork_map, usable_cpus
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError, FitError
 
@@ -387,13 +388,14 @@ def window_nees(errors: np.ndarray, covs: np.ndarray) -> np.ndarray:
     return mahalanobis(covs, np.asarray(errors, dtype=float).reshape(-1, 3))
 
 
-def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet
-                        ) -> tuple[float, int]:
+def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segments: SegmentSet,
+                        jobs: int = 0) -> tuple[float, int]:
     """Return (imu.adapt.yaw_noise_scale, windows) fitted on held-out ``segments`` of ``drives``.
 
     Each :func:`segment_windows` window is run in ``adapt``; its heading variance at the end is
     k A + B (A: the model's part, B: the gain's; two runs, k = 1 and 0); k maximises the
     likelihood of the heading errors. Raises DataError with fewer than ``MIN_WINDOWS`` windows.
+    ``jobs``: processes for the two runs (0: every usable CPU; the same numbers either way).
     """
     from scipy.optimize import minimize_scalar
 
@@ -402,12 +404,17 @@ def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segment
     if count < MIN_WINDOWS:
         raise DataError(f'{count} held-out segments start and end on wheel samples; the '
                         f"scale of adapt's heading noise needs at least {MIN_WINDOWS}")
-    variance, heading_errors = {}, {}
-    for share in (1.0, 0.0):
+
+    def heading(share: float) -> tuple[np.ndarray, np.ndarray]:
         values = {**config.values, 'imu.mode': 'adapt', 'imu.adapt.yaw_noise_scale': share}
         errors, covs, _ = run_windows(replace(config, values=values), drives, segments, windows)
-        variance[share] = covs[:, 2, 2]
-        heading_errors[share] = errors[:, 2]
+        return covs[:, 2, 2], errors[:, 2]
+
+    # the two runs are independent: one per core (the same numbers either way)
+    shares = (1.0, 0.0)
+    runs = dict(zip(shares, fork_map(heading, shares, jobs if jobs > 0 else usable_cpus())))
+    variance = {share: runs[share][0] for share in shares}
+    heading_errors = {share: runs[share][1] for share in shares}
     e2 = heading_errors[1.0] ** 2  # the errors of the run at the calibrated scale 1
     b = np.maximum(variance[0.0], 1e-12)
     a = np.maximum(variance[1.0] - variance[0.0], 0.0)

@@ -227,6 +227,12 @@ class RocModel(KinematicModel):
     of a negative beta_2 (a fit that ran into it ended at a clamp, not a minimum). A file may
     still hold any finite value (older files load); beta_2 = 0 is edd_symmetric with
     b_hat = b (1 + beta_1).
+
+    beta_2 >= 0 is part of the model, so a fit that ends on beta_2 = 0 (a robot whose ICR gain
+    does not decay along the path, like the Warthog) is a valid constrained minimum: the best
+    roc there is, equal to edd_symmetric; it is written, and the model choice, which takes the
+    model with fewer parameters when two do as well, then picks edd_symmetric. beta_1 on its
+    upper end (1000) is a guard, not part of the model: a fit there stays invalid.
     """
 
     name = 'roc'
@@ -241,7 +247,7 @@ class RocModel(KinematicModel):
                   fit_lower=0.0, fit_upper=ROC_MAX_GAIN),
         ParamSpec('beta_2', '-', 0.0, -INF, INF,
                   'decay of the ICR gain with sqrt(lambda) (fitted >= 0)', default_doc='0',
-                  fit_lower=0.0),
+                  fit_lower=0.0, fit_lower_is_constraint=True),
     )
 
     @staticmethod

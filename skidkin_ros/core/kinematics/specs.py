@@ -48,6 +48,9 @@ class ParamSpec:
     ``fit_upper``, when set, narrow the range the calibrator searches (a fitted value on them is
     on a bound) while any value in the range still loads: a model constraint of the fit (roc's
     positive ICR gain) that must not make older parameters files unreadable.
+    ``fit_lower_is_constraint``: ``fit_lower`` is part of the model, not a guard, so a fitted
+    value on it is a valid constrained minimum (roc's beta_2 = 0: the gain does not decay, and
+    roc is then edd_symmetric), not a sign that the data want another model.
     """
 
     name: str
@@ -61,6 +64,7 @@ class ParamSpec:
     upper_open: bool = False
     fit_lower: float | None = None
     fit_upper: float | None = None
+    fit_lower_is_constraint: bool = False
 
     def default_for(self, geometry: Geometry) -> float:
         if callable(self.default):
@@ -103,13 +107,25 @@ class ParamSpec:
         return True
 
     def on_bound(self, value: float, rel_tol: float = 1e-4) -> bool:
-        """Tell whether a fitted value sits on a finite bound (the fit wanted to go further)."""
+        """Tell whether a fitted value sits on a finite bound (the fit wanted to go further).
+
+        A value on a ``fit_lower`` that is a model constraint (``fit_lower_is_constraint``)
+        is not on a bound: see :meth:`at_constraint`.
+        """
+        if self.at_constraint(value, rel_tol):
+            return False
         for bound in (self.lower, self.upper, self.fit_lower, self.fit_upper):
             if bound is None or not math.isfinite(bound):
                 continue
             if abs(value - bound) <= rel_tol * max(1.0, abs(bound)):
                 return True
         return False
+
+    def at_constraint(self, value: float, rel_tol: float = 1e-4) -> bool:
+        """Tell whether a fitted value sits on a lower bound that is part of the model."""
+        bound = self.fit_lower
+        return (self.fit_lower_is_constraint and bound is not None and math.isfinite(bound)
+                and abs(value - bound) <= rel_tol * max(1.0, abs(bound)))
 
 
 def check_value(spec: ParamSpec, value: object, prefix: str = '') -> float:
