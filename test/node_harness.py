@@ -70,7 +70,7 @@ class NodeRig:
         self.executor.add_node(d)
         self.joint_names = list(self.node.config['left_wheel_joints'] +
                                 self.node.config['right_wheel_joints'])
-        self.spin_until(lambda: self.node._odom_pub.get_subscription_count() > 0,
+        self.spin_until(lambda: self.node._output.publisher.get_subscription_count() > 0,
                         what='odom subscription to match')
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:

@@ -111,7 +111,7 @@ def test_serialized_and_message_outputs_are_the_same_odometry(make_rig):
     rig = make_rig({'model': 'edd_symmetric', 'models.edd_symmetric.noise.calibrated': True})
     drive(rig, 2.0, 3.5, n=6)
     serialized = rig.odom[-1]
-    rig.node._writer_frames, rig.node._odom_writer = ('odom', 'base_link'), None  # force it
+    rig.node._output.writer_frames, rig.node._output.writer = ('odom', 'base_link'), None
     with rig.node._lock:  # start afresh (a reset would keep the baseline: stamps, speeds)
         rig.node._odometer.clock_changed()
     drive(rig, 2.0, 3.5, n=6)

@@ -66,16 +66,13 @@ kept pose; a stamp gap longer than ``max_dt`` is not integrated across.
 from __future__ import annotations
 
 import collections
-import copy
-import functools
-import math
 import sys
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
@@ -85,30 +82,23 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 import rclpy.logging
 from rclpy.node import Node
-from rclpy.qos import (qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
-
-
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 from skidkin_ros.core.odometry.config import check_model_given, models_given, OdometryConfig
 from skidkin_ros.core.odometry.odometer import Estimate
-from skidkin_ros.core.odometry.wheels import (check_position_count, check_velocity_count,
-                                              DuplicateJointError, joint_indices,
-                                              MissingJointError, positions_at, repeated_names,
-                                              speeds_at)
 from skidkin_ros.core.online import attach_online, online_odometer
-from skidkin_ros.core.online.save import save_learned
-from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
-from skidkin_ros.errors import ConfigError, SkidkinError
-from skidkin_ros.node.conversions import (ns_to_stamp, planar_covariance_from_msg,
-                                          planar_pose_from_msg, stamp_to_ns)
+from skidkin_ros.errors import ConfigError
+from skidkin_ros.node.callbacks import guarded as _guarded, sensor_qos
+from skidkin_ros.node.conversions import ns_to_stamp
 from skidkin_ros.node.diagnostics import StatusReport
+from skidkin_ros.node.inputs import InputCallbacks
+from skidkin_ros.node.output import OdometryOutput
 from skidkin_ros.node.parameters import (check_params_files, current_flat, declare_schema,
                                          parameter_descriptor, plain_value)
-from skidkin_ros.node.wire import (JointStateFields, JointStateReader, OdometryWriter,
-                                   WireFormatError)
+from skidkin_ros.node.requests import PoseRequests
+from skidkin_ros.node.wire import JointStateReader
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
@@ -122,28 +112,7 @@ OUTPUT_DEPTH = 10
 EXIT_CONFIG = 2
 
 
-def sensor_qos() -> QoSProfile:
-    """Return a fresh copy of the sensor-data profile for one input.
-
-    QoS overrides (``qos_overrides.<topic>...``) change the profile they are given in place, and
-    rclpy's ``qos_profile_sensor_data`` is one object shared by every node of the process.
-    """
-    return copy.copy(qos_profile_sensor_data)
-
-
-def _guarded(method: Callable) -> Callable:
-    """Wrap a callback so an unexpected exception is counted and logged, never fatal (N15)."""
-    @functools.wraps(method)
-    def wrapper(self: 'OdomNode', *args: Any) -> Any:
-        try:
-            return method(self, *args)
-        except Exception as err:  # noqa: B902 - a callback must never kill the node
-            self._callback_failed(method.__name__, err)
-            return None
-    return wrapper
-
-
-class OdomNode(Node):
+class OdomNode(InputCallbacks, PoseRequests, Node):
     """Skid-steer wheel odometry with a calibrated kinematic model (see module docstring)."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
@@ -185,14 +154,8 @@ class OdomNode(Node):
 
         output_qos = QoSProfile(depth=OUTPUT_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         overridable = QoSOverridingOptions.with_default_policies()
-        self._odom_pub = self.create_publisher(Odometry, 'odom', output_qos,
-                                               qos_overriding_options=overridable)
-        self._odom_msg = Odometry()
-        # Serializer of the output for the frames in force (None: publish message objects).
-        self._odom_writer: OdometryWriter | None = None
-        self._writer_frames: tuple[str, str] | None = None
+        self._output = OdometryOutput(self, output_qos, config['publish_tf'])
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', output_qos)
-        self._tf_broadcaster = self._make_tf_broadcaster(config['publish_tf'])
         self._input = config['input']
         if self._input == 'joint_state':
             # Serialized (raw): the node reads the few fields it needs itself (see node.wire).
@@ -279,8 +242,7 @@ class OdomNode(Node):
         self._sync_imu_subscription(config)
         self._sync_reference_subscription(config)
         self._joint_names = None  # the wheel joints may have changed
-        if config['publish_tf'] and self._tf_broadcaster is None:
-            self._tf_broadcaster = self._make_tf_broadcaster(True)
+        self._output.configure(config)
         self._config = config
 
     def _sync_imu_subscription(self, config: OdometryConfig) -> None:
@@ -299,7 +261,7 @@ class OdomNode(Node):
         wanted = config.online.enabled
         if wanted and self._reference_sub is None:
             self._reference_sub = self.create_subscription(
-                Odometry, 'reference/odom', self._on_reference, qos_profile_sensor_data,
+                Odometry, 'reference/odom', self._on_reference, sensor_qos(),
                 qos_overriding_options=QoSOverridingOptions.with_default_policies())
         elif not wanted and self._reference_sub is not None:
             self.destroy_subscription(self._reference_sub)
@@ -315,163 +277,6 @@ class OdomNode(Node):
         """Return the current (x, y, yaw) estimate."""
         with self._lock:
             return self._odometer.pose
-
-    # ------------------------------------------------------------------ inputs
-    @_guarded
-    def _on_joint_state(self, msg: bytes | JointState) -> None:
-        """Take a JointState, serialized (the subscription's form) or as a message."""
-        with self._lock:
-            self.counters['received'] += 1
-            fields = self._joint_state_fields(msg)
-            if fields is None:
-                return
-            names, velocity, position = fields.names, fields.velocity, fields.position
-            has_position = (self._config['wheel_signal'] != 'velocity'
-                            and check_position_count(len(names), len(position)))  # may raise
-            if not (has_position and self._config['wheel_signal'] == 'position' and not velocity):
-                check_velocity_count(len(names), len(velocity))  # raises: reported by _guarded
-            if names != self._joint_names:
-                config = self._config
-                try:
-                    self._joint_index = joint_indices(names, config['left_wheel_joints'],
-                                                      config['right_wheel_joints'])
-                except MissingJointError as err:
-                    self._reject('missing_joint', str(err))
-                    return
-                except DuplicateJointError as err:
-                    self._reject('duplicate_joint', str(err))
-                    return
-                self._joint_names = names
-                repeated = repeated_names(names)
-                if repeated:  # once per name list: these joints are not the wheels
-                    self._warn('repeated_joint', f'JointState lists joint(s) {repeated} more '
-                               'than once; they are not wheel joints, odometry is unaffected; '
-                               'fix the driver so that each joint is listed once')
-            omega_l, omega_r = (speeds_at(velocity, *self._joint_index) if velocity
-                                else (math.nan, math.nan))
-            positions = positions_at(position, *self._joint_index) if has_position else None
-            now_ns = self._clock_now_ns()
-            if now_ns is None:
-                return
-            estimate = self._odometer.joint_sample(fields.stamp_ns, omega_l, omega_r, now_ns,
-                                                   positions)
-            if estimate is not None:
-                self._publish(estimate)
-
-    def _joint_state_fields(self, msg: bytes | JointState) -> JointStateFields | None:
-        """Return the fields the node uses, or None (counted, reported) if the message is bad.
-
-        Serialized input is read by node.wire; what it does not read is deserialized by rclpy
-        (never dropped for the fast path's sake), and what rclpy refuses too is dropped.
-        """
-        if isinstance(msg, bytes):
-            try:
-                return self._joint_reader.read(msg)
-            except WireFormatError as err:
-                reason = str(err)
-            try:
-                msg = deserialize_message(msg, JointState)
-            except RuntimeError as err:  # rclpy's RMWError: the message does not deserialize
-                self._reject('malformed_message',
-                             f'JointState dropped: it does not deserialize ({reason}; rclpy: '
-                             f'{" ".join(str(err).split())})')
-                return None
-            self.counters['read_by_rclpy'] += 1
-            if not self._rclpy_read_logged:
-                self._rclpy_read_logged = True
-                self.get_logger().info(f'a JointState was read by rclpy instead of the fast '
-                                       f'reader ({reason}); such messages cost more CPU, '
-                                       'counted as read_by_rclpy in /diagnostics')
-        return JointStateFields(stamp_to_ns(msg.header.stamp), tuple(msg.name),
-                                tuple(msg.position), tuple(msg.velocity))
-
-    @_guarded
-    def _on_imu(self, msg: Imu) -> None:
-        """Take a gyro sample: the yaw rate angular_velocity.z, on header.stamp."""
-        with self._lock:
-            self.counters['imu_received'] += 1
-            if msg.angular_velocity_covariance[0] == -1.0:
-                self._reject('imu_no_rate', 'Imu message has angular_velocity_covariance[0] = '
-                             '-1 ("no angular velocity data"): not used')
-                return
-            now_ns = self._clock_now_ns()
-            if now_ns is None:
-                return
-            for estimate in self._odometer.imu_sample(stamp_to_ns(msg.header.stamp),
-                                                      msg.angular_velocity.z, now_ns):
-                self._publish(estimate)
-
-    @_guarded
-    def _on_wheel_odometry(self, msg: Odometry) -> None:
-        """Take a drive controller's Odometry: its twist, on header.stamp."""
-        with self._lock:
-            self.counters['received'] += 1
-            now_ns = self._clock_now_ns()
-            if now_ns is None:
-                return
-            twist = msg.twist.twist
-            estimate = self._odometer.twist_sample(stamp_to_ns(msg.header.stamp),
-                                                   twist.linear.x, twist.angular.z, now_ns)
-            if estimate is not None:
-                self._publish(estimate)
-
-    @_guarded
-    def _on_reference(self, msg: Odometry) -> None:
-        """Take a reference pose (online calibration): header.stamp, pose.pose, its frames."""
-        with self._lock:
-            self.counters['reference_received'] += 1
-            pose = msg.pose.pose
-            q = pose.orientation
-            yaw = quaternion_to_yaw(q.x, q.y, q.z, q.w)
-            self._odometer.reference_sample(stamp_to_ns(msg.header.stamp), pose.position.x,
-                                            pose.position.y, yaw, msg.header.frame_id,
-                                            msg.child_frame_id)
-
-    @_guarded
-    def _on_save_calibration(self, request: Trigger.Request,
-                             response: Trigger.Response) -> Any:
-        """Write the learned parameters as a parameters file the node loads as is."""
-        with self._lock:
-            learner = self._odometer.learner
-            if learner is None:
-                response.success = False
-                response.message = ('online.enabled is false: nothing learned to save (the '
-                                    "parameters in force are the file's)")
-                return response
-            try:
-                path = save_learned(self._config, learner, self._config['online.save_path'],
-                                    {'node': self.get_fully_qualified_name(),
-                                     'reference_topic': self._reference_sub.topic_name})
-            except SkidkinError as err:
-                response.success = False
-                response.message = f'not saved: {err}'
-                self.counters['save_refused'] += 1
-                return response
-            self.counters['saved'] += 1
-        self.get_logger().info(f'learned calibration saved to {path}')
-        response.success = True
-        response.message = f'saved to {path}'
-        return response
-
-    @_guarded
-    def _on_left_wheel(self, msg: Float64) -> None:
-        self._on_wheel('left', msg.data)
-
-    @_guarded
-    def _on_right_wheel(self, msg: Float64) -> None:
-        self._on_wheel('right', msg.data)
-
-    def _on_wheel(self, side: str, omega_rad_s: float) -> None:
-        """Hand one side's speed, stamped with the node clock, to the odometer's pairing (N9)."""
-        with self._lock:
-            self.counters['received'] += 1
-            now_ns = self._clock_now_ns()
-            if now_ns is None:
-                return
-            self._side_seen_mono_ns[side] = time.monotonic_ns()
-            estimate = self._odometer.wheel_sample(side, omega_rad_s, now_ns)
-            if estimate is not None:
-                self._publish(estimate)
 
     def _clock_now_ns(self) -> int | None:
         """Return the node clock in ns, or None while use_sim_time waits for /clock (N13)."""
@@ -500,98 +305,7 @@ class OdomNode(Node):
         self._stale_reported = False
 
     def _publish(self, estimate: Estimate) -> None:
-        config = self._config
-        t_ns, (x, y, yaw), (vx, vy, w), pose_cov, twist_cov = estimate
-        qx, qy, qz, qw = yaw_to_quaternion(yaw)
-        writer = self._writer(config)
-        if writer is not None:
-            self._odom_pub.publish(writer.pack(t_ns, x, y, qz, qw, pose_cov, vx, vy, w,
-                                               twist_cov))
-        else:
-            self._odom_pub.publish(self._odometry_msg(t_ns, x, y, qz, qw, pose_cov, vx, vy, w,
-                                                      twist_cov))
-        if self._tf_broadcaster is not None and config['publish_tf']:
-            transform = TransformStamped()
-            transform.header.stamp = ns_to_stamp(t_ns)
-            transform.header.frame_id = config['odom_frame_id']
-            transform.child_frame_id = config['base_frame_id']
-            transform.transform.translation.x = x
-            transform.transform.translation.y = y
-            transform.transform.rotation.z = qz
-            transform.transform.rotation.w = qw
-            self._tf_broadcaster.sendTransform(transform)
-
-    def _writer(self, config: OdometryConfig) -> OdometryWriter | None:
-        """Return the serializer for the configured frames (None: publish messages instead)."""
-        frames = (config['odom_frame_id'], config['base_frame_id'])
-        if frames != self._writer_frames:
-            writer: OdometryWriter | None = OdometryWriter(*frames)
-            if not writer.agrees_with(deserialize_message, Odometry):
-                self.get_logger().warning(
-                    'the Odometry serializer disagrees with rclpy on this middleware: '
-                    'publishing message objects instead (slower)')
-                writer = None
-            self._odom_writer, self._writer_frames = writer, frames
-        return self._odom_writer
-
-    def _odometry_msg(self, t_ns: int, x: float, y: float, qz: float, qw: float,
-                      pose_cov: Sequence[float], vx: float, vy: float, w: float,
-                      twist_cov: Sequence[float]) -> Odometry:
-        msg = self._odom_msg  # reused: publish() serializes it before returning
-        config = self._config
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, NS_PER_S)
-        msg.header.frame_id = config['odom_frame_id']
-        msg.child_frame_id = config['base_frame_id']
-        msg.pose.pose.position.x = x
-        msg.pose.pose.position.y = y
-        msg.pose.pose.orientation.z = qz
-        msg.pose.pose.orientation.w = qw
-        msg.pose.covariance = np.array(pose_cov)
-        msg.twist.twist.linear.x = vx
-        msg.twist.twist.linear.y = vy
-        msg.twist.twist.angular.z = w
-        msg.twist.covariance = np.array(twist_cov)
-        return msg
-
-    def _make_tf_broadcaster(self, wanted: bool) -> Any:
-        if not wanted:
-            return None
-        try:
-            from tf2_ros import TransformBroadcaster
-        except ImportError:
-            self.get_logger().warning(
-                'publish_tf is true but tf2_ros is not installed: the odom -> base transform is '
-                'not broadcast (install ros-jazzy-tf2-ros); odometry is published as usual')
-            return None
-        return TransformBroadcaster(self)
-
-    # ------------------------------------------------------------------ pose requests
-    @_guarded
-    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:
-        with self._lock:
-            self._reset_state((0.0, 0.0, 0.0))
-            self.counters['reset'] += 1
-        self.get_logger().info('odometry reset to the origin')
-        response.success = True
-        response.message = 'pose and covariance reset to zero'
-        return response
-
-    @_guarded
-    def _on_set_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        with self._lock:
-            try:
-                pose = planar_pose_from_msg(msg.pose.pose)
-                # Checks the pose and covariance (bounded, finite) before changing anything.
-                self._reset_state(pose, planar_covariance_from_msg(msg.pose.covariance))
-            except ValueError as err:
-                self._reject('set_pose_rejected', f'set_pose rejected, the pose is kept: {err}')
-                return
-            self.counters['set_pose'] += 1
-        self.get_logger().info(f'pose set to x {pose[0]:.3f} m, y {pose[1]:.3f} m, '
-                               f'yaw {pose[2]:.3f} rad')
-
-    def _reset_state(self, pose: Sequence[float], covariance: np.ndarray | None = None) -> None:
-        self._odometer.reset(pose, covariance)
+        self._output.publish(estimate, self._config)
 
     @_guarded
     def _on_clock_jump(self, jump: TimeJump) -> None:

@@ -238,7 +238,7 @@ class _Harness:
 
     def connected(self) -> bool:
         return (self.publisher.get_subscription_count() > 0
-                and self.odom._odom_pub.get_subscription_count() > 0)
+                and self.odom._output.publisher.get_subscription_count() > 0)
 
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=1.0)
