@@ -49,6 +49,7 @@ import enum
 import math
 from typing import Iterable, NamedTuple, Sequence
 
+from skidkin_ros.core.kinematics.augmented import MIN_RATE_STEP_S
 from skidkin_ros.errors import brief
 
 __all__ = [
@@ -79,8 +80,8 @@ WHEEL_SIGNALS = ('velocity', 'position', 'auto')
 
 SIDES = ('left', 'right')
 # Wheel accelerations are measured over at least this long (s): at kHz rates one encoder count
-# between two samples is a large acceleration, not a glitch.
-MIN_JUMP_INTERVAL_S = 0.01
+# between two samples is a large acceleration, not a glitch. The same floor as a rate term's.
+MIN_JUMP_INTERVAL_S = MIN_RATE_STEP_S
 # Longest text of a name list echoed in a message (a hostile list may hold millions of names).
 NAMES_SHOWN_CHARS = 400
 

@@ -19,7 +19,8 @@ __all__ = ['DiagnosisOptions']
 class DiagnosisOptions(HorizonOptions):
     """Everything that shapes a diagnosis (saved with the results as provenance)."""
 
-    candidates: tuple[str, ...] = EXTENSION_NAMES
+    # The sparse fallback stays available by name; the residual model supersedes it by default.
+    candidates: tuple[str, ...] = tuple(n for n in EXTENSION_NAMES if n != 'sparse_correction')
     refit_base: bool = True
     folds: int = 3
     min_relative_gain: float = 0.05

@@ -12,6 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from skidkin_ros.core.calibration.diagnosis.interpret import Dependence, residual_dependence
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.selection import CandidateScore
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
@@ -20,6 +21,7 @@ from skidkin_ros.core.calibration.engine import TwistSource
 from skidkin_ros.core.calibration.evaluation import ErrorStats
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
 from skidkin_ros.core.kinematics.extensions import get_extension
+from skidkin_ros.core.kinematics.residual import INPUTS
 from skidkin_ros.core.kinematics.specs import Geometry
 
 __all__ = ['ModelStep', 'DiagnosisResult']
@@ -89,6 +91,9 @@ class DiagnosisResult:
         lines += [f'  {line}' for line in self.unexplained_lines()]
         for name in self.final.found:
             ext = get_extension(name)
+            if ext.regression:
+                lines += [f'  {line}' for line in self.residual_lines(name)]
+                continue
             units = {spec.name: spec.unit for spec in ext.params}
             text = ', '.join(f'{k} = {v:.4g} {units.get(k, "")}'
                              for k, v in self.final.shown_values(name).items())
@@ -108,6 +113,26 @@ class DiagnosisResult:
                          f'{t.p90:.4f} | {th.median:.3f} [{th.q25:.3f}, {th.q75:.3f}] '
                          f'{th.p90:.3f} | {t.count}')
         lines += [f'  warning: {w}' for w in self.warnings]
+        return lines
+
+    def residual_dependence(self, name: str = 'residual_model') -> tuple[Dependence, ...]:
+        """Return what the residual model's correction follows (nothing when not found)."""
+        if name not in self.final.found:
+            return ()
+        return residual_dependence(self.final.ext_values[name], self.trace.signals,
+                                   self.residual_valid)
+
+    def residual_lines(self, name: str = 'residual_model') -> list[str]:
+        """Return the residual model's lines: what it follows, and the range it holds to."""
+        ext = get_extension(name)
+        values = self.final.ext_values[name]
+        lines = [f'added {name} ({ext.title}, {len(self.final.terms(name))} terms, level '
+                 f'{values.get("level", 0):.0f})']
+        lines += [f'  {dep.text()}' for dep in self.residual_dependence(name)]
+        ranges = ', '.join(f'{i} in [{values[i + "_lo"]:.3g}, {values[i + "_hi"]:.3g}] {unit}'
+                           for i, unit, _ in INPUTS)
+        lines.append(f'  fitted on {ranges}; outside that range the inputs are clamped to it (the '
+                     'correction holds its edge value) and each change is bounded by the motion')
         return lines
 
     def unexplained_lines(self) -> list[str]:
@@ -149,4 +174,6 @@ class DiagnosisResult:
         for name in self.final.extensions:
             for param, value in self.final.ext_values[name].items():
                 flat[f'augmented.{name}.{param}'] = float(value)
+        if self.final.residual_covariance and 'residual_model' in self.final.extensions:
+            flat['augmented.residual_model.covariance'] = list(self.final.residual_covariance)
         return flat

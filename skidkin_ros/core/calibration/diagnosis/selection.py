@@ -86,7 +86,7 @@ class RoundScore:
 
     @property
     def complexity(self) -> tuple[int, int]:
-        return get_extension(self.name).complexity(self.outcome.state.sparse_terms)
+        return get_extension(self.name).complexity(self.outcome.state.terms(self.name))
 
 
 def p_greater(diff: np.ndarray, untestable: float) -> float:
@@ -208,10 +208,11 @@ class _Rounds:
         taken = {get_extension(n).group for n in current.extensions} - {''}
         pool = [n for n in options.candidates
                 if n not in current.found and get_extension(n).group not in taken]
-        named = [n for n in pool if not get_extension(n).library]
+        named = [n for n in pool if not get_extension(n).learned]
         library = [n for n in pool if get_extension(n).library]
         thresholds = sorted(set(options.sparse_thresholds))
-        variants = [variant_name(n, t) for n in library for t in thresholds]
+        variants = [n for n in pool if get_extension(n).regression]
+        variants += [variant_name(n, t) for n in library for t in thresholds]
         scores: list[RoundScore] = []
         notes: dict[str, str] = {}
         null = None
@@ -223,7 +224,8 @@ class _Rounds:
                 null = self.held_out({f: results[None, f][0] for f in self.folds})
             outcomes = {name: self.outcome(results, name) for name in group}
             if group is variants:
-                outcomes = self._sparsest_each(library, outcomes, notes)
+                outcomes = {**{n: o for n, o in outcomes.items() if n in pool},
+                            **self._sparsest_each(library, outcomes, notes)}
             for name, outcome in outcomes.items():
                 gain, p_value = significance(null, outcome.losses)
                 passes = gain > options.min_relative_gain and p_value < options.significance
@@ -247,10 +249,10 @@ class _Rounds:
 def _candidate_score(round_index: int, score: RoundScore, chosen: bool, tied: Sequence[str],
                      notes: Mapping[str, str]) -> CandidateScore:
     state = score.outcome.state
-    library = get_extension(score.name).library
-    terms = state.sparse_terms if library else ()
+    learned = get_extension(score.name).learned
+    terms = state.terms(score.name) if learned else ()
     values = dict(state.ext_values.get(score.name, {}))
-    if library:
+    if learned:
         values = {t: values[t] for t in terms}
     note = (f'indistinguishable from {", ".join(tied)} on this data; the simpler '
             'explanation is kept' if chosen and tied else '')
