@@ -42,7 +42,7 @@ def test_the_rate_floor_is_the_wheel_jump_rule():
 
 @pytest.mark.parametrize('name, values', [
     ('sparse_correction', {'vx_dv': 10.0, 'wz_dw': -10.0, 'vy_dv': 10.0}),
-    ('residual_model', {**{n: 10.0 for n in residual.coefficient_names()}, **RANGES}),
+    ('residual_model', {**dict.fromkeys(residual.coefficient_names(), 10.0), **RANGES}),
 ])
 def test_c150_rate_terms_floor_dt_and_the_twist_is_bounded(name, values):
     """Stamps 1 us apart with coefficients inside their bounds: no absurd twist (C150).
@@ -183,7 +183,7 @@ def _covariance(terms, variance):
 def test_the_coefficient_covariance_widens_the_published_covariance(tmp_path):
     wheels = simulate(SimConfig(duration_s=10.0, seed=4)).wheels
     values = {'vx_v_abs_v': -0.1, 'wz_w': 0.05, **RANGES}
-    path = _calibrated_file(tmp_path, values, _covariance(["vx_v_abs_v", "wz_w"], 1e-2))
+    path = _calibrated_file(tmp_path, values, _covariance(['vx_v_abs_v', 'wz_w'], 1e-2))
     config = OdometryConfig.from_file(path)
     assert config.active_parameter_uncertainty is not None
     with_cov = Odometer.from_config(config).predict(wheels)

@@ -262,7 +262,7 @@ def run_study(cases: int, free: int, seed: int = 1, duration_s: float = 90.0
 
 
 HEADER = ('| # | effects (drawn) | scene | found | best plain eps_t (model) | diagnosed | true '
-          'model | diagnosed / best plain | diagnosed / true |', '|---|---|---|---|---|---|---|---|---|')
+          'model | diagnosed / best plain | diagnosed / true |', '|' + '---|' * 9)
 
 
 def summary(results: Sequence[UnnamedCase]) -> list[str]:

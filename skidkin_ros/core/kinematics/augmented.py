@@ -58,7 +58,8 @@ class AugmentedState(NamedTuple):
     """Streaming state: first stamp (ns), twist-stage output x and body twist y (held).
 
     ``t_ns`` and ``b``: the last sample's stamp and base twist (for the rate of the next one);
-    ``r``: the base twist's rate at that sample (what the rate terms saw). A named tuple: the node builds one per sample, and a tuple is the cheapest to build.
+    ``r``: the base twist's rate at that sample (what the rate terms saw). A named tuple: the
+    node builds one per sample, and a tuple is the cheapest to build.
     """
 
     t0_ns: int

@@ -16,7 +16,8 @@ Every input is first clamped to the range the model was fitted on (``<input>_lo`
 ``<input>_hi``, stored with the coefficients) and scaled by that range's largest magnitude, so
 each term lies in [-1, 1] and a polynomial cannot run away outside the data: beyond the range the
 correction holds the value it has at the edge. The change of each twist component is then
-bounded by the motion's own size (:func:`~skidkin_ros.core.kinematics.extensions.bounded_correction`).
+bounded by the motion's own size
+(:func:`~skidkin_ros.core.kinematics.extensions.bounded_correction`).
 Every term vanishes at rest except the rate terms, so a robot standing still stays still.
 
 The coefficients are fitted by Bayesian linear regression on the per-pose body-twist residuals
@@ -33,7 +34,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-__all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS', 'SIGN_WIDTH', 'term_names', 'features',
+__all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS', 'SIGN_WIDTH',
+           'term_names', 'features',
            'scalar_features', 'correction', 'scalar_correction', 'coefficient_names',
            'range_names', 'input_values']
 
@@ -54,7 +56,7 @@ def _sign(x):
 
 
 def _up(x, dx):
-    """dx where |x| grows (x dx > 0), else 0 (on floats or arrays alike)."""
+    """Return dx where |x| grows (x dx > 0), else 0 (on floats or arrays alike)."""
     if isinstance(x, np.ndarray) or isinstance(dx, np.ndarray):
         return np.where(x * dx > 0.0, dx, 0.0)
     return dx if x * dx > 0.0 else 0.0

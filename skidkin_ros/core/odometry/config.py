@@ -26,9 +26,8 @@ from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
-from skidkin_ros.core.odometry.residual_uncertainty import (coefficient_count,
-                                                           RESIDUAL_EXTENSION,
-                                                           ResidualUncertainty)
+from skidkin_ros.core.odometry.residual_uncertainty import (
+    coefficient_count, RESIDUAL_EXTENSION, ResidualUncertainty)
 from skidkin_ros.core.odometry.uncertainty import (check_parameter_covariance,
                                                    ParameterUncertainty)
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS

@@ -141,7 +141,7 @@ def model_inputs(drives: Sequence[Drive], samples: PoseSamples, source: TwistSou
         t_s = samples.signals['time_in_drive']
         for name, k in zip(source.extensions, source.values):
             ext = get_extension(name)
-            if name == 'residual_model':
+            if ext.regression:
                 break
             twist = ext.apply(k, twist, wl, wr, t_s, rate)
     return twist, rate

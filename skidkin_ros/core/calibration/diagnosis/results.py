@@ -115,14 +115,18 @@ class DiagnosisResult:
         lines += [f'  warning: {w}' for w in self.warnings]
         return lines
 
-    def residual_dependence(self, name: str = 'residual_model') -> tuple[Dependence, ...]:
+    def _regression(self) -> str | None:
+        return next((n for n in self.final.found if get_extension(n).regression), None)
+
+    def residual_dependence(self, name: str | None = None) -> tuple[Dependence, ...]:
         """Return what the residual model's correction follows (nothing when not found)."""
-        if name not in self.final.found:
+        name = name or self._regression()
+        if name is None or name not in self.final.found:
             return ()
         return residual_dependence(self.final.ext_values[name], self.trace.signals,
                                    self.residual_valid)
 
-    def residual_lines(self, name: str = 'residual_model') -> list[str]:
+    def residual_lines(self, name: str) -> list[str]:
         """Return the residual model's lines: what it follows, and the range it holds to."""
         ext = get_extension(name)
         values = self.final.ext_values[name]
@@ -174,6 +178,7 @@ class DiagnosisResult:
         for name in self.final.extensions:
             for param, value in self.final.ext_values[name].items():
                 flat[f'augmented.{name}.{param}'] = float(value)
-        if self.final.residual_covariance and 'residual_model' in self.final.extensions:
-            flat['augmented.residual_model.covariance'] = list(self.final.residual_covariance)
+        regression = self._regression()
+        if self.final.residual_covariance and regression is not None:
+            flat[f'augmented.{regression}.covariance'] = list(self.final.residual_covariance)
         return flat
