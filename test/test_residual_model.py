@@ -212,3 +212,23 @@ def test_node_runs_the_residual_model_bit_for_bit_with_its_covariance(tmp_path):
     # the correction matters: the base model alone goes elsewhere
     base = predict_wheels(wheels, BASE, interval='ending')
     assert np.abs(base.twists[:, 0] - expected.twists[:, 0]).max() > 1e-3
+
+
+def test_the_diagnosis_questions_the_base_model():
+    """An asymmetric robot calibrated as edd_symmetric: the diagnosis replaces the base model."""
+    from skidkin_ros.studies.effects import icp_like
+    made = []
+    for seed in (21, 22, 23):
+        sim = simulate(SimConfig(duration_s=90.0, seed=seed, internal_rate_hz=200.0))
+        made.append(icp_like(sim.drive(f'asym{seed}'), np.random.default_rng(seed)))
+    options = DiagnosisOptions(interval=SIM_INTERVAL)
+    base = fit_model('edd_symmetric', GEOM, cut_segments(made[:2], options.train_segments()))
+    result = diagnose(made[:2], made[2:], GEOM, {'edd_symmetric': base.values},
+                      'edd_symmetric', options)
+    assert result.given_base == 'edd_symmetric'
+    assert result.base_model in ('edd_asymmetric', 'full_linear')
+    assert 'replaces edd_symmetric' in '\n'.join(result.summary_lines())
+    assert result.steps[1].stats_t.median < 0.8 * result.steps[0].stats_t.median
+    params = result.to_parameters({'wheel_radius': 0.1651, 'track_width': 0.555,
+                                   'model': 'edd_symmetric'})
+    assert params.get('augmented.base', params['model']) == result.base_model

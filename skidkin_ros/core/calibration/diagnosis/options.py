@@ -42,6 +42,8 @@ class DiagnosisOptions(HorizonOptions):
     # conventions already place the speeds on their interval and need no stamp-convention row.
     stamp_convention: str = 'mid'
     trim: bool = False
+    # Question the base model first (asymmetry, ICR offsets, ROC: :mod:`.base`).
+    question_base: bool = True
 
     def __post_init__(self) -> None:
         ordered(self.candidates, exclusive=False)

@@ -17,6 +17,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from skidkin_ros import __version__
+from skidkin_ros.core.calibration.diagnosis.base import question_base
 from skidkin_ros.core.calibration.diagnosis.candidates import CandidateFitter
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.residuals import pose_residuals, pose_samples
@@ -104,6 +105,13 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
             predictor = SegmentPredictor(train, train_seg, options.max_dt_s,
                                          options.interval)
             refit, _ = fit_state(predictor, base_model_name, geometry, refit, options)
+    given_name = base_model_name
+    base_scores: tuple = ()
+    if options.question_base:
+        base_model_name, switched, base_scores = question_base(
+            train, predictor, geometry, base_model_name, base_values_by_model, options, jobs)
+        if switched is not None:
+            refit = switched
     null = refit
     if convention_s != 0.0:
         null = ModelState(('time_offset',), dict(refit.base_values),
@@ -124,10 +132,11 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
     final, scores, accepted = select(fitter, null, jobs, progress)
     eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s,
                                       options.interval)
-    steps = [_evaluate(eval_predictor, f'{base_model_name} (given)', given_state,
-                       base_model_name, geometry, options),
-             _evaluate(eval_predictor, f'{base_model_name} (refitted)', refit, base_model_name,
-                       geometry, options)]
+    replaced = f'; replaces {given_name}' if base_model_name != given_name else ''
+    steps = [_evaluate(eval_predictor, f'{given_name} (given)', given_state,
+                       given_name, geometry, options),
+             _evaluate(eval_predictor, f'{base_model_name} (refitted{replaced})', refit,
+                       base_model_name, geometry, options)]
     if convention_s != 0.0:
         steps.append(_evaluate(eval_predictor, f'+ stamp convention {convention_s * 1e3:+.0f} ms',
                                null, base_model_name, geometry, options))
@@ -144,6 +153,10 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                         'evaluation drives (median eps_t); the effect may not transfer')
     provenance = {
         'tool': f'skidkin_ros {__version__}', 'base_model': base_model_name,
+        'given_base_model': given_name,
+        'base_models_questioned': [f'{s.name}: held-out gain {s.gain:+.3f}, p {s.p_value:.2g}'
+                                   + (' (replaces the given model)' if s.accepted else '')
+                                   for s in base_scores],
         'extensions': list(final.found), 'model_extensions': list(final.extensions),
         'stamp_convention_s': convention_s, 'train_drives': len(train),
         'evaluate_drives': len(evaluate), 'train_segments': len(train_seg),

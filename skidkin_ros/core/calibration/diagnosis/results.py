@@ -84,6 +84,7 @@ class DiagnosisResult:
                          f'(interval {self.options.interval}: no stamp convention)')
         lines.append('  strongest residual correlations: ' + ', '.join(
             f'{c}~{s} r={r:+.2f}' for c, s, r in self.trace.top(4)))
+        lines += [f'  {line}' for line in self.base_lines()]
         if not self.final.found:
             lines.append('  no extension added: no candidate passed the parsimony rule '
                          f'(held-out gain > {self.options.min_relative_gain:.0%} and p < '
@@ -114,6 +115,19 @@ class DiagnosisResult:
                          f'{th.p90:.3f} | {t.count}')
         lines += [f'  warning: {w}' for w in self.warnings]
         return lines
+
+    @property
+    def given_base(self) -> str:
+        return str(self.provenance.get('given_base_model', self.base_model))
+
+    def base_lines(self) -> list[str]:
+        """Return what questioning the base model found (nothing when it was not questioned)."""
+        questioned = self.provenance.get('base_models_questioned', [])
+        if not questioned:
+            return []
+        verdict = (f'{self.base_model} replaces {self.given_base}'
+                   if self.base_model != self.given_base else f'{self.given_base} kept')
+        return [f'base model questioned ({verdict}): ' + '; '.join(questioned)]
 
     def _regression(self) -> str | None:
         return next((n for n in self.final.found if get_extension(n).regression), None)
@@ -169,6 +183,9 @@ class DiagnosisResult:
         flat['track_width'] = float(self.geometry.track_width)
         if not self.final.found:
             flat['model'] = self.base_model
+            if self.base_model != self.given_base:  # the diagnosis replaced the base model
+                for name, value in self.final.base_values.items():
+                    flat[f'models.{self.base_model}.{name}'] = float(value)
             return flat
         for name, value in self.final.base_values.items():
             flat[f'models.{self.base_model}.{name}'] = float(value)
