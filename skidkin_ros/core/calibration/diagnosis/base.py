@@ -12,7 +12,8 @@ for the asymmetry. Before the extensions, as a recipe:
 3. **Parsimony.** A model replaces the given one when it lowers the summed held-out loss by more
    than ``min_relative_gain`` with a one-sided Wilcoxon p < ``significance`` (the extensions'
    rule); among passing models, the one with the best gain, unless one with fewer parameters is
-   not significantly worse.
+   not significantly worse. The recipe then keeps it only if it explains more than the best
+   extension of the first round on the given model (:func:`.recipe.diagnose`).
 
 The fits run on ``jobs`` processes. The result lists every model's gain and p-value.
 """
@@ -48,6 +49,7 @@ class BaseScore:
     passes: bool
     accepted: bool
     values: dict[str, float]
+    note: str = ''
 
 
 class _BaseFits:

@@ -11,6 +11,7 @@ there is no such row.
 
 from __future__ import annotations
 
+from dataclasses import replace
 import time
 from typing import Mapping, Sequence
 
@@ -107,29 +108,45 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
             refit, _ = fit_state(predictor, base_model_name, geometry, refit, options)
     given_name = base_model_name
     base_scores: tuple = ()
+    switched = None
     if options.question_base:
-        base_model_name, switched, base_scores = question_base(
+        other, switched, base_scores = question_base(
             train, predictor, geometry, base_model_name, base_values_by_model, options, jobs)
-        if switched is not None:
-            refit = switched
-    null = refit
-    if convention_s != 0.0:
-        null = ModelState(('time_offset',), dict(refit.base_values),
-                          {'time_offset': {'offset_s': convention_s}})
-        null, _ = fit_state(predictor, base_model_name, geometry, null, options)
-    base_bound = refit.bind(base_model_name, geometry)
-    samples = pose_samples(train, base_bound, options)
-    residual, valid = pose_residuals(train, samples, null.bind(base_model_name, geometry),
-                                     options)
-    lag_s, curve = lag_scan(train, samples, refit, base_model_name, geometry, options)
-    lag_s -= convention_s
-    trace = Trace(residual, samples.signals, correlations(residual, valid, samples.signals),
-                  lag_s, curve, predictor.errors(null.bind(base_model_name, geometry)))
     durations = [d.duration_s() for d in train]
-    hints = FitHints(lag_s, convention_s, wheel_period_s(train),
-                     max(durations) if durations else 0.0)
-    fitter = CandidateFitter(train, train_seg, base_model_name, geometry, options, samples, hints)
-    final, scores, accepted = select(fitter, null, jobs, progress)
+
+    def explore(name: str, start: ModelState):
+        """Trace the residuals of a base model and select its extensions."""
+        null = start
+        if convention_s != 0.0:
+            null = ModelState(('time_offset',), dict(start.base_values),
+                              {'time_offset': {'offset_s': convention_s}})
+            null, _ = fit_state(predictor, name, geometry, null, options)
+        samples = pose_samples(train, start.bind(name, geometry), options)
+        residual, valid = pose_residuals(train, samples, null.bind(name, geometry), options)
+        lag_s, curve = lag_scan(train, samples, start, name, geometry, options)
+        lag_s -= convention_s
+        trace = Trace(residual, samples.signals, correlations(residual, valid, samples.signals),
+                      lag_s, curve, predictor.errors(null.bind(name, geometry)))
+        hints = FitHints(lag_s, convention_s, wheel_period_s(train),
+                         max(durations) if durations else 0.0)
+        fitter = CandidateFitter(train, train_seg, name, geometry, options, samples, hints)
+        return (null, samples, residual, valid, trace) + select(fitter, null, jobs, progress)
+
+    explored = explore(base_model_name, refit)
+    if switched is not None:
+        # The base model is questioned as an extension is: it replaces the given one only when
+        # it explains more than the best extension of the first round does on the given one.
+        gain_base = max(score.gain for score in base_scores if score.accepted)
+        gain_ext = max((c.relative_gain for c in explored[6] if c.round_no == 1 and c.accepted),
+                       default=0.0)
+        if gain_base > gain_ext:
+            base_model_name, refit = other, switched
+            explored = explore(base_model_name, refit)
+        else:
+            base_scores = tuple(replace(score, accepted=False, note=(
+                f'passes, but {gain_ext:+.1%} from an extension explains more'))
+                if score.accepted else score for score in base_scores)
+    null, samples, residual, valid, trace, final, scores, accepted = explored
     eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s,
                                       options.interval)
     replaced = f'; replaces {given_name}' if base_model_name != given_name else ''
@@ -156,6 +173,7 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
         'given_base_model': given_name,
         'base_models_questioned': [f'{s.name}: held-out gain {s.gain:+.3f}, p {s.p_value:.2g}'
                                    + (' (replaces the given model)' if s.accepted else '')
+                                   + (f' ({s.note})' if s.note else '')
                                    for s in base_scores],
         'extensions': list(final.found), 'model_extensions': list(final.extensions),
         'stamp_convention_s': convention_s, 'train_drives': len(train),
