@@ -280,13 +280,28 @@ def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
     d, g = lag_factors(dt_s, tau_s)
     held = np.empty_like(x)
     length = x.shape[1]
-    steady = np.array([length > 2 and not restart[r].any()
-                       and np.all(dt_s[r, :-1] == dt_s[r, 0]) and dt_s[r, 0] > 0
-                       for r in range(x.shape[0])], dtype=bool)
-    for r in np.nonzero(steady)[0]:
-        decay = float(d[r, 0])
-        held[r] = lfilter([0.0, 1.0 - decay], [1.0, -decay], x[r], axis=0,
-                          zi=x[r, :1].copy())[0]
+    # A row is steady up to ``ends[r]``: a constant period, no restart; what follows is padding
+    # (repeated last stamps, dt = 0), over which the sample loop holds y as it is. Steady rows of
+    # one period go through one lfilter call together.
+    moving = dt_s > 0.0
+    index = np.arange(length)
+    ends = np.where(moving.any(axis=1), length - np.argmax(moving[:, ::-1], axis=1), 0)
+    prefix = index[None, :] < ends[:, None]
+    steady = ((ends > 2) & np.all(np.where(prefix, dt_s == dt_s[:, :1], True), axis=1)
+              & np.all(np.where(prefix, True, dt_s == 0.0), axis=1)
+              & ~np.any(np.asarray(restart, bool) & (index[None, :] <= ends[:, None]), axis=1))
+    # A row that never moves on (every stamp repeated, padding of an empty drive) holds y = x_0.
+    idle = (ends == 0) & ~np.any(np.asarray(restart, bool), axis=1)
+    held[idle] = x[idle, :1]
+    steady |= idle
+    for decay in np.unique(d[steady & ~idle, 0]):
+        rows = np.nonzero(steady & ~idle & (d[:, 0] == decay))[0]
+        held[rows] = lfilter([0.0, 1.0 - decay], [1.0, -decay], x[rows], axis=1,
+                             zi=x[rows, :1].copy())[0]
+        last = np.minimum(ends[rows], length - 1)
+        tail = index[None, :] > last[:, None]
+        edge = held[rows, last]
+        held[rows] = np.where(tail[..., None], edge[:, None, :], held[rows])
     rows = np.nonzero(~steady)[0]
     if rows.size:
         xs, ds, rs, still = x[rows], d[rows], restart[rows], dt_s[rows] == 0.0

@@ -88,23 +88,25 @@ def blr(phi: np.ndarray, y: np.ndarray) -> Regression:
     z = phi / rms
     gram = z.T @ z
     zy = z.T @ y
-    eig = np.linalg.eigvalsh(gram)
+    yy = float(y @ y)
+    # In the eigenbasis of the Gram matrix every iteration is O(p^2): no n-sized product.
+    eig, vec = np.linalg.eigh(gram)
     eig = np.clip(eig, 0.0, None)
+    proj = vec.T @ zy
     alpha, beta = 1.0, 1.0 / max(float(np.var(y)), 1e-12)
     for _ in range(_EVIDENCE_ITERATIONS):
-        precision = alpha * np.eye(p) + beta * gram
-        mean = beta * np.linalg.solve(precision, zy)
+        mean_e = beta * proj / (alpha + beta * eig)   # posterior mean in the eigenbasis
         gamma = float(np.sum(beta * eig / (alpha + beta * eig)))
-        new_alpha = gamma / max(float(mean @ mean), 1e-300)
-        sse = float(np.sum((y - z @ mean) ** 2))
-        new_beta = max(n - gamma, 1e-9) / max(sse, 1e-300)
+        new_alpha = gamma / max(float(mean_e @ mean_e), 1e-300)
+        sse = max(yy - 2.0 * float(mean_e @ proj) + float(mean_e @ (eig * mean_e)), 1e-300)
+        new_beta = max(n - gamma, 1e-9) / sse
         new_alpha = min(max(new_alpha, 1e-9), 1e12)
         done = (abs(new_alpha - alpha) <= 1e-6 * alpha and abs(new_beta - beta) <= 1e-6 * beta)
         alpha, beta = new_alpha, new_beta
         if done:
             break
-    precision = alpha * np.eye(p) + beta * gram
-    cov = np.linalg.inv(precision)
+    inverse = 1.0 / (alpha + beta * eig)
+    cov = (vec * inverse) @ vec.T
     mean = beta * cov @ zy
     return Regression(mean / rms, cov / np.outer(rms, rms), alpha, beta)
 
