@@ -384,17 +384,27 @@ _RESIDUAL_COEFS = len(residual.coefficient_names())
 _RESIDUAL_RANGES = len(residual.range_names())
 
 
+_RESIDUAL_GAINS = _RESIDUAL_COEFS + _RESIDUAL_RANGES + 1  # after the level
+
+
 def _residual_model(k, twist, omega_l, omega_r, t_s, rate):
     k = np.asarray(k, dtype=float)
     ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES].tolist()
     phi = residual.features(ranges, twist, rate)
-    return bounded_correction(twist, residual.correction(k[:_RESIDUAL_COEFS].tolist(), phi))
+    change = residual.correction(k[:_RESIDUAL_COEFS].tolist(), phi)
+    gains = k[_RESIDUAL_GAINS:_RESIDUAL_GAINS + 3]
+    change = np.stack([change[..., 0] * gains[0], change[..., 1] * gains[1],
+                       change[..., 2] * gains[2]], axis=-1)
+    return bounded_correction(twist, change)
 
 
 def _scalar_residual_model(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES]
     phi = residual.scalar_features(ranges, vx, w, rate[0], rate[2])
     cx, cy, cw = residual.scalar_correction(k, phi)
+    cx = cx * k[_RESIDUAL_GAINS]
+    cy = cy * k[_RESIDUAL_GAINS + 1]
+    cw = cw * k[_RESIDUAL_GAINS + 2]
     v = abs(vx)
     a = abs(w)
     linear = v + a * SLIP_LEVER_M
@@ -410,16 +420,17 @@ def residual_jacobian(k: Sequence[float], twist: Sequence[float], rate: Sequence
     """Return d(twist)/d(coefficient) of the residual model at one sample, (d vx, d vy, d w).
 
     The correction is linear in its coefficients: output o's coefficient of term j moves
-    component o by the term's value (0 where the bound holds the change).
+    component o by the term's value times the output's gain (the bound is left out).
     """
     ranges = tuple(k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES])
     phi = residual.scalar_features(ranges, twist[0], twist[2], rate[0], rate[2])
     zero = (0.0, 0.0, 0.0)
     out = []
     for o in range(len(residual.OUTPUTS)):
+        gain = k[_RESIDUAL_GAINS + o]
         for value in phi:
             row = list(zero)
-            row[o] = value
+            row[o] = value * gain
             out.append((row[0], row[1], row[2]))
     return out
 
@@ -439,6 +450,10 @@ def _residual_specs() -> tuple[ParamSpec, ...]:
                                'the range, scaled by its largest magnitude)'))
     specs.append(_spec('level', '-', 0.0, 0.0, float(max(residual.LEVELS)),
                        'library level chosen on held-out likelihood (terms above it are 0)'))
+    for out_name, _ in residual.OUTPUTS:
+        specs.append(_spec(f'gain_{out_name}', '-', 1.0, 0.0, 3.0,
+                           f'gain on the {out_name} correction, refined on whole segments (the '
+                           'regression fits velocities, the segments poses)'))
     return tuple(specs)
 
 
@@ -585,8 +600,10 @@ _ALL: tuple[Extension, ...] = (
         'magnitudes; products of a signal and a magnitude, smooth signs; rates and their '
         'speeding-up parts; cubics) of the base twist and its rate, inputs clamped to the '
         'fitted range and scaled to [-1, 1]; C by Bayesian linear regression, the level on '
-        'held-out likelihood; each change at most |v| + 2 m |w| (m/s) or |w| + |v| / 2 m (rad/s)',
-        'smooth function of the wheel-speed state', _residual_specs(), (), regression=True,
+        'held-out likelihood, a gain per component on whole segments; each change at most '
+        '|v| + 2 m |w| (m/s) or |w| + |v| / 2 m (rad/s)',
+        'smooth function of the wheel-speed state', _residual_specs(),
+        ('gain_vx', 'gain_vy', 'gain_wz'), regression=True,
         residual_view=('v_x', 'body_speed', False)),
 )
 

@@ -58,7 +58,8 @@ def residual_correction_at(values: Mapping[str, float], signals: Mapping[str, np
     twist, rate = _inputs(signals)
     ranges = [values.get(name, 0.0) for name in residual.range_names()]
     phi = residual.features(ranges, twist, rate)
-    coef = [values.get(name, 0.0) for name in residual.coefficient_names()]
+    coef = [values.get(name, 0.0) * values.get(f'gain_{name.split("_")[0]}', 1.0)
+            for name in residual.coefficient_names()]
     return residual.correction(coef, phi)
 
 
@@ -74,6 +75,7 @@ def residual_dependence(values: Mapping[str, float], signals: Mapping[str, np.nd
     out = []
     for out_name, _ in residual.OUTPUTS:
         coef = np.array([values.get(f'{out_name}_{term}', 0.0) for term in names])
+        coef = coef * values.get(f'gain_{out_name}', 1.0)
         if not np.any(coef) or phi.shape[0] == 0:
             continue
         parts: dict[str, np.ndarray] = {}

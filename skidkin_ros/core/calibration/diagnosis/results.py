@@ -104,6 +104,11 @@ class DiagnosisResult:
         lines.append('  candidates (round, name, held-out gain, p, accepted):')
         for cand in self.candidates:
             terms = f' terms {list(cand.terms)}' if cand.terms else ''
+            if len(cand.terms) > 8:
+                terms = f' {len(cand.terms)} terms'
+            if cand.note.startswith('screened out'):
+                lines.append(f'    {cand.round_no} {cand.name:<20} {cand.note.split(",")[0]}')
+                continue
             lines.append(f'    {cand.round_no} {cand.name:<20} {cand.relative_gain:+7.1%} '
                          f'p={cand.p_value:.2g} {"yes" if cand.accepted else "no"}{terms}')
         lines.append('  held-out errors: model | eps_t m/m median [q25, q75] p90 | '
