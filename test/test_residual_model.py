@@ -232,3 +232,22 @@ def test_the_diagnosis_questions_the_base_model():
     params = result.to_parameters({'wheel_radius': 0.1651, 'track_width': 0.555,
                                    'model': 'edd_symmetric'})
     assert params.get('augmented.base', params['model']) == result.base_model
+
+
+@pytest.mark.heavy
+def test_the_residual_model_helps_on_the_real_husky_without_a_heading_loss():
+    """The Husky windows (DRIVE), even calib_step train, odd evaluate: no loss, a gain in eps_t."""
+    from pathlib import Path
+    from skidkin_ros.adapters.table import read_table
+    from skidkin_ros.core.calibration.holdout import split_holdout
+    data = Path(__file__).resolve().parents[1] / 'data' / 'husky' / 'drive_husky_windows.csv'
+    train, evaluate = split_holdout(read_table(data), every=2, key='calib_step')
+    options = DiagnosisOptions(candidates=('residual_model',), interval='ending',
+                               question_base=False)
+    base = fit_model('edd_symmetric', GEOM, cut_segments(train, options.train_segments()))
+    result = diagnose(train, evaluate, GEOM, {'edd_symmetric': base.values}, 'edd_symmetric',
+                      options, jobs=2)
+    given, last = result.steps[0], result.steps[-1]
+    assert result.extensions == ('residual_model',)
+    assert last.stats_t.median < 0.9 * given.stats_t.median
+    assert last.stats_theta.median < 1.05 * given.stats_theta.median
