@@ -1,4 +1,4 @@
-"""Question the base model: is another of the five (asymmetry, ICR offsets, ROC) better?
+"""Question the base model: is another of the five (asymmetry, ICR offsets, ROC) better.
 
 A calibration may keep a simpler model within two standard errors (``edd_symmetric`` for an
 asymmetric robot); the diagnosis then builds on the wrong base, and an extension has to stand in

@@ -4,9 +4,9 @@
    :func:`~skidkin_ros.core.calibration.diagnosis.residuals.pose_samples` over the valid poses
    (NaN where fewer than 10 values or a constant): the report's leads.
 2. **Lag scan.** The refitted base model runs with a time offset from -``lag_range_s`` to
-   +``lag_range_s`` (every 50 ms, then every 10 ms within 50 ms of the best); at each offset, the mean squared velocity residual (yaw rate
-   scaled by b/2 to metres per second). The best offset is the wheel-to-ground-truth lag: it is
-   reported and starts the timing extensions' fits
+   +``lag_range_s`` (every 50 ms, then every 10 ms within 50 ms of the best); at each offset,
+   the mean squared velocity residual (yaw rate scaled by b/2 to metres per second). The best
+   offset is the wheel-to-ground-truth lag: it is reported and starts the timing extensions' fits
    (:class:`skidkin_ros.core.kinematics.extensions.FitHints`).
 3. **What is left.** After the selection, the final model's residual is traced again
    (:func:`residual_leads`): for each component and signal, the share of the whole velocity
