@@ -54,7 +54,7 @@ def test_each_entry_says_how_to_start_scan_and_rank_it():
         assert list(start) == list(ext.param_names), ext.name
         assert all(spec.contains(start[spec.name]) for spec in ext.params), ext.name
         assert set(ext.fitted) | set(ext.scan) <= set(ext.param_names)
-        assert ext.library or ext.fitted, ext.name
+        assert ext.learned or ext.fitted, ext.name
         if ext.scan:
             low, high = ext.scan_range(hints)
             assert 0.0 <= low < high

@@ -63,9 +63,10 @@ def add_parser(subparsers) -> None:
         description='Compute residuals of the calibrated model against the ground truth, trace '
         'them against every signal in the data (wheel speeds, their sum, difference, ratio and '
         'derivatives, speed, yaw rate, curvature, v*omega, direction, time, position, IMU, '
-        'timing), fit each named extension (and a sparse-regression fallback), keep those that '
-        'remove held-out error by cross-validation with a parsimony rule, and write a complete '
-        'parameters file with the augmented model.')
+        'timing), question the base model (asymmetry, ICR, ROC), fit each named extension (and '
+        'a data-driven residual model of the wheel-speed state when none explains the rest), '
+        'keep those that remove held-out error by cross-validation with a parsimony rule, and '
+        'write a complete parameters file with the augmented model.')
     parser.add_argument('train', nargs='+', type=Path, help='training bag(s) or table(s)')
     parser.add_argument('--params', type=Path, required=True,
                         help='calibrated parameters file (from skidkin calibrate)')
@@ -76,7 +77,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument('--force', action='store_true', help='overwrite existing outputs')
     parser.add_argument('--base', help="base model (default: the file's model)")
     parser.add_argument('--candidates', nargs='+', choices=list(EXTENSIONS),
-                        help='extensions to try (default: all)')
+                        help='extensions to try (default: all but sparse_correction, which the '
+                        'residual_model supersedes)')
     parser.add_argument('--split-by', metavar='COLUMN',
                         help='tables without --eval: even values of COLUMN train, odd evaluate')
     parser.add_argument('--trim', action='store_true',

@@ -12,6 +12,8 @@ import numpy as np  # noqa: E402
 
 from skidkin_ros.atomic import atomic_write_text  # noqa: E402
 from skidkin_ros.core.calibration.diagnosis import COMPONENTS, DiagnosisResult  # noqa: E402
+from skidkin_ros.core.calibration.diagnosis.interpret import (  # noqa: E402
+    residual_correction_at)
 from skidkin_ros.core.kinematics.extensions import (get_extension, LIBRARY,  # noqa: E402
                                                     sparse_features)
 from skidkin_ros.report.figures import save_figure  # noqa: E402
@@ -66,6 +68,10 @@ def _explained(result: DiagnosisResult) -> list[tuple[str, str, str, bool]]:
         component, signal, fold = ext.residual_view
         if ext.library and result.final.sparse_terms:
             component, signal = _main_library_term(result, name)
+        if ext.regression:
+            deps = result.residual_dependence(name)
+            if deps:
+                component, signal, fold = deps[0].component, deps[0].signal, False
         items.append((name, component, signal, fold))
     if not items:
         top = result.trace.top(1)
@@ -100,6 +106,12 @@ def residual_figure(result: DiagnosisResult, path: Path) -> Path:
         for values, valid, color in ((before, valid_b, 'darkred'), (after, valid_a, 'navy')):
             cx, cy = _binned(x[valid], values[valid])
             ax.plot(cx, cy, color=color, linewidth=2)
+        if title in result.final.found and get_extension(title).regression:
+            # the slice: the learned correction against the signal that explains most
+            learned = residual_correction_at(result.final.ext_values[title], signals)[:, c]
+            cx, cy = _binned(x[valid_b], learned[valid_b])
+            ax.plot(cx, cy, color='tab:green', linewidth=2.5, linestyle='--',
+                    label='learned correction')
         ax.axhline(0.0, color='black', linewidth=0.8)
         spread = np.percentile(np.abs(before[valid_b]), 99) if valid_b.any() else 0.0
         if spread > 0:
@@ -150,6 +162,10 @@ def render_diagnosis_page(result: DiagnosisResult, images: dict[str, str]) -> st
     lines += [f'- **{line}**' for line in result.unexplained_lines()]
     for name in found:
         ext = get_extension(name)
+        if ext.regression:
+            lines += ['- ' + result.residual_lines(name)[0]]
+            lines += [f'  - {line.strip()}' for line in result.residual_lines(name)[1:]]
+            continue
         lines.append(f'- `{name}` ({ext.title}; {ext.formula}): ' + ', '.join(
             f'{p} = {_num(v)}' for p, v in result.final.shown_values(name).items()))
     lines += ['', '## Held-out errors, before and after', '',

@@ -28,6 +28,7 @@ from typing import Mapping
 import numpy as np
 
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import ParameterError
 from skidkin_ros.sim.effects import Effect, make_effect
 from skidkin_ros.sim.simulate import SimConfig, simulate
@@ -113,10 +114,10 @@ def simulate_windows(config: WindowedConfig = WARTHOG_LIKE) -> list[Drive]:
     per_step = int(round(config.hold_s / config.window_s))
     drives = []
     for step in range(config.steps):
-        start = sim.start_ns + int(round((rest_s + step * config.hold_s) * 1e9))
+        start = sim.start_ns + s_to_ns(rest_s + step * config.hold_s)
         for j in range(per_step):
-            t0 = start + int(round(j * config.window_s * 1e9))
-            t1 = t0 + int(round(config.window_s * 1e9))
+            t0 = start + s_to_ns(j * config.window_s)
+            t1 = t0 + s_to_ns(config.window_s)
             drives.append(_window(f'step{step:03d}_w{j}', sim.wheels, sim.truth, t0, t1, rng,
                                   config.truth_noise, step))
     return drives

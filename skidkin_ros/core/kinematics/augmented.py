@@ -11,8 +11,8 @@ Per wheel sample i (stamp t_i, speeds held over [t_i, t_i+1)):
 
 1. x_i = twist-stage extensions applied, in order, to the base twist b_i = J(k) [omega_l,
    omega_r], with the time since the drive (or the node) started and the base twist's rate
-   r_i = (b_i - b_i-1) / (t_i - t_i-1) (0 on the first sample, after a gap and at a repeated
-   stamp);
+   r_i = (b_i - b_i-1) / max(t_i - t_i-1, MIN_RATE_STEP_S) (0 on the first sample, after a gap
+   and at a repeated stamp);
 2. with a lag extension (``first_order_lag`` on every component, ``forward_lag``, ``yaw_lag``,
    ``component_lags`` on some; tau > 0) each lagged component of the body twist y follows x
    exactly for a held input: y_i+1 = x_i + (y_i - x_i) d, d = exp(-dt / tau), and the twist
@@ -41,10 +41,14 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import ParameterError
 
-__all__ = ['AUGMENTED_NAME', 'AugmentedModel', 'AugmentedState', 'BoundAugmented',
-           'lag_factors', 'lag_response', 'twist_rates']
+__all__ = ['AUGMENTED_NAME', 'MIN_RATE_STEP_S', 'AugmentedModel', 'AugmentedState',
+           'BoundAugmented', 'lag_factors', 'lag_response', 'twist_rates']
 
 AUGMENTED_NAME = 'augmented'
+# A rate of change is measured over at least this long (s), as a wheel jump is (the wheel-jump
+# rule's MIN_JUMP_INTERVAL_S is this constant): stamps microseconds apart would otherwise turn
+# one encoder count into an enormous acceleration, and a rate term into an absurd twist.
+MIN_RATE_STEP_S = 0.01
 
 
 Triple = tuple[float, float, float]
@@ -54,8 +58,9 @@ _STILL: Triple = (0.0, 0.0, 0.0)
 class AugmentedState(NamedTuple):
     """Streaming state: first stamp (ns), twist-stage output x and body twist y (held).
 
-    ``t_ns`` and ``b``: the last sample's stamp and base twist (for the rate of the next one).
-    A named tuple: the node builds one per sample, and a tuple is the cheapest to build.
+    ``t_ns`` and ``b``: the last sample's stamp and base twist (for the rate of the next one);
+    ``r``: the base twist's rate at that sample (what the rate terms saw). A named tuple: the
+    node builds one per sample, and a tuple is the cheapest to build.
     """
 
     t0_ns: int
@@ -63,18 +68,20 @@ class AugmentedState(NamedTuple):
     y: Triple
     t_ns: int = 0
     b: Triple = _STILL
+    r: Triple = _STILL
 
 
 def twist_rates(base: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.ndarray:
     """Return the base twist's backward-difference rate over (D, L) rows (D, L, 3).
 
     ``dt_s[:, i]``: the step from sample i to i+1 (0 across a gap or a repeated stamp); the rate
-    is 0 on the first sample, after a restart and after a zero step, as the streaming form has it.
+    is 0 on the first sample, after a restart and after a zero step, as the streaming form has it;
+    a step shorter than :data:`MIN_RATE_STEP_S` counts as that long.
     """
     rate = np.zeros(base.shape)
     step = np.asarray(dt_s, dtype=float)[:, :-1]
     usable = (step > 0.0) & ~np.asarray(restart, bool)[:, 1:]
-    safe = np.where(usable, step, 1.0)
+    safe = np.where(usable, np.maximum(step, MIN_RATE_STEP_S), 1.0)
     rate[:, 1:] = np.where(usable[..., None],
                            (base[:, 1:] - base[:, :-1]) / safe[..., None], 0.0)
     return rate
@@ -190,6 +197,7 @@ class BoundAugmented:
         if state is not None and not restart:
             step = (t_ns - state.t_ns) * 1e-9
             if step > 0.0:
+                step = step if step > MIN_RATE_STEP_S else MIN_RATE_STEP_S
                 p = state.b
                 rate = ((b[0] - p[0]) / step, (b[1] - p[1]) / step, (b[2] - p[2]) / step)
         x = self.scalar_memoryless(float(omega_l), float(omega_r), (t_ns - t0) * 1e-9, rate, b)
@@ -199,7 +207,7 @@ class BoundAugmented:
             t_v, t_y, t_w = self.taus
             y = (state.y[0] if t_v > 0.0 else x[0], state.y[1] if t_y > 0.0 else x[1],
                  state.y[2] if t_w > 0.0 else x[2])
-        return AugmentedState(t0, x, y, t_ns, b), y
+        return AugmentedState(t0, x, y, t_ns, b, rate), y
 
     def advance(self, state: AugmentedState, dt_s: float) -> tuple[AugmentedState, Triple]:
         """Return the state after holding for dt_s and the mean twist over that interval.
@@ -223,7 +231,7 @@ class BoundAugmented:
             h1, m1 = _lag_step(x1, y1, t_y, dt_s)
             h2, m2 = _lag_step(x2, y2, t_w, dt_s)
             held, mean = (h0, h1, h2), (m0, m1, m2)
-        return AugmentedState(state.t0_ns, state.x, held, state.t_ns, state.b), mean
+        return AugmentedState(state.t0_ns, state.x, held, state.t_ns, state.b, state.r), mean
 
     def published(self, state: AugmentedState) -> Triple:
         """Return the body twist held at the end of an advanced interval (y; x without lag)."""
@@ -273,13 +281,28 @@ def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
     d, g = lag_factors(dt_s, tau_s)
     held = np.empty_like(x)
     length = x.shape[1]
-    steady = np.array([length > 2 and not restart[r].any()
-                       and np.all(dt_s[r, :-1] == dt_s[r, 0]) and dt_s[r, 0] > 0
-                       for r in range(x.shape[0])], dtype=bool)
-    for r in np.nonzero(steady)[0]:
-        decay = float(d[r, 0])
-        held[r] = lfilter([0.0, 1.0 - decay], [1.0, -decay], x[r], axis=0,
-                          zi=x[r, :1].copy())[0]
+    # A row is steady up to ``ends[r]``: a constant period, no restart; what follows is padding
+    # (repeated last stamps, dt = 0), over which the sample loop holds y as it is. Steady rows of
+    # one period go through one lfilter call together.
+    moving = dt_s > 0.0
+    index = np.arange(length)
+    ends = np.where(moving.any(axis=1), length - np.argmax(moving[:, ::-1], axis=1), 0)
+    prefix = index[None, :] < ends[:, None]
+    steady = ((ends > 2) & np.all(np.where(prefix, dt_s == dt_s[:, :1], True), axis=1)
+              & np.all(np.where(prefix, True, dt_s == 0.0), axis=1)
+              & ~np.any(np.asarray(restart, bool) & (index[None, :] <= ends[:, None]), axis=1))
+    # A row that never moves on (every stamp repeated, padding of an empty drive) holds y = x_0.
+    idle = (ends == 0) & ~np.any(np.asarray(restart, bool), axis=1)
+    held[idle] = x[idle, :1]
+    steady |= idle
+    for decay in np.unique(d[steady & ~idle, 0]):
+        rows = np.nonzero(steady & ~idle & (d[:, 0] == decay))[0]
+        held[rows] = lfilter([0.0, 1.0 - decay], [1.0, -decay], x[rows], axis=1,
+                             zi=x[rows, :1].copy())[0]
+        last = np.minimum(ends[rows], length - 1)
+        tail = index[None, :] > last[:, None]
+        edge = held[rows, last]
+        held[rows] = np.where(tail[..., None], edge[:, None, :], held[rows])
     rows = np.nonzero(~steady)[0]
     if rows.size:
         xs, ds, rs, still = x[rows], d[rows], restart[rows], dt_s[rows] == 0.0

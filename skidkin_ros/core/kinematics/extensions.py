@@ -36,6 +36,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from skidkin_ros.core.kinematics import residual
 from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 from skidkin_ros.errors import ParameterError
 
@@ -46,8 +47,11 @@ __all__ = [
     'EXTENSION_NAMES',
     'LibraryTerm',
     'LIBRARY',
+    'SLIP_LEVER_M',
     'SPARSE_FEATURES',
     'SPARSE_OUTPUTS',
+    'bounded_correction',
+    'residual_jacobian',
     'get_extension',
     'ordered',
     'ratio_bump',
@@ -57,6 +61,9 @@ __all__ = [
 
 # Never remove more than this fraction of the forward speed (keeps v_x's sign).
 MAX_SPEED_SLIP = 0.8
+# Lever (m) that turns a yaw rate into a speed in the bound of a data-driven correction
+# (bounded_correction): the largest the named extensions allow (icr_offset's 2 m).
+SLIP_LEVER_M = 2.0
 
 
 @dataclass(frozen=True)
@@ -83,7 +90,10 @@ class Extension:
     :class:`FitHints`. ``scan`` names parameters first searched on a grid over
     ``scan_range(hints)`` (step-like effects), and ``refine`` says whether they are then refined
     by least squares. ``library``: the parameters are coefficients of library terms, the terms
-    chosen by sparse regression (only those are fitted). ``group``: extensions of one group
+    chosen by sparse regression (only those are fitted). ``regression``: the coefficients of a
+    data-driven residual model, fitted in closed form by Bayesian linear regression on the
+    per-pose residuals, its terms and level chosen on held-out likelihood (none is fitted by
+    least squares). ``group``: extensions of one group
     exclude each other (one lag per model). ``lags``: for a dynamics extension, the parameter
     giving the time constant of each twist component (v_x, v_y, omega), None: not lagged.
     ``short_alias`` = (parameter, other
@@ -108,6 +118,12 @@ class Extension:
     residual_view: tuple[str, str, bool] = ('v_x', 'body_speed', False)
     group: str = ''
     lags: tuple[str | None, str | None, str | None] = (None, None, None)
+    regression: bool = False
+
+    @property
+    def learned(self) -> bool:
+        """Whether the data choose its terms (a library or a regression extension)."""
+        return self.library or self.regression
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -128,7 +144,7 @@ class Extension:
 
         ``terms``: the library terms chosen (a library extension counts those).
         """
-        count = len(terms) if self.library else len(self.fitted) + len(self.scan)
+        count = len(terms) if self.learned else len(self.fitted) + len(self.scan)
         return count, int(self.stage == 'dynamics')
 
     def vector(self, values: Mapping[str, float], prefix: str = '') -> np.ndarray:
@@ -332,10 +348,27 @@ def sparse_features(twist: np.ndarray, rate: np.ndarray | None = None) -> np.nda
     return np.stack([term.of(v, w, dv, dw) for term in LIBRARY], axis=-1)
 
 
+def bounded_correction(twist: np.ndarray, correction: np.ndarray) -> np.ndarray:
+    """Return twist + correction, each component's change bounded by the motion's own size.
+
+    A slip never moves the body faster than its wheels drive it: v_x and v_y change by at most
+    |v_x| + |omega| SLIP_LEVER_M (m/s), omega by at most |omega| + |v_x| / SLIP_LEVER_M (rad/s).
+    So a data-driven correction cannot publish an absurd twist, whatever its coefficients or
+    inputs (and a robot whose wheels stand still stays still).
+    """
+    twist = np.asarray(twist, dtype=float)
+    v = np.abs(twist[..., 0])
+    w = np.abs(twist[..., 2])
+    linear = v + w * SLIP_LEVER_M
+    angular = w + v / SLIP_LEVER_M
+    bound = np.stack([linear, linear, angular], axis=-1)
+    return twist + np.clip(correction, -bound, bound)
+
+
 def _sparse_correction(k, twist, omega_l, omega_r, t_s, rate):
     features = sparse_features(twist, rate)
     coef = np.asarray(k, dtype=float).reshape(len(SPARSE_OUTPUTS), len(SPARSE_FEATURES))
-    return np.asarray(twist, dtype=float) + features @ coef.T
+    return bounded_correction(twist, features @ coef.T)
 
 
 def _sparse_specs() -> tuple[ParamSpec, ...]:
@@ -344,6 +377,83 @@ def _sparse_specs() -> tuple[ParamSpec, ...]:
         for feat_name, feat_unit in SPARSE_FEATURES:
             specs.append(_spec(f'{out_name}_{feat_name}', f'({out_unit})/({feat_unit})', 0.0,
                                -10.0, 10.0, f'{out_name} correction per {feat_name}'))
+    return tuple(specs)
+
+
+_RESIDUAL_COEFS = len(residual.coefficient_names())
+_RESIDUAL_RANGES = len(residual.range_names())
+
+
+_RESIDUAL_GAINS = _RESIDUAL_COEFS + _RESIDUAL_RANGES + 1  # after the level
+
+
+def _residual_model(k, twist, omega_l, omega_r, t_s, rate):
+    k = np.asarray(k, dtype=float)
+    ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES].tolist()
+    phi = residual.features(ranges, twist, rate)
+    change = residual.correction(k[:_RESIDUAL_COEFS].tolist(), phi)
+    gains = k[_RESIDUAL_GAINS:_RESIDUAL_GAINS + 3]
+    change = np.stack([change[..., 0] * gains[0], change[..., 1] * gains[1],
+                       change[..., 2] * gains[2]], axis=-1)
+    return bounded_correction(twist, change)
+
+
+def _scalar_residual_model(k, vx, vy, w, omega_l, omega_r, t_s, rate):
+    ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES]
+    phi = residual.scalar_features(ranges, vx, w, rate[0], rate[2])
+    cx, cy, cw = residual.scalar_correction(k, phi)
+    cx = cx * k[_RESIDUAL_GAINS]
+    cy = cy * k[_RESIDUAL_GAINS + 1]
+    cw = cw * k[_RESIDUAL_GAINS + 2]
+    v = abs(vx)
+    a = abs(w)
+    linear = v + a * SLIP_LEVER_M
+    angular = a + v / SLIP_LEVER_M
+    cx = min(max(cx, -linear), linear)
+    cy = min(max(cy, -linear), linear)
+    cw = min(max(cw, -angular), angular)
+    return vx + cx, vy + cy, w + cw
+
+
+def residual_jacobian(k: Sequence[float], twist: Sequence[float], rate: Sequence[float]
+                      ) -> list[tuple[float, float, float]]:
+    """Return d(twist)/d(coefficient) of the residual model at one sample, (d vx, d vy, d w).
+
+    The correction is linear in its coefficients: output o's coefficient of term j moves
+    component o by the term's value times the output's gain (the bound is left out).
+    """
+    ranges = tuple(k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES])
+    phi = residual.scalar_features(ranges, twist[0], twist[2], rate[0], rate[2])
+    zero = (0.0, 0.0, 0.0)
+    out = []
+    for o in range(len(residual.OUTPUTS)):
+        gain = k[_RESIDUAL_GAINS + o]
+        for value in phi:
+            row = list(zero)
+            row[o] = value * gain
+            out.append((row[0], row[1], row[2]))
+    return out
+
+
+def _residual_specs() -> tuple[ParamSpec, ...]:
+    specs = []
+    units = {name: unit for name, unit, _ in residual.INPUTS}
+    for out_name, out_unit in residual.OUTPUTS:
+        for term, level, _, _ in residual.TERMS:
+            specs.append(_spec(f'{out_name}_{term}', out_unit, 0.0, -10.0, 10.0,
+                               f'{out_name} correction per unit of the scaled term {term} '
+                               f'(level {level})'))
+    for name, _, text in residual.INPUTS:
+        for side, word in (('lo', 'lowest'), ('hi', 'highest')):
+            specs.append(_spec(f'{name}_{side}', units[name], 0.0, -1e4, 1e4,
+                               f'{word} {text} the model was fitted on (inputs are clamped to '
+                               'the range, scaled by its largest magnitude)'))
+    specs.append(_spec('level', '-', 0.0, 0.0, float(max(residual.LEVELS)),
+                       'library level chosen on held-out likelihood (terms above it are 0)'))
+    for out_name, _ in residual.OUTPUTS:
+        specs.append(_spec(f'gain_{out_name}', '-', 1.0, 0.0, 3.0,
+                           f'gain on the {out_name} correction, refined on whole segments (the '
+                           'regression fits velocities, the segments poses)'))
     return tuple(specs)
 
 
@@ -356,6 +466,7 @@ _TWIST_FUNCTIONS = {
     'terrain_regime': _terrain_regime,
     'acceleration_slip': _acceleration_slip,
     'sparse_correction': _sparse_correction,
+    'residual_model': _residual_model,
 }
 
 _SCALAR_FUNCTIONS = {
@@ -366,6 +477,7 @@ _SCALAR_FUNCTIONS = {
     'ratio_yaw_slip': _scalar_ratio_yaw_slip,
     'terrain_regime': _scalar_terrain_regime,
     'acceleration_slip': _scalar_acceleration_slip,
+    'residual_model': _scalar_residual_model,
 }
 
 
@@ -478,8 +590,20 @@ _ALL: tuple[Extension, ...] = (
     Extension(
         'sparse_correction', 'Sparse regression on a library of twist terms', 'twist',
         'twist += C @ [v, w, v|v|, w|w|, v w, |v|, |w|, dv, dw, dv_up] (terms chosen by STLSQ; '
-        'dv, dw: backward differences; dv_up: dv while speeding up)',
+        'dv, dw: backward differences over at least 10 ms; dv_up: dv while speeding up), each '
+        'change at most |v| + 2 m |w| (m/s) or |w| + |v| / 2 m (rad/s)',
         'selected library terms', _sparse_specs(), (), library=True,
+        residual_view=('v_x', 'body_speed', False)),
+    Extension(
+        'residual_model', 'Data-driven residual of the body twist', 'twist',
+        'twist += C phi(v, w, dv, dw): a library of smooth terms in levels (signals and '
+        'magnitudes; products of a signal and a magnitude, smooth signs; rates and their '
+        'speeding-up parts; cubics) of the base twist and its rate, inputs clamped to the '
+        'fitted range and scaled to [-1, 1]; C by Bayesian linear regression, the level on '
+        'held-out likelihood, a gain per component on whole segments; each change at most '
+        '|v| + 2 m |w| (m/s) or |w| + |v| / 2 m (rad/s)',
+        'smooth function of the wheel-speed state', _residual_specs(),
+        ('gain_vx', 'gain_vy', 'gain_wz'), regression=True,
         residual_view=('v_x', 'body_speed', False)),
 )
 

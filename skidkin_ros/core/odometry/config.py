@@ -28,6 +28,8 @@ from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGA
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS, NoiseModel)
 from skidkin_ros.core.odometry.reference import ONLINE_SPECS, OnlineParams
+from skidkin_ros.core.odometry.residual_uncertainty import (
+    coefficient_count, RESIDUAL_EXTENSION, ResidualUncertainty)
 from skidkin_ros.core.odometry.uncertainty import (check_parameter_covariance,
                                                    ParameterUncertainty)
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
@@ -166,6 +168,12 @@ def _augmented_entries() -> list[SchemaEntry]:
             entries.append(SchemaEntry(
                 f'augmented.{ext.name}.{spec.name}', 'double', spec.default_for(None),
                 f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec))
+    size = coefficient_count()
+    entries.append(SchemaEntry(
+        f'augmented.{RESIDUAL_EXTENSION}.covariance', 'matrix', [0.0] * (size * size),
+        'posterior covariance of the residual model coefficients (vx_*, vy_*, wz_*), row-major; '
+        'all zeros: not known. Propagated into the pose covariance when '
+        'use_parameter_covariance is true', length=size * size))
     return entries
 
 
@@ -478,8 +486,10 @@ class OdometryConfig:
         a file written before it existed), and for an augmented model (its extensions change the
         twist's dependence on the base parameters).
         """
-        if self.model == AUGMENTED_NAME or not self.values.get('use_parameter_covariance', True):
+        if not self.values.get('use_parameter_covariance', True):
             return None
+        if self.model == AUGMENTED_NAME:
+            return self._residual_uncertainty()
         if self.noise.get(self.model) is None:
             return None
         model = get_model(self.model)
@@ -492,6 +502,20 @@ class OdometryConfig:
         return ParameterUncertainty.of_model(
             model, model.vector(self.model_values[model.name], self.geometry), self.geometry,
             np.asarray(flat, dtype=float).reshape(size, size))
+
+    def _residual_uncertainty(self) -> ResidualUncertainty | None:
+        """Return the residual model's coefficient uncertainty (augmented models only)."""
+        if RESIDUAL_EXTENSION not in self.augmented_extensions:
+            return None
+        if self.noise.get(self.augmented_base) is None:
+            return None
+        flat = self.values.get(f'augmented.{RESIDUAL_EXTENSION}.covariance')
+        if flat is None:
+            return None
+        size = coefficient_count()
+        ext = EXTENSIONS[RESIDUAL_EXTENSION]
+        values = ext.vector(self.augmented_values[RESIDUAL_EXTENSION])
+        return ResidualUncertainty.of(values, np.asarray(flat, dtype=float).reshape(size, size))
 
     @property
     def online(self) -> OnlineParams:

@@ -361,6 +361,7 @@ class StreamingIntegrator:
         self.last_t_ns: int | None = None
         self.held_speeds: tuple[float, float] = (0.0, 0.0)
         self.state: Any = None
+        self.step_state: Any = None
         # Optional aid (an IMU's, see core/odometry/gyro.py): called with every interval about
         # to be integrated, aid(t0_ns, t1_ns, dt_s, twist, speeds at t0, speeds at t1, yaw rate
         # of speeds or None), it returns the twist to integrate instead.
@@ -526,6 +527,7 @@ class StreamingIntegrator:
         wheels = None
         if self._stateful:
             self.state = new_state
+            self.step_state = new_state  # the state whose twist the step integrated
             self._restart = False
         else:
             wheels = (interval_speed(held_l, omega_l, self.interval),

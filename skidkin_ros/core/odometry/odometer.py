@@ -53,6 +53,7 @@ from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TW
                                              moving_time)
 from skidkin_ros.core.odometry.propagation import (PoseCovariancePropagator,
                                                    TWIST_VARIANCE_FLOOR)
+from skidkin_ros.core.odometry.residual_uncertainty import ResidualUncertainty
 from skidkin_ros.core.odometry.wheels import Pairing, WheelPairer, WheelSignal
 from skidkin_ros.core.timeunits import NS_PER_S
 
@@ -567,7 +568,7 @@ class Odometer:
             gyro = self.gyro
             if gyro is None:
                 self.covariance.step(result.start_pose, result.step_twist, result.dt_s,
-                                     wheels=result.step_wheels)
+                                     wheels=result.step_wheels, jacobian=self._jacobian())
             else:
                 result = self._aided(gyro, result)
             self.period_s = result.dt_s
@@ -585,6 +586,13 @@ class Odometer:
         elif not status.accepted:
             self._warn(status.value, f'wheel sample rejected: {result.detail}')
         return result
+
+    def _jacobian(self) -> list[tuple[float, float, float]] | None:
+        """Return d(twist)/dC of the step for a residual model's uncertainty, else None."""
+        parameters = self.covariance.parameters
+        if not isinstance(parameters, ResidualUncertainty):
+            return None
+        return parameters.jacobian(self.integrator.step_state)
 
     def _aided(self, gyro: GyroAid, result: StepResult) -> StepResult:
         """Count the gyro interval and propagate the covariance of the aided step.
@@ -611,7 +619,7 @@ class Odometer:
                 vx, vy, last.model_yaw_rate, dt_s))[2]
             extra = (0.0, 0.0, 0.0, 0.0, 0.0, gyro.yaw_step_variance(model) - used)
         self.covariance.step(result.start_pose, result.step_twist, dt_s, extra,
-                             result.step_wheels)
+                             result.step_wheels, self._jacobian())
         hx, hy, hw = result.twist
         published = w if last.yaw_from_gyro else gyro.filter.gain * hw
         return replace(result, twist=(hx, hy, published))

@@ -350,12 +350,14 @@ class PoseCovariancePropagator:
 
     def step(self, pose_before: Sequence[float], twist: Sequence[float], dt_s: float,
              extra: Sequence[float] | None = None,
-             wheels: tuple[float, float] | None = None) -> None:
+             wheels: tuple[float, float] | None = None,
+             jacobian: Sequence[tuple[float, float, float]] | None = None) -> None:
         """Propagate over one held step from ``pose_before`` (x, y, yaw) with ``twist``.
 
         ``extra``: an additional body-frame step noise, upper triangle (the input noise);
         ``wheels``: the wheel speeds integrated over the step (a model not linear in them needs
-        them to carry the parameter sensitivity).
+        them to carry the parameter sensitivity); ``jacobian``: d(twist)/dk of the step when the
+        caller has it (a residual model's, from the state that gave the step's twist).
         """
         if self.noise is None and extra is None and not self.carry_uncalibrated:
             return  # the fallback diagonals are published: nothing to propagate
@@ -364,7 +366,8 @@ class PoseCovariancePropagator:
         *_, new_yaw, self._upper = propagate_scalar(x, y, yaw, vx, vy, w, dt_s, self._upper,
                                                     self.noise, extra)
         if self._sens:
-            jacobian = self.parameters.twist_jacobian(vx, vy, w, wheels)
+            if jacobian is None:
+                jacobian = self.parameters.twist_jacobian(vx, vy, w, wheels)
             if jacobian is not None:
                 self._sens = _propagate_sensitivity(self._sens, jacobian, yaw, vx, vy, w, dt_s)
         self._yaw = new_yaw

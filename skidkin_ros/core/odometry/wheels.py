@@ -63,6 +63,7 @@ import enum
 import math
 from typing import Iterable, NamedTuple, Sequence
 
+from skidkin_ros.core.kinematics.augmented import MIN_RATE_STEP_S
 from skidkin_ros.errors import brief
 
 __all__ = [
@@ -95,8 +96,8 @@ WHEEL_SIGNALS = ('velocity', 'position', 'auto')
 
 SIDES = ('left', 'right')
 # Wheel accelerations are measured over at least this long (s): at kHz rates one encoder count
-# between two samples is a large acceleration, not a glitch.
-MIN_JUMP_INTERVAL_S = 0.01
+# between two samples is a large acceleration, not a glitch. The same floor as a rate term's.
+MIN_JUMP_INTERVAL_S = MIN_RATE_STEP_S
 # Beyond this |position| (rad), neighbouring float64 values are more than 1e-6 rad apart: a
 # count (1e-3 rad at 4096 counts per turn) is no longer resolved (the yaw limit's reasoning).
 POSITION_LIMIT_RAD = 1e-6 / 2.220446049250313e-16

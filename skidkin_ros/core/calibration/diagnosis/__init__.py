@@ -12,9 +12,13 @@
    (wheel speeds, sum, difference, ratio, their time derivatives, body speed, yaw rate,
    curvature, v omega, direction, time in drive, position, IMU yaw rate) and the
    wheel-vs-ground-truth lag is found by running the model over a range of time offsets.
-3. **Candidates** (:mod:`.candidates`, :mod:`.state`, :mod:`.sparse`). Every named extension
-   (and the sparse fallback: STLSQ on the per-pose residuals over a library of twist terms, then
-   the chosen terms only) is fitted on segments by the one least-squares engine
+3. **Candidates** (:mod:`.base`, :mod:`.candidates`, :mod:`.state`, :mod:`.regression`,
+   :mod:`.sparse`). The base model is questioned first (the other models, cross-validated; one
+   replaces it when it explains more than the best extension). Every named extension (and, when
+   none explains the rest, the data-driven residual model: Bayesian linear regression of the
+   per-pose residuals on a library of smooth terms of the wheel-speed state, its level chosen on
+   held-out likelihood; by name, the older sparse fallback, STLSQ) is fitted on segments by the
+   one least-squares engine
    (:mod:`skidkin_ros.core.calibration.engine`, as calibration fits), with the base model's
    parameters refitted jointly (``refit_base``; the file then holds the joint values for the
    base model). Each extension's registry entry gives its start values, grid-searched

@@ -28,6 +28,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
+from skidkin_ros.core.calibration.diagnosis.regression import fit_residual_model
 from skidkin_ros.core.calibration.diagnosis.residuals import PoseSamples
 from skidkin_ros.core.calibration.diagnosis.sparse import library_start
 from skidkin_ros.core.calibration.diagnosis.state import fit_state, held_out_loss, ModelState
@@ -116,13 +117,37 @@ class CandidateFitter:
         ext = get_extension(name)
         values = dict(state.ext_values)
         terms = state.sparse_terms
+        covariance = state.residual_covariance
         if ext.library:
             values[name], terms = self._library_start(state, keep, threshold)
+        elif ext.regression:
+            fit = fit_residual_model(self.drives, self.samples,
+                                     state.bind(self.base_name, self.geometry), self.options,
+                                     self._pose_mask(keep))
+            values[name], covariance = fit.values, fit.covariance
         else:
             values[name] = ext.start_values(self.hints)
         structure = state.extensions if name in state.extensions else state.extensions + (name,)
         return ModelState(ordered(structure), dict(state.base_values), values, terms,
-                          state.found + (name,))
+                          state.found + (name,), covariance)
+
+    def _pose_mask(self, keep: np.ndarray | None) -> np.ndarray | None:
+        """Return the poses inside the kept segments' windows (None: every pose)."""
+        if keep is None:
+            return None
+        seg = self.predictor.segments
+        mask = np.zeros(self.samples.t_ns.size, dtype=bool)
+        for d in np.unique(seg.drive[keep]):
+            rows = keep[seg.drive[keep] == d]
+            lo = np.sort(seg.t_a_ns[rows].astype(np.int64))
+            hi = np.sort(seg.t_b_ns[rows].astype(np.int64))
+            mine = np.nonzero(self.samples.drive == d)[0]
+            t = self.samples.t_ns[mine].astype(np.int64)
+            # inside some [t_a, t_b]: more windows started than ended before t
+            started = np.searchsorted(lo, t, side='right')
+            ended = np.searchsorted(hi, t, side='left')
+            mask[mine] = started > ended
+        return mask
 
     def _library_start(self, state: ModelState, keep: np.ndarray | None,
                        threshold: float | None) -> tuple[dict[str, float], tuple[str, ...]]:
@@ -144,8 +169,11 @@ class CandidateFitter:
                 state = self._scan(state, scan, param, keep)
         fixed = [f'{n}.{p}' for n in state.extensions for p in get_extension(n).scan
                  if not get_extension(n).refine]
+        # A regression extension is fitted in closed form on the current model's residual:
+        # refitting the base under it would move what it was fitted against.
+        refit = None if scan is None or not get_extension(scan).regression else False
         fitted, _ = fit_state(self.predictor, self.base_name, self.geometry, state, self.options,
-                              keep, fixed=fixed)
+                              keep, refit_base=refit, fixed=fixed)
         return fitted
 
     def _trial(self, state: ModelState, name: str, param: str, value: float,
@@ -153,7 +181,7 @@ class CandidateFitter:
         values = {k: dict(v) for k, v in state.ext_values.items()}
         values[name][param] = float(value)
         trial = ModelState(state.extensions, state.base_values, values, state.sparse_terms,
-                           state.found)
+                           state.found, state.residual_covariance)
         fitted, cost = fit_state(self.predictor, self.base_name, self.geometry, trial,
                                  self._scan_options, keep, refit_base=False,
                                  fixed=(f'{name}.{param}',))

@@ -9,7 +9,7 @@ import numpy as np
 
 from skidkin_ros.core.calibration.engine import check_sigma_diag, whitening
 from skidkin_ros.core.calibration.segments import HorizonOptions
-from skidkin_ros.core.kinematics.extensions import EXTENSION_NAMES, ordered
+from skidkin_ros.core.kinematics.extensions import EXTENSION_NAMES, get_extension, ordered
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['DiagnosisOptions']
@@ -19,7 +19,10 @@ __all__ = ['DiagnosisOptions']
 class DiagnosisOptions(HorizonOptions):
     """Everything that shapes a diagnosis (saved with the results as provenance)."""
 
-    candidates: tuple[str, ...] = EXTENSION_NAMES
+    # The sparse fallback (a library extension) stays available by name; the residual model (a
+    # regression extension) supersedes it by default.
+    candidates: tuple[str, ...] = tuple(n for n in EXTENSION_NAMES
+                                        if not get_extension(n).library)
     refit_base: bool = True
     folds: int = 3
     min_relative_gain: float = 0.05
@@ -39,6 +42,8 @@ class DiagnosisOptions(HorizonOptions):
     # conventions already place the speeds on their interval and need no stamp-convention row.
     stamp_convention: str = 'mid'
     trim: bool = False
+    # Question the base model first (asymmetry, ICR offsets, ROC: :mod:`.base`).
+    question_base: bool = True
 
     def __post_init__(self) -> None:
         ordered(self.candidates, exclusive=False)

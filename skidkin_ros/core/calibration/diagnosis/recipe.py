@@ -11,12 +11,14 @@ there is no such row.
 
 from __future__ import annotations
 
+from dataclasses import replace
 import time
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from skidkin_ros import __version__
+from skidkin_ros.core.calibration.diagnosis.base import question_base
 from skidkin_ros.core.calibration.diagnosis.candidates import CandidateFitter
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.residuals import pose_residuals, pose_samples
@@ -34,6 +36,7 @@ from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.extensions import FitHints
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.parallel import one_blas_thread
 
 __all__ = ['diagnose', 'wheel_period_s']
 
@@ -74,8 +77,19 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
     """Run the diagnosis recipe of the package docstring and return its result.
 
     ``jobs``: how many processes fit the candidates (the result does not depend on it);
-    ``progress(round, done, total)`` is called as each fit of a selection round finishes.
+    ``progress(round, done, total)`` is called as each fit of a selection round finishes. Its
+    matrices are small: numpy's BLAS runs on one thread (several spin against each other on a
+    loaded machine, 250 ms for a 2500 x 20 Gram matrix instead of 0.2 ms).
     """
+    with one_blas_thread():
+        return _diagnose(train, evaluate, geometry, base_values_by_model, base_model_name,
+                         options, jobs, progress)
+
+
+def _diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry: Geometry,
+              base_values_by_model: Mapping[str, Mapping[str, float]], base_model_name: str,
+              options: DiagnosisOptions | None, jobs: int,
+              progress: Progress | None) -> DiagnosisResult:
     options = options or DiagnosisOptions()
     model = get_model(base_model_name)
     given = dict(base_values_by_model.get(base_model_name, {}))
@@ -104,30 +118,58 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
             predictor = SegmentPredictor(train, train_seg, options.max_dt_s,
                                          options.interval)
             refit, _ = fit_state(predictor, base_model_name, geometry, refit, options)
-    null = refit
-    if convention_s != 0.0:
-        null = ModelState(('time_offset',), dict(refit.base_values),
-                          {'time_offset': {'offset_s': convention_s}})
-        null, _ = fit_state(predictor, base_model_name, geometry, null, options)
-    base_bound = refit.bind(base_model_name, geometry)
-    samples = pose_samples(train, base_bound, options)
-    residual, valid = pose_residuals(train, samples, null.bind(base_model_name, geometry),
-                                     options)
-    lag_s, curve = lag_scan(train, samples, refit, base_model_name, geometry, options)
-    lag_s -= convention_s
-    trace = Trace(residual, samples.signals, correlations(residual, valid, samples.signals),
-                  lag_s, curve, predictor.errors(null.bind(base_model_name, geometry)))
+    given_name = base_model_name
+    base_scores: tuple = ()
+    switched = None
+    if options.question_base:
+        other, switched, base_scores = question_base(
+            train, predictor, geometry, base_model_name, base_values_by_model, options, jobs)
     durations = [d.duration_s() for d in train]
-    hints = FitHints(lag_s, convention_s, wheel_period_s(train),
-                     max(durations) if durations else 0.0)
-    fitter = CandidateFitter(train, train_seg, base_model_name, geometry, options, samples, hints)
-    final, scores, accepted = select(fitter, null, jobs, progress)
+
+    def explore(name: str, start: ModelState, rounds: int | None = None):
+        """Trace the residuals of a base model and select its extensions (``rounds``: at most)."""
+        chosen = options if rounds is None else replace(options, max_extensions=rounds)
+        null = start
+        if convention_s != 0.0:
+            null = ModelState(('time_offset',), dict(start.base_values),
+                              {'time_offset': {'offset_s': convention_s}})
+            null, _ = fit_state(predictor, name, geometry, null, options)
+        samples = pose_samples(train, start.bind(name, geometry), options)
+        residual, valid = pose_residuals(train, samples, null.bind(name, geometry), options)
+        lag_s, curve = lag_scan(train, samples, start, name, geometry, options)
+        lag_s -= convention_s
+        trace = Trace(residual, samples.signals, correlations(residual, valid, samples.signals),
+                      lag_s, curve, predictor.errors(null.bind(name, geometry)))
+        hints = FitHints(lag_s, convention_s, wheel_period_s(train),
+                         max(durations) if durations else 0.0)
+        fitter = CandidateFitter(train, train_seg, name, geometry, chosen, samples, hints)
+        return (null, samples, residual, valid, trace) + select(fitter, null, jobs, progress)
+
+    # With a base model that passes, the given one's first round is enough to compare them.
+    explored = explore(base_model_name, refit, None if switched is None else 1)
+    if switched is not None:
+        # The base model is questioned as an extension is: it replaces the given one only when
+        # it explains more than the best extension of the first round does on the given one.
+        gain_base = max(score.gain for score in base_scores if score.accepted)
+        gain_ext = max((c.relative_gain for c in explored[6] if c.round_no == 1 and c.accepted),
+                       default=0.0)
+        if gain_base > gain_ext:
+            base_model_name, refit = other, switched
+            explored = explore(base_model_name, refit)
+        else:
+            if options.max_extensions > 1:
+                explored = explore(base_model_name, refit)
+            base_scores = tuple(replace(score, accepted=False, note=(
+                f'passes, but {gain_ext:+.1%} from an extension explains more'))
+                if score.accepted else score for score in base_scores)
+    null, samples, residual, valid, trace, final, scores, accepted = explored
     eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s,
                                       options.interval)
-    steps = [_evaluate(eval_predictor, f'{base_model_name} (given)', given_state,
-                       base_model_name, geometry, options),
-             _evaluate(eval_predictor, f'{base_model_name} (refitted)', refit, base_model_name,
-                       geometry, options)]
+    replaced = f'; replaces {given_name}' if base_model_name != given_name else ''
+    steps = [_evaluate(eval_predictor, f'{given_name} (given)', given_state,
+                       given_name, geometry, options),
+             _evaluate(eval_predictor, f'{base_model_name} (refitted{replaced})', refit,
+                       base_model_name, geometry, options)]
     if convention_s != 0.0:
         steps.append(_evaluate(eval_predictor, f'+ stamp convention {convention_s * 1e3:+.0f} ms',
                                null, base_model_name, geometry, options))
@@ -144,6 +186,11 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
                         'evaluation drives (median eps_t); the effect may not transfer')
     provenance = {
         'tool': f'skidkin_ros {__version__}', 'base_model': base_model_name,
+        'given_base_model': given_name,
+        'base_models_questioned': [f'{s.name}: held-out gain {s.gain:+.3f}, p {s.p_value:.2g}'
+                                   + (' (replaces the given model)' if s.accepted else '')
+                                   + (f' ({s.note})' if s.note else '')
+                                   for s in base_scores],
         'extensions': list(final.found), 'model_extensions': list(final.extensions),
         'stamp_convention_s': convention_s, 'train_drives': len(train),
         'evaluate_drives': len(evaluate), 'train_segments': len(train_seg),

@@ -30,6 +30,7 @@ from skidkin_ros.core.kinematics.augmented import twist_rates
 from skidkin_ros.core.kinematics.extensions import speeding_up
 from skidkin_ros.core.kinematics.models import BoundModel
 from skidkin_ros.core.odometry.integrator import rollout_stream
+from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError
 
 __all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'truth_velocities', 'pose_samples',
@@ -38,20 +39,22 @@ __all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'truth_velocities', '
 COMPONENTS = ('v_x', 'v_y', 'omega')
 
 
-def body_velocities(t_ns: np.ndarray, poses: np.ndarray, half_window_s: float
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Differentiate poses (N, 3) by local quadratic fits; return body twists (N, 3) and valid.
+# The differentiator's operator depends on the stamps only: the lag scan and every candidate run
+# the model at the same stamps, so it is computed once per set of stamps (a few kept).
+_OPERATORS: dict[tuple[int, int, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+_OPERATORS_KEPT = 64
 
-    Each pose's window holds the poses within +-half_window_s; at least 4 are needed (and one on
-    each side) for a valid estimate. World velocities are rotated into the body frame with the
-    fitted heading.
-    """
-    t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9 if len(t_ns) else np.zeros(0)
+
+def _operator(t_ns: np.ndarray, half_window_s: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (index (n, w), operator (n, 3, w), valid (n,)): coef = operator @ values[index]."""
+    key = (len(t_ns), s_to_ns(half_window_s),
+           np.ascontiguousarray(t_ns, dtype=np.int64).tobytes())
+    cached = _OPERATORS.get(key)
+    if cached is not None:
+        return cached
+    t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9
     n = t_s.size
-    out = np.zeros((n, 3))
-    valid = np.zeros(n, dtype=bool)
-    if n < 4:
-        return out, valid
     lo = np.searchsorted(t_s, t_s - half_window_s, side='left')
     hi = np.searchsorted(t_s, t_s + half_window_s, side='right')
     width = int((hi - lo).max())
@@ -67,16 +70,35 @@ def body_velocities(t_ns: np.ndarray, poses: np.ndarray, half_window_s: float
     right = (tau > 0) & inside
     valid = (inside.sum(axis=1) >= 4) & left.any(axis=1) & right.any(axis=1)
     normal[~valid] = np.eye(3)
+    operator = np.linalg.solve(normal, np.transpose(basis, (0, 2, 1)))  # (n, 3, w)
+    if len(_OPERATORS) >= _OPERATORS_KEPT:
+        _OPERATORS.clear()
+    _OPERATORS[key] = (index, operator, valid)
+    return index, operator, valid
+
+
+def body_velocities(t_ns: np.ndarray, poses: np.ndarray, half_window_s: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Differentiate poses (N, 3) by local quadratic fits; return body twists (N, 3) and valid.
+
+    Each pose's window holds the poses within +-half_window_s; at least 4 are needed (and one on
+    each side) for a valid estimate. World velocities are rotated into the body frame with the
+    fitted heading.
+    """
+    n = len(t_ns)
+    out = np.zeros((n, 3))
+    if n < 4:
+        return out, np.zeros(n, dtype=bool)
+    index, operator, valid = _operator(t_ns, half_window_s)
     values = poses[index]  # (n, w, 3)
-    rhs = np.einsum('nwi,nwc->nic', basis, values)
-    coef = np.linalg.solve(normal, rhs)  # (n, 3 basis, 3 coords)
+    coef = np.einsum('niw,nwc->nic', operator, values)  # (n, 3 basis, 3 coords)
     vx_w, vy_w, omega = coef[:, 1, 0], coef[:, 1, 1], coef[:, 1, 2]
     yaw = coef[:, 0, 2]
     cos_y, sin_y = np.cos(yaw), np.sin(yaw)
     out[:, 0] = cos_y * vx_w + sin_y * vy_w
     out[:, 1] = -sin_y * vx_w + cos_y * vy_w
     out[:, 2] = omega
-    return out, valid
+    return out, valid.copy()
 
 
 def truth_velocities(drive: Drive, half_window_s: float

@@ -12,6 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from skidkin_ros.core.calibration.diagnosis.interpret import Dependence, residual_dependence
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.select_extensions import CandidateScore
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
@@ -20,6 +21,7 @@ from skidkin_ros.core.calibration.engine import TwistSource
 from skidkin_ros.core.calibration.evaluation import ErrorStats
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
 from skidkin_ros.core.kinematics.extensions import get_extension
+from skidkin_ros.core.kinematics.residual import INPUTS
 from skidkin_ros.core.kinematics.specs import Geometry
 
 __all__ = ['ModelStep', 'DiagnosisResult']
@@ -82,6 +84,7 @@ class DiagnosisResult:
                          f'(interval {self.options.interval}: no stamp convention)')
         lines.append('  strongest residual correlations: ' + ', '.join(
             f'{c}~{s} r={r:+.2f}' for c, s, r in self.trace.top(4)))
+        lines += [f'  {line}' for line in self.base_lines()]
         if not self.final.found:
             lines.append('  no extension added: no candidate passed the parsimony rule '
                          f'(held-out gain > {self.options.min_relative_gain:.0%} and p < '
@@ -89,6 +92,9 @@ class DiagnosisResult:
         lines += [f'  {line}' for line in self.unexplained_lines()]
         for name in self.final.found:
             ext = get_extension(name)
+            if ext.regression:
+                lines += [f'  {line}' for line in self.residual_lines(name)]
+                continue
             units = {spec.name: spec.unit for spec in ext.params}
             text = ', '.join(f'{k} = {v:.4g} {units.get(k, "")}'
                              for k, v in self.final.shown_values(name).items())
@@ -98,6 +104,11 @@ class DiagnosisResult:
         lines.append('  candidates (round, name, held-out gain, p, accepted):')
         for cand in self.candidates:
             terms = f' terms {list(cand.terms)}' if cand.terms else ''
+            if len(cand.terms) > 8:
+                terms = f' {len(cand.terms)} terms'
+            if cand.note.startswith('screened out'):
+                lines.append(f'    {cand.round_no} {cand.name:<20} {cand.note.split(",")[0]}')
+                continue
             lines.append(f'    {cand.round_no} {cand.name:<20} {cand.relative_gain:+7.1%} '
                          f'p={cand.p_value:.2g} {"yes" if cand.accepted else "no"}{terms}')
         lines.append('  held-out errors: model | eps_t m/m median [q25, q75] p90 | '
@@ -108,6 +119,43 @@ class DiagnosisResult:
                          f'{t.p90:.4f} | {th.median:.3f} [{th.q25:.3f}, {th.q75:.3f}] '
                          f'{th.p90:.3f} | {t.count}')
         lines += [f'  warning: {w}' for w in self.warnings]
+        return lines
+
+    @property
+    def given_base(self) -> str:
+        return str(self.provenance.get('given_base_model', self.base_model))
+
+    def base_lines(self) -> list[str]:
+        """Return what questioning the base model found (nothing when it was not questioned)."""
+        questioned = self.provenance.get('base_models_questioned', [])
+        if not questioned:
+            return []
+        verdict = (f'{self.base_model} replaces {self.given_base}'
+                   if self.base_model != self.given_base else f'{self.given_base} kept')
+        return [f'base model questioned ({verdict}): ' + '; '.join(questioned)]
+
+    def _regression(self) -> str | None:
+        return next((n for n in self.final.found if get_extension(n).regression), None)
+
+    def residual_dependence(self, name: str | None = None) -> tuple[Dependence, ...]:
+        """Return what the residual model's correction follows (nothing when not found)."""
+        name = name or self._regression()
+        if name is None or name not in self.final.found:
+            return ()
+        return residual_dependence(self.final.ext_values[name], self.trace.signals,
+                                   self.residual_valid)
+
+    def residual_lines(self, name: str) -> list[str]:
+        """Return the residual model's lines: what it follows, and the range it holds to."""
+        ext = get_extension(name)
+        values = self.final.ext_values[name]
+        lines = [f'added {name} ({ext.title}, {len(self.final.terms(name))} terms, level '
+                 f'{values.get("level", 0):.0f})']
+        lines += [f'  {dep.text()}' for dep in self.residual_dependence(name)]
+        ranges = ', '.join(f'{i} in [{values[i + "_lo"]:.3g}, {values[i + "_hi"]:.3g}] {unit}'
+                           for i, unit, _ in INPUTS)
+        lines.append(f'  fitted on {ranges}; outside that range the inputs are clamped to it (the '
+                     'correction holds its edge value) and each change is bounded by the motion')
         return lines
 
     def unexplained_lines(self) -> list[str]:
@@ -140,6 +188,9 @@ class DiagnosisResult:
         flat['track_width'] = float(self.geometry.track_width)
         if not self.final.found:
             flat['model'] = self.base_model
+            if self.base_model != self.given_base:  # the diagnosis replaced the base model
+                for name, value in self.final.base_values.items():
+                    flat[f'models.{self.base_model}.{name}'] = float(value)
             return flat
         for name, value in self.final.base_values.items():
             flat[f'models.{self.base_model}.{name}'] = float(value)
@@ -149,4 +200,7 @@ class DiagnosisResult:
         for name in self.final.extensions:
             for param, value in self.final.ext_values[name].items():
                 flat[f'augmented.{name}.{param}'] = float(value)
+        regression = self._regression()
+        if self.final.residual_covariance and regression is not None:
+            flat[f'augmented.{regression}.covariance'] = list(self.final.residual_covariance)
         return flat

@@ -2,8 +2,10 @@
 
 Each round, as a recipe:
 
-1. **Score.** Every candidate not yet found is fitted on each fold's complement and scored on
-   the fold (:mod:`.candidates`); the current model alone too, in the first group of the round.
+1. **Score.** Every candidate not yet found is fitted on all training segments; those that
+   lower the training loss by more than ``SCREEN_FRACTION`` of ``min_relative_gain`` are then
+   fitted on each fold's complement and scored on the fold (:mod:`.candidates`), the current model
+   alone too, in the first group of the round (the others are screened out, and said so).
    Named extensions go first; the library extensions (the sparse fallback) only when no named
    one passes, at every STLSQ threshold of ``sparse_thresholds``, and the variant with the
    fewest terms whose held-out loss is not significantly above the best one's is the one scored
@@ -33,7 +35,7 @@ from scipy import stats
 
 from skidkin_ros.core.calibration.diagnosis.candidates import (CandidateFitter, split_variant,
                                                                Task, variant_name)
-from skidkin_ros.core.calibration.diagnosis.state import ModelState
+from skidkin_ros.core.calibration.diagnosis.state import held_out_loss, ModelState
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.parallel import fork_map
 
@@ -43,6 +45,9 @@ __all__ = ['CandidateScore', 'Outcome', 'RoundScore', 'Progress', 'p_greater', '
 LOG = logging.getLogger(__name__)
 # Two passing candidates whose held-out losses differ with p >= this are called a tie.
 TIE_SIGNIFICANCE = 0.05
+# A candidate is cross-validated only when its training-loss gain exceeds this fraction of
+# min_relative_gain (step 1, screening).
+SCREEN_FRACTION = 0.5
 # progress(round, fits done, fits in the round): how a caller follows a long selection.
 Progress = Callable[[int, int, int], None]
 
@@ -86,7 +91,7 @@ class RoundScore:
 
     @property
     def complexity(self) -> tuple[int, int]:
-        return get_extension(self.name).complexity(self.outcome.state.sparse_terms)
+        return get_extension(self.name).complexity(self.outcome.state.terms(self.name))
 
 
 def p_greater(diff: np.ndarray, untestable: float) -> float:
@@ -172,6 +177,7 @@ class _Rounds:
         self.jobs = jobs
         self.progress = progress
         self.folds = tuple(range(self.options.folds))
+        self.training_gain: dict[str, float] = {}
 
     def held_out(self, values: Mapping[int, Any]) -> np.ndarray:
         """Assemble the per-segment held-out losses from the fold results."""
@@ -181,24 +187,48 @@ class _Rounds:
                 losses[self.fitter.labels == fold] = value
         return losses
 
-    def run(self, state: ModelState, names: Sequence[str], with_null: bool,
-            round_index: int) -> dict[tuple[str | None, int | None], tuple[Any, float]]:
-        """Run every task of a group (on ``jobs`` cores); results keyed by (name, fold)."""
-        folds: tuple[int | None, ...] = self.folds
-        keys = [(None, fold) for fold in folds] if with_null else []
-        # The grid-searched candidates are the longest: started first, they finish with the rest.
-        by_cost = sorted(names, key=lambda n: not get_extension(split_variant(n)[0]).scan)
-        keys += [(name, fold) for name in by_cost for fold in folds + (None,)]
+    def _fork(self, state: ModelState, keys: Sequence[tuple[str | None, int | None]],
+              round_index: int) -> dict[tuple[str | None, int | None], tuple[Any, float]]:
         progress = self.progress
         on_done = (None if progress is None
                    else lambda done, total: progress(round_index, done, total))
         tasks: list[Task] = [(state, name, fold) for name, fold in keys]
-        values = fork_map(self.fitter.task, tasks, self.jobs, on_done)
-        return dict(zip(keys, values))
+        return dict(zip(keys, fork_map(self.fitter.task, tasks, self.jobs, on_done)))
 
-    def outcome(self, results: Mapping, name: str) -> Outcome:
-        losses = self.held_out({f: results[name, f][0] for f in self.folds})
+    def _training_loss(self, state: ModelState) -> float:
+        fitter = self.fitter
+        return float(held_out_loss(fitter.predictor, state.bind(fitter.base_name,
+                                                                fitter.geometry),
+                                   self.options).sum())
+
+    def run(self, state: ModelState, names: Sequence[str], with_null: bool,
+            round_index: int) -> dict[tuple[str | None, int | None], tuple[Any, float]]:
+        """Run every task of a group (on ``jobs`` cores); results keyed by (name, fold).
+
+        Screening (step 1): every candidate is first fitted on all training segments; only those
+        that lower the training loss by more than ``SCREEN_FRACTION`` of the required held-out
+        gain are cross-validated (a candidate that does not fit the data it was fitted on cannot
+        generalise better). The others get no fold results; :meth:`outcome` notes why.
+        """
+        # The grid-searched candidates are the longest: started first, they finish with the rest.
+        by_cost = sorted(names, key=lambda n: not get_extension(split_variant(n)[0]).scan)
+        results = self._fork(state, [(name, None) for name in by_cost], round_index)
+        null_loss = self._training_loss(state)
+        for name in by_cost:
+            loss = self._training_loss(results[name, None][0])
+            self.training_gain[name] = 1.0 - loss / null_loss if null_loss > 0 else 0.0
+        threshold = SCREEN_FRACTION * self.options.min_relative_gain
+        promising = [n for n in by_cost if self.training_gain[n] > threshold]
+        keys = [(None, fold) for fold in self.folds] if with_null else []
+        keys += [(name, fold) for name in promising for fold in self.folds]
+        results.update(self._fork(state, keys, round_index))
+        return results
+
+    def outcome(self, results: Mapping, name: str, null: np.ndarray) -> Outcome:
         full, seconds = results[name, None]
+        if (name, self.folds[0]) not in results:  # screened out: scored as the current model
+            return Outcome(null.copy(), full, seconds)
+        losses = self.held_out({f: results[name, f][0] for f in self.folds})
         return Outcome(losses, full, seconds + sum(results[name, f][1] for f in self.folds))
 
     def score_round(self, current: ModelState, round_index: int
@@ -208,10 +238,11 @@ class _Rounds:
         taken = {get_extension(n).group for n in current.extensions} - {''}
         pool = [n for n in options.candidates
                 if n not in current.found and get_extension(n).group not in taken]
-        named = [n for n in pool if not get_extension(n).library]
+        named = [n for n in pool if not get_extension(n).learned]
         library = [n for n in pool if get_extension(n).library]
         thresholds = sorted(set(options.sparse_thresholds))
-        variants = [variant_name(n, t) for n in library for t in thresholds]
+        variants = [n for n in pool if get_extension(n).regression]
+        variants += [variant_name(n, t) for n in library for t in thresholds]
         scores: list[RoundScore] = []
         notes: dict[str, str] = {}
         null = None
@@ -221,9 +252,16 @@ class _Rounds:
             results = self.run(current, group, null is None, round_index)
             if null is None:
                 null = self.held_out({f: results[None, f][0] for f in self.folds})
-            outcomes = {name: self.outcome(results, name) for name in group}
+            outcomes = {name: self.outcome(results, name, null) for name in group}
+            for name in group:
+                if (name, self.folds[0]) not in results:
+                    notes[split_variant(name)[0] if '@' in name else name] = (
+                        f'screened out: training-loss gain {self.training_gain[name]:+.1%} <= '
+                        f'{SCREEN_FRACTION * options.min_relative_gain:.1%}, not '
+                        'cross-validated')
             if group is variants:
-                outcomes = self._sparsest_each(library, outcomes, notes)
+                outcomes = {**{n: o for n, o in outcomes.items() if n in pool},
+                            **self._sparsest_each(library, outcomes, notes)}
             for name, outcome in outcomes.items():
                 gain, p_value = significance(null, outcome.losses)
                 passes = gain > options.min_relative_gain and p_value < options.significance
@@ -247,10 +285,10 @@ class _Rounds:
 def _candidate_score(round_index: int, score: RoundScore, chosen: bool, tied: Sequence[str],
                      notes: Mapping[str, str]) -> CandidateScore:
     state = score.outcome.state
-    library = get_extension(score.name).library
-    terms = state.sparse_terms if library else ()
+    learned = get_extension(score.name).learned
+    terms = state.terms(score.name) if learned else ()
     values = dict(state.ext_values.get(score.name, {}))
-    if library:
+    if learned:
         values = {t: values[t] for t in terms}
     note = (f'indistinguishable from {", ".join(tied)} on this data; the simpler '
             'explanation is kept' if chosen and tied else '')

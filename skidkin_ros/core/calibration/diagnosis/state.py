@@ -35,7 +35,8 @@ class ModelState:
     """A structure with its values: base values and {extension: {param: value}}.
 
     ``sparse_terms``: the library terms a library extension uses; ``found``: the extensions the
-    diagnosis added (fitted), in the order they were found.
+    diagnosis added (fitted), in the order they were found; ``residual_covariance``: the
+    residual model's coefficient covariance, row-major (empty: none).
     """
 
     extensions: tuple[str, ...]
@@ -43,6 +44,17 @@ class ModelState:
     ext_values: dict[str, dict[str, float]]
     sparse_terms: tuple[str, ...] = ()
     found: tuple[str, ...] = ()
+    residual_covariance: tuple[float, ...] = ()
+
+    def terms(self, name: str) -> tuple[str, ...]:
+        """Return the terms a learned extension uses (library: chosen; regression: non-zero)."""
+        ext = get_extension(name)
+        if ext.library:
+            return self.sparse_terms
+        if ext.regression:
+            return tuple(p for p, v in self.ext_values.get(name, {}).items()
+                         if p.startswith(('vx_', 'vy_', 'wz_')) and v != 0.0)
+        return ()
 
     def bind(self, base_name: str, geometry: Geometry) -> TwistSource:
         model = get_model(base_name)
@@ -55,8 +67,8 @@ class ModelState:
         """Return what a report shows of a found extension: fitted and scanned, or its terms."""
         ext = get_extension(name)
         values = self.ext_values.get(name, {})
-        shown = self.sparse_terms if ext.library else ext.fitted + ext.scan
-        return {param: values[param] for param in shown}
+        shown = self.terms(name) if ext.learned else ext.fitted + ext.scan
+        return {param: values[param] for param in shown if param in values}
 
 
 def layout_of(base_name: str, geometry: Geometry, state: ModelState, refit_base: bool,
@@ -94,7 +106,7 @@ def fit_state(predictor: SegmentPredictor, base_name: str, geometry: Geometry,
         return state, sol.cost
     base_values, ext_values = layout.values(sol.x)
     return (ModelState(state.extensions, base_values, ext_values, state.sparse_terms,
-                       state.found), float(sol.cost))
+                       state.found, state.residual_covariance), float(sol.cost))
 
 
 def held_out_loss(predictor: SegmentPredictor, source: TwistSource, options: DiagnosisOptions,

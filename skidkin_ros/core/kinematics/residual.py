@@ -1,0 +1,179 @@
+"""The data-driven residual model: a correction of the body twist learned from the data.
+
+What the named extensions cannot express, a smooth function of the wheel-speed state can: the
+body twist gains a correction c(z) = C phi(z), linear in its coefficients C and built from a fixed,
+systematic library phi of the state z = (v, w, dv, dw) (the base model's forward speed and yaw
+rate and their rates of change, as the integrator has them). The library grows in levels, each a
+richer family of smooth functions:
+
+1. the signals and their magnitudes: v, w, |v|, |w|;
+2. every product of a signal and a signal's magnitude (v|v|, w|w|, v|w|, w|v|), v w, |v||w|,
+   and smooth signs of v and w (x / (|x| + 0.1), a direction-dependent offset);
+3. the rates: dv, dw and their speeding-up parts (the rate while the magnitude grows);
+4. the cubic terms v^3, w^3, v^2 w, v w^2.
+
+Every input is first clamped to the range the model was fitted on (``<input>_lo``,
+``<input>_hi``, stored with the coefficients) and scaled by that range's largest magnitude, so
+each term lies in [-1, 1] and a polynomial cannot run away outside the data: beyond the range the
+correction holds the value it has at the edge. The change of each twist component is then
+bounded by the motion's own size
+(:func:`~skidkin_ros.core.kinematics.extensions.bounded_correction`).
+Every term vanishes at rest except the rate terms, so a robot standing still stays still.
+
+The coefficients are fitted by Bayesian linear regression on the per-pose body-twist residuals
+(:mod:`skidkin_ros.core.calibration.diagnosis.regression`), the level on held-out likelihood.
+
+The batch form (arrays) and the node's per-sample form (floats) run the same operations in the
+same order, term by term (no matrix product, no transcendental function), so they agree bit for
+bit.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+__all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS', 'SIGN_WIDTH',
+           'term_names', 'features',
+           'scalar_features', 'correction', 'scalar_correction', 'coefficient_names',
+           'range_names', 'input_values']
+
+# The state the correction is a function of: (name, unit, what it is).
+INPUTS: tuple[tuple[str, str, str], ...] = (
+    ('v', 'm/s', 'base forward speed'),
+    ('w', 'rad/s', 'base yaw rate'),
+    ('dv', 'm/s^2', 'rate of the base forward speed'),
+    ('dw', 'rad/s^2', 'rate of the base yaw rate'),
+)
+OUTPUTS: tuple[tuple[str, str], ...] = (('vx', 'm/s'), ('vy', 'm/s'), ('wz', 'rad/s'))
+# Width of the smooth sign x / (|x| + SIGN_WIDTH), in scaled units (a tenth of the range).
+SIGN_WIDTH = 0.1
+
+
+def _sign(x):
+    return x / (abs(x) + SIGN_WIDTH)
+
+
+def _up(x, dx):
+    """Return dx where |x| grows (x dx > 0), else 0 (on floats or arrays alike)."""
+    if isinstance(x, np.ndarray) or isinstance(dx, np.ndarray):
+        return np.where(x * dx > 0.0, dx, 0.0)
+    return dx if x * dx > 0.0 else 0.0
+
+
+# (name, level, function of the scaled inputs (p, q, a, b) = (v, w, dv, dw), signal it follows)
+TermFn = Callable[..., object]
+TERMS: tuple[tuple[str, int, TermFn, str], ...] = (
+    ('v', 1, lambda p, q, a, b: p, 'body_speed'),
+    ('w', 1, lambda p, q, a, b: q, 'yaw_rate'),
+    ('abs_v', 1, lambda p, q, a, b: abs(p), 'body_speed'),
+    ('abs_w', 1, lambda p, q, a, b: abs(q), 'yaw_rate'),
+    ('v_abs_v', 2, lambda p, q, a, b: p * abs(p), 'body_speed'),
+    ('w_abs_w', 2, lambda p, q, a, b: q * abs(q), 'yaw_rate'),
+    ('v_w', 2, lambda p, q, a, b: p * q, 'v_omega'),
+    ('v_abs_w', 2, lambda p, q, a, b: p * abs(q), 'body_speed'),
+    ('w_abs_v', 2, lambda p, q, a, b: q * abs(p), 'yaw_rate'),
+    ('abs_v_abs_w', 2, lambda p, q, a, b: abs(p) * abs(q), 'v_omega'),
+    ('sign_v', 2, lambda p, q, a, b: _sign(p), 'direction'),
+    ('sign_w', 2, lambda p, q, a, b: _sign(q), 'yaw_rate'),
+    ('dv', 3, lambda p, q, a, b: a, 'd_body_speed'),
+    ('dw', 3, lambda p, q, a, b: b, 'd_yaw_rate'),
+    ('dv_up', 3, lambda p, q, a, b: _up(p, a), 'speeding_up'),
+    ('dw_up', 3, lambda p, q, a, b: _up(q, b), 'd_yaw_rate'),
+    ('v3', 4, lambda p, q, a, b: p * p * p, 'body_speed'),
+    ('w3', 4, lambda p, q, a, b: q * q * q, 'yaw_rate'),
+    ('v2_w', 4, lambda p, q, a, b: p * p * q, 'v_omega'),
+    ('v_w2', 4, lambda p, q, a, b: p * q * q, 'v_omega'),
+)
+LEVELS: tuple[int, ...] = tuple(sorted({level for _, level, _, _ in TERMS}))
+# Which inputs each term is a function of (for the interpretation: what the correction follows).
+TERM_INPUTS: dict[str, str] = {
+    'v': 'v', 'w': 'w', 'abs_v': 'v', 'abs_w': 'w', 'v_abs_v': 'v', 'w_abs_w': 'w',
+    'v_w': 'v*w', 'v_abs_w': 'v*w', 'w_abs_v': 'v*w', 'abs_v_abs_w': 'v*w', 'sign_v': 'v',
+    'sign_w': 'w', 'dv': 'dv', 'dw': 'dw', 'dv_up': 'dv', 'dw_up': 'dw', 'v3': 'v', 'w3': 'w',
+    'v2_w': 'v*w', 'v_w2': 'v*w'}
+# The diagnosis trace signal that shows each input group.
+INPUT_SIGNALS: dict[str, str] = {'v': 'body_speed', 'w': 'yaw_rate', 'v*w': 'v_omega',
+                                 'dv': 'd_body_speed', 'dw': 'd_yaw_rate'}
+_FUNCTIONS = tuple(fn for _, _, fn, _ in TERMS)
+
+
+def term_names(level: int | None = None) -> tuple[str, ...]:
+    """Return the library's term names up to ``level`` (None: all)."""
+    return tuple(name for name, lvl, _, _ in TERMS if level is None or lvl <= level)
+
+
+def coefficient_names() -> tuple[str, ...]:
+    """Return the coefficient parameter names, output-major: vx_v, vx_w, ..., wz_v_w2."""
+    return tuple(f'{out}_{term}' for out, _ in OUTPUTS for term, _, _, _ in TERMS)
+
+
+def range_names() -> tuple[str, ...]:
+    """Return the fitted-range parameter names: v_lo, v_hi, w_lo, ..."""
+    return tuple(f'{name}_{side}' for name, _, _ in INPUTS for side in ('lo', 'hi'))
+
+
+def input_values(twist: np.ndarray, rate: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    """Return the raw inputs (v, w, dv, dw) of base twists (..., 3) and their rates."""
+    twist = np.asarray(twist, dtype=float)
+    rate = np.zeros(twist.shape) if rate is None else np.asarray(rate, dtype=float)
+    return twist[..., 0], twist[..., 2], rate[..., 0], rate[..., 2]
+
+
+def _scaled(x, lo: float, hi: float):
+    """Clamp to [lo, hi] and divide by the range's largest magnitude (0 for an empty range)."""
+    scale = max(abs(lo), abs(hi))
+    if not scale > 0.0:
+        return x * 0.0
+    if isinstance(x, np.ndarray):
+        return np.minimum(np.maximum(x, lo), hi) / scale
+    return min(max(x, lo), hi) / scale
+
+
+def features(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarray | None
+             ) -> np.ndarray:
+    """Return the library terms (..., T) of base twists and rates, inputs clamped and scaled.
+
+    ``ranges``: (v_lo, v_hi, w_lo, w_hi, dv_lo, dv_hi, dw_lo, dw_hi).
+    """
+    raw = input_values(twist, rate)
+    scaled = [_scaled(np.asarray(x, dtype=float), ranges[2 * i], ranges[2 * i + 1])
+              for i, x in enumerate(raw)]
+    shape = np.shape(scaled[0])
+    return np.stack([np.broadcast_to(np.asarray(fn(*scaled), dtype=float), shape)
+                     for fn in _FUNCTIONS], axis=-1)
+
+
+def scalar_features(ranges: Sequence[float], v: float, w: float, dv: float, dw: float
+                    ) -> tuple[float, ...]:
+    """:func:`features` for one sample on plain floats."""
+    p = _scaled(v, ranges[0], ranges[1])
+    q = _scaled(w, ranges[2], ranges[3])
+    a = _scaled(dv, ranges[4], ranges[5])
+    b = _scaled(dw, ranges[6], ranges[7])
+    return tuple(fn(p, q, a, b) for fn in _FUNCTIONS)
+
+
+def correction(coef: Sequence[float], phi: np.ndarray) -> np.ndarray:
+    """Return C phi (..., 3): each output's terms summed in library order (no BLAS)."""
+    count = len(TERMS)
+    out = []
+    for o in range(len(OUTPUTS)):
+        total = phi[..., 0] * coef[o * count]
+        for j in range(1, count):
+            total = total + phi[..., j] * coef[o * count + j]
+        out.append(total)
+    return np.stack(out, axis=-1)
+
+
+def scalar_correction(coef: Sequence[float], phi: Sequence[float]) -> tuple[float, float, float]:
+    """:func:`correction` for one sample on plain floats, in the same order."""
+    count = len(TERMS)
+    out = []
+    for o in range(len(OUTPUTS)):
+        total = phi[0] * coef[o * count]
+        for j in range(1, count):
+            total = total + phi[j] * coef[o * count + j]
+        out.append(total)
+    return out[0], out[1], out[2]
