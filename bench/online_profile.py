@@ -58,6 +58,7 @@ def profile(seed: int, fixed: OdometryConfig, settings: dict[str, float]) -> str
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Print the profile of every seed."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
     parser.add_argument('--set', action='append', default=[], metavar='online.NAME=VALUE')
