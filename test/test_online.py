@@ -86,6 +86,25 @@ def test_a_new_ground_is_detected_and_learned(change_drive):
     assert np.all(np.isfinite(online.poses)) and np.all(np.isfinite(online.pose_covariances))
 
 
+def test_a_short_stretch_of_a_new_ground_is_not_pulled_back_to_the_old_one():
+    """The new ground's prior is centred on the old ground's values: it must stay broad.
+
+    The last fifth of the drive (about 10 m, a few segments) on the new ground. With a prior
+    of 0.2 (the earlier default) the learned values stayed 2.4 % (alpha) and 3.6 % (track)
+    toward the old ground; with the default they are within 1 % and 2 %.
+    """
+    effect = make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.8, yaw=YAW_SLIP)
+    sim = simulate(SimConfig(duration_s=160.0, seed=3, effects=(effect,)))
+    odometer = online_odometer(_config(**{'online.enabled': True}))
+    odometer.predict(sim.wheels, reference=_reference(sim))
+    assert odometer.counters['online_change'] == 1
+    values = odometer.learner.values
+    assert values['alpha_l'] == pytest.approx(0.9 * (1 - SLIP), rel=0.01)
+    assert values['alpha_r'] == pytest.approx(0.85 * (1 - SLIP), rel=0.01)
+    assert values['y_l'] - values['y_r'] == pytest.approx(
+        1.05 * (1 - SLIP) / (1 - YAW_SLIP), rel=0.02)
+
+
 def test_driving_straight_leaves_the_icr_alone():
     effect = make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.0, yaw=YAW_SLIP)
     sim = simulate(SimConfig(duration_s=40.0, seed=4, effects=(effect,),

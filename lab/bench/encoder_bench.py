@@ -5,7 +5,7 @@ joint positions in whole counts of several resolutions, the velocities the true 
 each row gives the distance the odometer (the node's and ``skidkin predict``'s code) reads under
 ``position`` and ``auto``. Run it on two trees to compare them::
 
-    PYTHONPATH=. python bench/encoder_bench.py
+    python -m lab.bench.encoder_bench
 """
 
 from __future__ import annotations

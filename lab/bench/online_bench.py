@@ -7,7 +7,7 @@ reference pose and per segment, the learner's work. Both odometers run the same 
 drive) in turns, each timed ``--repeats`` times; the best run of each is compared (the ratio is
 measured in one run on one machine as process CPU time, never asserted). Run::
 
-    python bench/online_bench.py --seconds 60 --repeats 3
+    python -m lab.bench.online_bench --seconds 60 --repeats 3
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ weights, no trimming), both at the held-out window ends: median |position error|
 
 Run alone::
 
-    PYTHONPATH=. python bench/segments_bench.py            # both data sets, three schemes
+    python -m lab.bench.segments_bench            # both data sets, three schemes
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ reference cut for 20 s at three quarters of the drive, over the ε_t without); t
 published pose (x, y, yaw) against its published covariance at every second after the first
 ten, whole drive from the start (mean, and the share inside the 95 % chi2 region). Run::
 
-    python bench/online_study.py
+    python -m lab.bench.online_study
 
 (about a minute on one core).
 """

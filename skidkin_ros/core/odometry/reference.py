@@ -52,9 +52,10 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('window', '', 16.0, 1.0, 1000.0,
               'learning segments kept per ground and solved again at every new one (older '
               'ones also fade by the memory)'),
-    ParamSpec('prior_sigma', '', 0.2, 0.0, 10.0,
+    ParamSpec('prior_sigma', '', 0.5, 0.0, 10.0,
               'prior standard deviation of each parameter on a new ground, relative to its '
-              'typical magnitude', lower_open=True),
+              'typical magnitude (centred on the old ground: a narrow one pulls the new '
+              'ground back toward it)', lower_open=True),
     ParamSpec('min_information', '', 16.0, 0.0, INF,
               'a direction of the parameters is updated only when one segment adds this much '
               'information to it (relative units: 16 = a 25 % standard deviation)',
@@ -111,7 +112,7 @@ class OnlineParams:
     adapt_memory: float = 4.0
     adapt_distance: float = 10.0
     window: float = 16.0
-    prior_sigma: float = 0.2
+    prior_sigma: float = 0.5
     min_information: float = 16.0
     sigma_xy: float = 0.02
     sigma_yaw: float = 0.005
