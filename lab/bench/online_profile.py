@@ -15,12 +15,12 @@ from __future__ import annotations
 import argparse
 import sys
 
+from lab.studies import online as study
 import numpy as np
 
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
-from lab.studies import online as study
 
 
 def _new_ground() -> dict[str, float]:
