@@ -10,9 +10,12 @@ same state (the machine is shared: only ratios measured in one run are reported)
 
 * ``kiss``: plain ``kiss_icp_pipeline --topic /points BAG`` (kiss-icp's own pipeline, its
   defaults, its own threads on every core);
-* ``before``: ``skidkin groundtruth --no-icp-check --chunk-s 60`` (the fast settings on every
-  scene, 60 s chunks: the behaviour before the self-check), ``--jobs 2``;
+* ``before``: ``skidkin groundtruth --no-icp-check`` (the fast settings on every scene: the
+  behaviour before the self-check), ``--jobs 2``;
 * ``after``: ``skidkin groundtruth`` with the defaults, ``--jobs 2`` and ``--jobs 1``.
+
+Every skidkin run uses chunks of ``--chunk-s`` (default 20 s: the recordings are sized down
+from a few minutes to about one, so the chunks are too, to keep several seams per scene).
 
 Scores against the simulator's truth: poses kept by the guard, seams tested and cut (from the
 notes), the path length at 1 s steps (the per-frame path adds each frame's jitter) against the
@@ -20,8 +23,8 @@ true path at the same stamps, the median error of the 1 s increments of the kept
 poses for kiss), and whether kiss-icp's own track is consistent (path within 10 % and 95 % of
 its 1 s increments within 25 cm). Speed: kiss wall time / skidkin wall time.
 
-    python bench/gt_scenes.py                       # 4 scenes of 90 s, ~5 min on a quiet 2-core machine
-    python bench/gt_scenes.py --duration 60 --scenes forest snowfield
+    python bench/gt_scenes.py                  # 4 scenes of 60 s, ~5 min on a quiet 2-core machine
+    python bench/gt_scenes.py --duration 120 --scenes forest snowfield
 """
 
 from __future__ import annotations
@@ -129,7 +132,8 @@ def _notes(stderr: str) -> dict[str, Any]:
             + (int(untested.group(1)) if untested else 0), 'self_check': check}
 
 
-def run_scene(scene: str, duration_s: float, seed: int, work: Path) -> dict[str, Any]:
+def run_scene(scene: str, duration_s: float, seed: int, work: Path,
+              chunk_s: float = 20.0) -> dict[str, Any]:
     """Simulate one scene, run every contender on its bag, score and time them."""
     from skidkin_ros.adapters.sim_writer import write_bag
     from skidkin_ros.sim import simulate
@@ -146,8 +150,9 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path) -> dict[str,
     kiss['seconds'] = seconds
     kiss['consistent'] = bool(abs(kiss['path_ratio'] - 1) <= 0.1 and kiss['p95_1s_cm'] <= 25)
     result['kiss'] = kiss
-    runs = (('before', ['--no-icp-check', '--chunk-s', '60', '--jobs', '2']),
-            ('after_j2', ['--jobs', '2']), ('after_j1', ['--jobs', '1']))
+    chunks = ['--chunk-s', f'{chunk_s:g}']
+    runs = (('before', ['--no-icp-check', '--jobs', '2', *chunks]),
+            ('after_j2', ['--jobs', '2', *chunks]), ('after_j1', ['--jobs', '1', *chunks]))
     for name, extra in runs:
         out = work / f'{scene}_{name}.csv'
         seconds, code, err = _timed([_tool('skidkin'), 'groundtruth', str(bag), '--out',
@@ -191,7 +196,8 @@ def table(results: Sequence[dict[str, Any]]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--duration', type=float, default=90.0, help='s per scene')
+    parser.add_argument('--duration', type=float, default=60.0, help='s per scene')
+    parser.add_argument('--chunk-s', type=float, default=20.0, help='chunk length (s)')
     parser.add_argument('--scenes', nargs='+', default=list(SCENES), choices=SCENES)
     parser.add_argument('--seed', type=int, default=5)
     parser.add_argument('--json', type=Path, help='also write the results here')
@@ -200,7 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix='gt_scenes_') as tmp:
         for scene in args.scenes:
             print(f'  {scene}: {args.duration:g} s', flush=True)
-            results.append(run_scene(scene, args.duration, args.seed, Path(tmp)))
+            results.append(run_scene(scene, args.duration, args.seed, Path(tmp), args.chunk_s))
     print(table(results))
     print(json.dumps(results, indent=1, default=float))
     if args.json:

@@ -49,12 +49,12 @@ def test_identical_motions_agree_and_a_slid_registration_does_not():
     shifted = _straight()
     shifted.lidar_pose[:, 1, 3] += 3.0
     assert compare_motion(shifted, reference, window, CHECK).share == 1.0
-    slid = compare_motion(_straight(slide_from=20, slide_m=0.02), reference, window, CHECK)
+    slid = compare_motion(_straight(slide_from=20, slide_m=0.03), reference, window, CHECK)
     assert slid.share < CHECK.min_agree
     fast, ref = IcpConfig(voxel_size_m=1.4), reference_config(IcpConfig(voxel_size_m=1.4))
     keep = check_samples([_straight()], [(window, reference)], fast, ref, CHECK)
     assert keep.kept_fast and keep.config == fast and 'kept' in keep.note()
-    drop = check_samples([_straight(slide_from=20, slide_m=0.02)], [(window, reference)], fast,
+    drop = check_samples([_straight(slide_from=20, slide_m=0.03)], [(window, reference)], fast,
                          ref, CHECK)
     assert not drop.kept_fast and drop.config == ref and 'disagree' in drop.note()
     none = check_samples([None], [(window, reference)], fast, ref, CHECK)
@@ -74,9 +74,11 @@ def test_the_reference_is_kiss_icps_defaults_and_only_automatic_settings_are_che
 
 def test_sample_windows_end_where_chunks_end_the_open_last_one_included():
     options = SelfCheckOptions(windows=2, window_s=8.0, warmup_s=2.0)
-    windows = plan_samples([60 * 10**9, 120 * 10**9, None], 200 * 10**9, options)
+    windows = plan_samples([60 * 10**9, 120 * 10**9, None], 0, 200 * 10**9, options)
     assert windows == [(50 * 10**9, 60 * 10**9), (190 * 10**9, None)]
-    assert len(plan_samples([None], 30 * 10**9, options)) == 1
+    # one window per 100 s recorded, at least one
+    assert len(plan_samples([60 * 10**9, 120 * 10**9, None], 0, 150 * 10**9, options)) == 1
+    assert len(plan_samples([None], 0, 30 * 10**9, options)) == 1
 
 
 @pytest.fixture(scope='module')
@@ -121,3 +123,14 @@ def test_a_check_that_cannot_pass_registers_with_kiss_icps_defaults(drive):
     assert any('set explicitly' in n for n in direct.notes)
     off = _truth(bag, icp, check=SelfCheckOptions(enabled=False))
     assert not any('self-check' in n or 'self-checked' in n for n in off.notes)
+
+
+def test_one_jump_is_enough_to_drop_the_fast_settings():
+    reference = _straight(n=100)
+    jumped = _straight(n=100)
+    jumped.lidar_pose[50:, 0, 3] += 0.8  # one 0.8 m jump, the rest identical
+    agreement = compare_motion(jumped, reference, (10**9, None), CHECK)
+    assert agreement.share >= CHECK.min_agree and agreement.worst_m > CHECK.gross_m
+    choice = check_samples([jumped], [((10**9, None), reference)], IcpConfig(voxel_size_m=1.4),
+                           reference_config(IcpConfig(voxel_size_m=1.4)), CHECK)
+    assert not choice.kept_fast

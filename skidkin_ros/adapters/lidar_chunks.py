@@ -606,7 +606,8 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     span_ns = max(n_frames - 1, 0) * period_ns
     if (check.enabled and automatic and reference != config
             and span_ns >= (check.window_s + check.warmup_s) * 1e9):
-        windows = plan_samples([t.stop_ns for t in tasks], first_receive + span_ns, check)
+        windows = plan_samples([t.stop_ns for t in tasks], first_receive, first_receive + span_ns,
+                               check)
         samples = [(window, ChunkTask(str(path), topic, _SAMPLE_INDEX + k, window[0],
                                       window[1], None, reference, tasks[0].grid))
                    for k, window in enumerate(windows)]
