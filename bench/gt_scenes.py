@@ -21,7 +21,9 @@ Scores against the simulator's truth: poses kept by the guard, seams tested and 
 notes), the path length at 1 s steps (the per-frame path adds each frame's jitter) against the
 true path at the same stamps, the median error of the 1 s increments of the kept poses (all
 poses for kiss), and whether kiss-icp's own track is consistent (path within 10 % and 95 % of
-its 1 s increments within 25 cm). Speed: kiss wall time / skidkin wall time.
+its 1 s increments within 50 cm: no gross failure). Speed: kiss wall time / skidkin wall time,
+and the same for the CPU time of each process tree (user + system, from getrusage of the
+children): on a machine others load, the CPU time is the steadier measure of the work done.
 
     python bench/gt_scenes.py                  # 4 scenes of 60 s, ~5 min on a quiet 2-core machine
     python bench/gt_scenes.py --duration 120 --scenes forest snowfield
@@ -34,6 +36,7 @@ import json
 import os
 from pathlib import Path
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -65,12 +68,20 @@ def _tool(name: str) -> str:
     return str(Path(sys.executable).with_name(name))
 
 
+_CPU_S: dict[str, float] = {}
+
+
 def _timed(command: Sequence[str], env: dict[str, str] | None = None,
            cwd: Path | None = None) -> tuple[float, int, str]:
+    """Run a command; return (wall s, exit code, stderr); its CPU s go to _CPU_S['last']."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     tic = time.perf_counter()
     proc = subprocess.run(list(command), env=env, cwd=cwd, stdout=subprocess.DEVNULL,
                           stderr=subprocess.PIPE, text=True, timeout=3600)
-    return time.perf_counter() - tic, proc.returncode, proc.stderr or ''
+    wall = time.perf_counter() - tic
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    _CPU_S['last'] = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, proc.returncode, proc.stderr or ''
 
 
 def _read_csv(path: Path) -> Any:
@@ -126,7 +137,8 @@ def _notes(stderr: str) -> dict[str, Any]:
     tested = re.search(r'(\d+) seam\(s\) tested, (\d+) of them cut', stderr)
     untested = re.search(r'; (\d+) cut untested', stderr)
     check = ('kept' if 'agree with kiss-icp' in stderr else 'defaults'
-             if 'disagree with kiss-icp' in stderr else 'off')
+             if 'disagree with kiss-icp' in stderr else 'defaults (fine voxel)'
+             if "finer than kiss-icp's" in stderr else 'off')
     return {'seams_tested': int(tested.group(1)) if tested else 0,
             'seams_cut': (int(tested.group(2)) if tested else 0)
             + (int(untested.group(1)) if untested else 0), 'self_check': check}
@@ -148,7 +160,8 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path,
         return {**result, 'error': f'kiss_icp_pipeline exited {code}: {err[-800:]}'}
     kiss = score(_kiss_track(work / f'kiss_{scene}', bag), sim, valid_only=False)
     kiss['seconds'] = seconds
-    kiss['consistent'] = bool(abs(kiss['path_ratio'] - 1) <= 0.1 and kiss['p95_1s_cm'] <= 25)
+    kiss['cpu_s'] = _CPU_S['last']
+    kiss['consistent'] = bool(abs(kiss['path_ratio'] - 1) <= 0.1 and kiss['p95_1s_cm'] <= 50)
     result['kiss'] = kiss
     chunks = ['--chunk-s', f'{chunk_s:g}']
     runs = (('before', ['--no-icp-check', '--jobs', '2', *chunks]),
@@ -162,7 +175,8 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path,
             result[name] = {'error': f'exited {code}: {err[-800:]}'}
             continue
         row = score(_read_csv(out), sim, valid_only=True)
-        row.update(_notes(err), seconds=seconds, speed_vs_kiss=kiss['seconds'] / seconds)
+        row.update(_notes(err), seconds=seconds, speed_vs_kiss=kiss['seconds'] / seconds,
+                   cpu_s=_CPU_S['last'], cpu_vs_kiss=kiss['cpu_s'] / _CPU_S['last'])
         result[name] = row
     j1, j2 = work / f'{scene}_after_j1.csv', work / f'{scene}_after_j2.csv'
     if j1.is_file() and j2.is_file():
@@ -174,20 +188,22 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path,
 
 def table(results: Sequence[dict[str, Any]]) -> str:
     """Return the results as a Markdown table."""
-    lines = ['| scene | run | s | × kiss | kept | seams cut/tested | path 1 s / true | '
-             '1 s cm / mrad | check |', '|---|---|---|---|---|---|---|---|---|']
+    lines = ['| scene | run | wall s | × kiss | CPU s | × kiss CPU | kept | seams cut/tested | '
+             'path 1 s / true | 1 s cm / mrad | check |',
+             '|---|---|---|---|---|---|---|---|---|---|---|']
     for res in results:
         for name in ('kiss', 'before', 'after_j2', 'after_j1'):
             row = res.get(name)
             if not row or 'error' in row:
-                lines.append(f'| {res["scene"]} | {name} | error | | | | | | |')
+                lines.append(f'| {res["scene"]} | {name} | error | | | | | | | | |')
                 continue
             seams = ('' if name == 'kiss' else f'{row["seams_cut"]}/{row["seams_tested"]}')
             label = name + (' (consistent)' if row.get('consistent') else
                             ' (NOT consistent)' if name == 'kiss' else '')
             lines.append(
                 f'| {res["scene"]} | {label} | {row["seconds"]:.1f} | '
-                f'{row.get("speed_vs_kiss", 1.0):.2f} | {100 * row["kept"]:.0f} % | {seams} | '
+                f'{row.get("speed_vs_kiss", 1.0):.2f} | {row["cpu_s"]:.1f} | '
+                f'{row.get("cpu_vs_kiss", 1.0):.2f} | {100 * row["kept"]:.0f} % | {seams} | '
                 f'{row["path_1s_m"]:.1f} / {row["true_path_1s_m"]:.1f} m | '
                 f'{row["pos_1s_cm"]:.1f} / {row["yaw_1s_mrad"]:.1f} | '
                 f'{row.get("self_check", "")} |')

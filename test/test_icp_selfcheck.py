@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from skidkin_ros.adapters.bag_reader import open_recording
-from skidkin_ros.adapters.icp_selfcheck import (check_samples, compare_motion, is_automatic,
+from skidkin_ros.adapters.icp_selfcheck import (check_samples, compare_motion,
+                                                finer_than_reference, is_automatic,
                                                 plan_samples, reference_config,
                                                 SelfCheckOptions)
 from skidkin_ros.adapters.lidar_chunks import bag_ground_truth, ChunkOptions
@@ -134,3 +135,10 @@ def test_one_jump_is_enough_to_drop_the_fast_settings():
     choice = check_samples([jumped], [((10**9, None), reference)], IcpConfig(voxel_size_m=1.4),
                            reference_config(IcpConfig(voxel_size_m=1.4)), CHECK)
     assert not choice.kept_fast
+
+
+def test_a_voxel_finer_than_kiss_icps_means_kiss_icps_defaults():
+    reference = reference_config(IcpConfig(voxel_size_m=0.55))
+    assert finer_than_reference(IcpConfig(voxel_size_m=0.55), reference)
+    assert not finer_than_reference(IcpConfig(voxel_size_m=1.4), reference)
+    assert not finer_than_reference(IcpConfig(), reference_config(IcpConfig()))

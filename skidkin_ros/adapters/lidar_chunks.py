@@ -49,8 +49,9 @@ from typing import Any, Callable, Mapping, Sequence, Union
 
 import numpy as np
 
-from skidkin_ros.adapters.icp_selfcheck import (check_samples, is_automatic, plan_samples,
-                                                reference_config, SelfCheckOptions)
+from skidkin_ros.adapters.icp_selfcheck import (check_samples, finer_than_reference,
+                                                is_automatic, plan_samples, reference_config,
+                                                SelfCheckOptions)
 from skidkin_ros.adapters.lidar_gt import (FrameGrid, GroundTruth, guarded_truth, IcpConfig,
                                            register_frames, Registration)
 from skidkin_ros.atomic import atomic_write_bytes
@@ -603,6 +604,13 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     tasks = plan.tasks(config)
     samples: list[tuple[tuple[int, int | None], ChunkTask]] = []
     reference = reference_config(config)
+    notes: list[str] = []
+    if check.enabled and automatic and finer_than_reference(config, reference):
+        notes.append(f'kiss-icp settings: the voxel from the data ({config.voxel_size_m:g} m) is '
+                     f"finer than kiss-icp's ({reference.voxel_size_m:g} m), where the fast "
+                     "settings are not faster: kiss-icp's defaults are used")
+        config = reference
+        tasks = plan.tasks(config)
     span_ns = max(n_frames - 1, 0) * period_ns
     if (check.enabled and automatic and reference != config
             and span_ns >= (check.window_s + check.warmup_s) * 1e9):
@@ -619,7 +627,6 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
                           identity=identity, total_frames=plan.frames(len(tasks)) + sample_frames,
                           on_progress=on_progress)
     outcomes, sampled = outcomes[:len(tasks)], outcomes[len(tasks):]
-    notes: list[str] = []
     if samples:
         choice = check_samples([o.registration for o in outcomes],
                                [(window, o.registration) for (window, _), o in
@@ -630,7 +637,7 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
             tasks = plan.tasks(config)
             outcomes = run_chunks(tasks, options, cache_dir=cache, identity=identity,
                                   total_frames=plan.frames(len(tasks)), on_progress=on_progress)
-    elif check.enabled:
+    elif check.enabled and not notes:
         notes.append('kiss-icp settings not self-checked: ' + (
             'they were set explicitly' if not automatic or reference == config
             else 'the recording is shorter than one sample window'))
