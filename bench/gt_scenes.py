@@ -22,8 +22,9 @@ notes), the path length at 1 s steps (the per-frame path adds each frame's jitte
 true path at the same stamps, the median error of the 1 s increments of the kept poses (all
 poses for kiss), and whether kiss-icp's own track is consistent (path within 10 % and 95 % of
 its 1 s increments within 50 cm: no gross failure). Speed: kiss wall time / skidkin wall time,
-and the same for the CPU time of each process tree (user + system, from getrusage of the
-children): on a machine others load, the CPU time is the steadier measure of the work done.
+and, for kiss and ``--jobs 1``, the same for the CPU time (user + system, getrusage of the
+children; the workers of a process pool are the forkserver's children and are not counted,
+so ``--jobs 2`` has none): on a machine others load, CPU time is the steadier measure of work.
 
     python bench/gt_scenes.py                  # 4 scenes of 60 s, ~5 min on a quiet 2-core machine
     python bench/gt_scenes.py --duration 120 --scenes forest snowfield
@@ -33,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 from pathlib import Path
 import re
@@ -175,8 +177,10 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path,
             result[name] = {'error': f'exited {code}: {err[-800:]}'}
             continue
         row = score(_read_csv(out), sim, valid_only=True)
-        row.update(_notes(err), seconds=seconds, speed_vs_kiss=kiss['seconds'] / seconds,
-                   cpu_s=_CPU_S['last'], cpu_vs_kiss=kiss['cpu_s'] / _CPU_S['last'])
+        row.update(_notes(err), seconds=seconds, speed_vs_kiss=kiss['seconds'] / seconds)
+        if '--jobs' in extra and extra[extra.index('--jobs') + 1] == '1':
+            # the pool's workers are the forkserver's children: getrusage misses them
+            row.update(cpu_s=_CPU_S['last'], cpu_vs_kiss=kiss['cpu_s'] / _CPU_S['last'])
         result[name] = row
     j1, j2 = work / f'{scene}_after_j1.csv', work / f'{scene}_after_j2.csv'
     if j1.is_file() and j2.is_file():
@@ -184,6 +188,10 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path,
         result['scaling_j1_over_j2'] = result['after_j1']['seconds'] / result['after_j2'][
             'seconds']
     return result
+
+
+def _number(value: float | None, digits: int) -> str:
+    return '–' if value is None or not math.isfinite(value) else f'{value:.{digits}f}'
 
 
 def table(results: Sequence[dict[str, Any]]) -> str:
@@ -202,8 +210,9 @@ def table(results: Sequence[dict[str, Any]]) -> str:
                             ' (NOT consistent)' if name == 'kiss' else '')
             lines.append(
                 f'| {res["scene"]} | {label} | {row["seconds"]:.1f} | '
-                f'{row.get("speed_vs_kiss", 1.0):.2f} | {row["cpu_s"]:.1f} | '
-                f'{row.get("cpu_vs_kiss", 1.0):.2f} | {100 * row["kept"]:.0f} % | {seams} | '
+                f'{row.get("speed_vs_kiss", 1.0):.2f} | {_number(row.get("cpu_s"), 1)} | '
+                f'{_number(row.get("cpu_vs_kiss", 1.0 if name == "kiss" else None), 2)} | '
+                f'{100 * row["kept"]:.0f} % | {seams} | '
                 f'{row["path_1s_m"]:.1f} / {row["true_path_1s_m"]:.1f} m | '
                 f'{row["pos_1s_cm"]:.1f} / {row["yaw_1s_mrad"]:.1f} | '
                 f'{row.get("self_check", "")} |')
