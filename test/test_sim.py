@@ -19,8 +19,8 @@ from skidkin_ros.sim import (EFFECT_NAMES, EFFECTS, LidarConfig, make_effect, ra
                              SimConfig, simulate)
 from skidkin_ros.sim.effects import EffectInput
 from skidkin_ros.sim.robot import COMMAND_KINDS
-from skidkin_ros.sim.scene import (Box, Cylinder, default_scene, Field, outdoor_scene,
-                                   Room, Scene)
+from skidkin_ros.sim.scene import (Box, Cylinder, default_scene, Field, make_scene,
+                                   outdoor_scene, Room, Scene)
 
 # A scripted drive through the interesting parts of the input space (rad/s): forward, backward,
 # an arc where one side turns twice the other, a spin.
@@ -254,6 +254,23 @@ def test_outdoor_scene_is_a_field_of_trees_around_a_clearing_seen_like_a_vlp16()
     scans = list(simulate(config).scans())
     points = np.mean([len(scan) for scan in scans])
     assert 4500 < points <= 16 * 360  # VLP-16-like: the sky returns nothing
+
+
+def test_the_snow_field_is_sparse_and_the_plain_nearly_empty():
+    clearing = 0.55 * 30.0
+    snow, plain = make_scene('snowfield', 30.0), make_scene('plain', 30.0)
+    forest = make_scene('forest', 30.0)
+    for scene in (snow, plain):
+        centres = np.array([(c.x, c.y) for c in scene.cylinders])
+        assert np.all(np.hypot(centres[:, 0], centres[:, 1]) > clearing)
+        assert scene.inside(0.0, 0.0, margin_m=clearing - 1.0)
+    # a tree per 50 m2 against the forest's per 25 m2: a horizontal ray finds less
+    origin = np.array([[0.0, 0.0, 0.7]] * 720)
+    azimuth = np.radians(np.arange(720) * 0.5)
+    direction = np.stack([np.cos(azimuth), np.sin(azimuth), np.zeros(720)], axis=-1)
+    hits = [np.isfinite(s.cast(origin, direction)).mean() for s in (forest, snow, plain)]
+    assert hits[0] > hits[1] > hits[2] and hits[2] < 0.05
+    assert make_scene('snowfield', 30.0) == snow  # deterministic
 
 
 def test_lidar_points_lie_on_the_scene_seen_from_the_pose_at_their_time():

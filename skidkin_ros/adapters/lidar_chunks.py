@@ -50,6 +50,9 @@ from typing import Any, Callable, Mapping, Sequence, Union
 import numpy as np
 
 from skidkin_ros.adapters import cluster
+from skidkin_ros.adapters.icp_selfcheck import (check_samples, finer_than_reference,
+                                                is_automatic, plan_samples, reference_config,
+                                                SelfCheckOptions)
 from skidkin_ros.adapters.lidar_gt import (FrameGrid, GroundTruth, guarded_truth, IcpConfig,
                                            register_frames, Registration)
 from skidkin_ros.atomic import atomic_write_bytes
@@ -67,6 +70,8 @@ Progress = Callable[[int, int], None]
 _PROGRESS_EVERY = 10
 # Frames read to learn the lidar's period before planning.
 _PERIOD_FRAMES = 11
+# Task indices of the self-check's sample windows (chunk indices stay below).
+_SAMPLE_INDEX = 100_000
 
 
 @dataclass(frozen=True)
@@ -577,17 +582,20 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
                      options: ChunkOptions | None = None, *, limits: Any = None,
                      wheels: WheelSamples | None = None, imu: ImuSamples | None = None,
                      cache_dir: Union[str, os.PathLike, None] = None,
-                     on_progress: Progress | None = None) -> GroundTruth:
+                     on_progress: Progress | None = None,
+                     check: SelfCheckOptions | None = None) -> GroundTruth:
     """Return the lidar ground truth of a recording, registered in chunks (module docstring).
 
     ``rec``: the open BagRecording of ``path`` (used to plan: the first clouds and the count);
     ``wheels`` / ``imu``: for the guard; ``cache_dir``: where chunk registrations are kept
-    (None: no cache); ``on_progress(frames done, frames total)``.
+    (None: no cache); ``on_progress(frames done, frames total)``; ``check``: the self-check of
+    the fast kiss-icp settings (:mod:`skidkin_ros.adapters.icp_selfcheck`; None: its defaults).
     """
     from skidkin_ros.errors import RecordingError
 
     config = config or IcpConfig()
     options = options or ChunkOptions()
+    check = check or SelfCheckOptions()
     first = []
     for frame in rec.iter_lidar(topic):
         first.append(frame)
@@ -595,19 +603,56 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
             break
     if not first:
         raise RecordingError(f'{path}: lidar topic {topic} holds no usable cloud')
+    automatic = is_automatic(config)
     config = config.with_voxel_for(first[0].xyz)
     ends = np.array([f.end_ns for f in first], dtype=np.int64)
-    period_ns = int(np.median(np.diff(ends))) if ends.size > 1 else 100_000_000
+    period_ns = max(int(np.median(np.diff(ends))) if ends.size > 1 else 100_000_000, 1)
     n_frames = sum(s.count for s in rec.summary(time_ranges=False) if s.topic == topic)
-    tasks = plan_chunks(str(path), topic, int(first[0].receive_ns), max(period_ns, 1), n_frames,
-                        int(first[0].end_ns), config, options)
+    first_receive = int(first[0].receive_ns)
+    plan = _Plan(str(path), topic, first_receive, period_ns, n_frames, int(first[0].end_ns),
+                 options)
+    tasks = plan.tasks(config)
+    samples: list[tuple[tuple[int, int | None], ChunkTask]] = []
+    reference = reference_config(config)
+    notes: list[str] = []
+    if check.enabled and automatic and finer_than_reference(config, reference):
+        notes.append(f'kiss-icp settings: the voxel from the data ({config.voxel_size_m:g} m) is '
+                     f"finer than kiss-icp's ({reference.voxel_size_m:g} m), where the fast "
+                     "settings are not faster: kiss-icp's defaults are used")
+        config = reference
+        tasks = plan.tasks(config)
+    span_ns = max(n_frames - 1, 0) * period_ns
+    if (check.enabled and automatic and reference != config
+            and span_ns >= (check.window_s + check.warmup_s) * NS_PER_S):
+        windows = plan_samples([t.stop_ns for t in tasks], first_receive, first_receive + span_ns,
+                               check)
+        samples = [(window, ChunkTask(str(path), topic, _SAMPLE_INDEX + k, window[0],
+                                      window[1], None, reference, tasks[0].grid))
+                   for k, window in enumerate(windows)]
     identity = bag_identity(path) if cache_dir is not None else None
-    warmup_frames = int(options.overlap_s * NS_PER_S / max(period_ns, 1))
-    total = n_frames + warmup_frames * (len(tasks) - 1)
-    outcomes = run_chunks(tasks, options, cache_dir=None if cache_dir is None else Path(cache_dir),
-                          identity=identity, total_frames=total, on_progress=on_progress)
+    cache = None if cache_dir is None else Path(cache_dir)
+    sample_frames = sum(int((check.window_s + check.warmup_s) * NS_PER_S / period_ns)
+                        for _ in samples)
+    outcomes = run_chunks(tasks + [task for _, task in samples], options, cache_dir=cache,
+                          identity=identity, total_frames=plan.frames(len(tasks)) + sample_frames,
+                          on_progress=on_progress)
+    outcomes, sampled = outcomes[:len(tasks)], outcomes[len(tasks):]
+    if samples:
+        choice = check_samples([o.registration for o in outcomes],
+                               [(window, o.registration) for (window, _), o in
+                                zip(samples, sampled)], config, reference, check)
+        notes.append(choice.note())
+        if not choice.kept_fast:
+            config = choice.config
+            tasks = plan.tasks(config)
+            outcomes = run_chunks(tasks, options, cache_dir=cache, identity=identity,
+                                  total_frames=plan.frames(len(tasks)), on_progress=on_progress)
+    elif check.enabled and not notes:
+        notes.append('kiss-icp settings not self-checked: ' + (
+            'they were set explicitly' if not automatic or reference == config
+            else 'the recording is shorter than one sample window'))
     joined = join_chunks(outcomes, options)
-    notes = list(dict.fromkeys(joined.notes))
+    notes = list(dict.fromkeys(joined.notes)) + notes
     if len(tasks) > 1:
         notes.append(joined.seams_note(len(tasks), options))
     cached = sum(1 for o in outcomes if o.cached)
@@ -616,3 +661,25 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
                      f'{cache_dir}')
     return guarded_truth(joined.registration, extrinsic, config, limits, wheels=wheels, imu=imu,
                          seams=joined.cut_frames, from_cache=cached == len(tasks), notes=notes)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What planning the chunks of one recording needs, to plan them for any settings."""
+
+    bag: str
+    topic: str
+    first_receive_ns: int
+    period_ns: int
+    n_frames: int
+    first_end_ns: int
+    options: ChunkOptions
+
+    def tasks(self, config: IcpConfig) -> list[ChunkTask]:
+        return plan_chunks(self.bag, self.topic, self.first_receive_ns, self.period_ns,
+                           self.n_frames, self.first_end_ns, config, self.options)
+
+    def frames(self, n_tasks: int) -> int:
+        """Return the frames all chunks read: the recording and every warm-up."""
+        warmup = int(self.options.overlap_s * NS_PER_S / self.period_ns)
+        return self.n_frames + warmup * (n_tasks - 1)

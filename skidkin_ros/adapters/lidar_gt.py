@@ -92,7 +92,8 @@ class IcpConfig:
     ``max_points_per_voxel``, ``max_iterations`` and ``convergence`` are kiss-icp's mapping and
     registration settings; ``stride``: register one scan in ``stride`` (the others get status
     'stride'); ``max_threads``: kiss-icp's threads per registration (1: the result does not
-    depend on the machine or on how many run at once; 0: every core). ``quality_points``:
+    depend on the machine or on how many run at once; kiss-icp 1.3's threaded reduction changes
+    the last bits of the poses, docs/ground-truth.md; 0: every core). ``quality_points``:
     source points sampled per frame to measure the registration's quality.
     The defaults come from the speed/accuracy table of bench/icp_settings.py (docs/benchmarks.md).
     """

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from skidkin_ros.adapters.bag_reader import check_overlap, NoWheelInputError, open_recording
+from skidkin_ros.adapters.icp_selfcheck import SelfCheckOptions
 from skidkin_ros.adapters.lidar_chunks import bag_ground_truth, ChunkOptions
 from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.table import read_table
@@ -58,6 +59,7 @@ class SourceOptions:
     """How to read a source: topics, joints, ground truth, extrinsic and the ICP settings.
 
     ``chunks``: how the lidar ground truth is cut and run (processes, a Dask cluster);
+    ``icp_check``: self-check the fast kiss-icp settings (adapters.icp_selfcheck);
     ``on_progress(frames done, frames total)`` follows its registration.
     """
 
@@ -75,6 +77,7 @@ class SourceOptions:
     on_progress: Callable[[int, int], None] | None = None
     icp: IcpConfig = field(default_factory=IcpConfig)
     chunks: ChunkOptions = field(default_factory=ChunkOptions)
+    icp_check: bool = True
     max_wheel_speed_rad_s: float = node_default('max_wheel_speed')
     pair_tolerance_s: float = node_default('pair_tolerance')
     max_wheel_acceleration: float = node_default('max_wheel_acceleration')
@@ -182,7 +185,8 @@ def _icp_truth(rec, path: Path, wheels, imu, options: SourceOptions) -> tuple[Po
                 'Without it the lidar offset would be confounded with the model (x_v).')
     result = bag_ground_truth(rec, path, lidar_topic, extrinsic, options.icp, options.chunks,
                               wheels=wheels, imu=imu, cache_dir=options.cache_dir,
-                              on_progress=options.on_progress)
+                              on_progress=options.on_progress,
+                              check=SelfCheckOptions(enabled=options.icp_check))
     rec.notes.extend(result.notes)
     info = {'ground_truth': f'kiss-icp on {lidar_topic}', 'frames': dict(result.counts),
             'from_cache': bool(result.from_cache), 'excluded': result.excluded}

@@ -162,7 +162,11 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
     group.add_argument('--max-range', type=float, default=icp.max_range_m, metavar='M',
                        help=f'kiss-icp maximum range (m, default {icp.max_range_m:g})')
     group.add_argument('--voxel-size', type=float, metavar='M',
-                       help='kiss-icp voxel size (m, default max-range/100)')
+                       help='kiss-icp voxel size (m, default: 6 x the point spacing of the '
+                       "first cloud, kept where a self-check agrees with kiss-icp's defaults)")
+    group.add_argument('--no-icp-check', action='store_true',
+                       help="skip the self-check of the fast kiss-icp settings against kiss-icp's "
+                       'defaults on a sample of the recording (docs/ground-truth.md)')
     group.add_argument('--stride', type=stride_arg, default=icp.stride, metavar='K',
                        help=f'register one lidar scan in K (default {icp.stride})')
     group.add_argument('--chunk-s', type=float, default=chunks.chunk_s, metavar='S',
@@ -211,7 +215,7 @@ def source_options(args: argparse.Namespace) -> SourceOptions:
         lidar_topic=get('lidar_topic'), imu_topic=get('imu_topic'),
         ground_truth=get('ground_truth') or 'icp', base_frame=get('base_frame') or 'base_link',
         extrinsic=extrinsic_from_xyz_rpy(extrinsic) if extrinsic else None,
-        cache_dir=cache, icp=icp, chunks=chunks,
+        cache_dir=cache, icp=icp, chunks=chunks, icp_check=not get('no_icp_check'),
         on_progress=None if get('no_progress') else Progress('kiss-icp', 'frames'),
         wheel_signal=get('wheel_signal') or 'velocity',
         msg_files=tuple(get('msg_file') or ()),

@@ -5,9 +5,12 @@ directions (N, 3); each primitive returns the distance along each ray to its fir
 missed). The scene is the minimum over its primitives. Coordinates are the world frame of the
 simulator (z up, the ground at z = 0).
 
-Two scenes: :func:`default_scene`, a walled courtyard with boxes and pillars (indoor-like), and
-:func:`outdoor_scene`, an open field with a few hundred trees at random (a trunk and a crown
-each) and nothing else, the kind of scan a robot sees in a forest clearing or a snow field. The
+Scenes (:data:`SCENE_NAMES`): :func:`default_scene`, a walled courtyard with boxes and pillars
+(indoor-like); :func:`outdoor_scene`, an open field with a few hundred trees at random (a trunk
+and a crown each) and nothing else, the kind of scan a robot sees in a forest clearing; the
+same field with a few dozen trees over a larger area (``snowfield``: most returns are flat
+ground, a tree every 10-20 m); and an open plain with a handful of far posts (``plain``: the
+planar position is barely observable, a scene hard for ICP). The
 cylinders are intersected all at once (one vectorized pass over every ray/cylinder pair whose
 azimuth points at the cylinder), so a field of 800 cylinders casts a sweep in milliseconds.
 """
@@ -19,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ['Box', 'Cylinder', 'Field', 'Room', 'Scene', 'SCENE_NAMES', 'default_scene',
-           'make_scene', 'outdoor_scene']
+           'make_scene', 'outdoor_scene', 'plain_scene', 'snowfield_scene']
 
 # Rays closer than this to parallel with a face are treated as missing it.
 _PARALLEL_EPS = 1e-12
@@ -319,8 +322,39 @@ def outdoor_scene(clearing_radius_m: float = 7.7, field_half_m: float = 50.0,
     return Scene(Field(-half, half, -half, half), (), tuple(cylinders))
 
 
+def snowfield_scene(clearing_radius_m: float = 7.7, seed: int = 13) -> Scene:
+    """Return a sparse snow field: flat ground and scattered trees, about one per 50 m2.
+
+    The field reaches 40 m beyond the driving disc; trees (as in :func:`outdoor_scene`) stand
+    outside the disc, so most of a 16-ring scan is flat ground and a few trunks and crowns
+    within 20-40 m carry the planar position. Deterministic for a given seed.
+    """
+    half = float(clearing_radius_m) + 40.0
+    n_trees = int(round((2 * half) ** 2 / 50.0))
+    return outdoor_scene(clearing_radius_m, half, n_trees, seed)
+
+
+def plain_scene(clearing_radius_m: float = 7.7, seed: int = 17) -> Scene:
+    """Return an open plain: flat ground and six thin posts 25-45 m from the centre.
+
+    Hard for ICP: the ground fixes height, roll and pitch but not the planar position, which
+    rests on a few dozen points of distant posts; kiss-icp may slide or stall here, and the
+    guard's degeneracy test is meant to say so. Deterministic for a given seed.
+    """
+    rng = np.random.default_rng(seed)
+    half = float(clearing_radius_m) + 45.0
+    cylinders = []
+    for k in range(6):
+        angle = 2 * np.pi * k / 6 + float(rng.uniform(-0.4, 0.4))
+        radius = float(clearing_radius_m) + float(rng.uniform(20.0, 40.0))
+        cylinders.append(Cylinder(radius * float(np.cos(angle)), radius * float(np.sin(angle)),
+                                  float(rng.uniform(0.1, 0.25)), 0.0,
+                                  float(rng.uniform(2.0, 5.0))))
+    return Scene(Field(-half, half, -half, half), (), tuple(cylinders))
+
+
 # Scenes by name (SimConfig.scene): each takes the half size of the scene's driving area.
-SCENE_NAMES: tuple[str, ...] = ('courtyard', 'forest')
+SCENE_NAMES: tuple[str, ...] = ('courtyard', 'forest', 'snowfield', 'plain')
 
 
 def make_scene(name: str, half_size_m: float) -> Scene:
@@ -329,4 +363,8 @@ def make_scene(name: str, half_size_m: float) -> Scene:
         return default_scene(half_size_m)
     if name == 'forest':
         return outdoor_scene(clearing_radius_m=0.55 * half_size_m)
+    if name == 'snowfield':
+        return snowfield_scene(clearing_radius_m=0.55 * half_size_m)
+    if name == 'plain':
+        return plain_scene(clearing_radius_m=0.55 * half_size_m)
     raise ValueError(f'unknown scene {name!r}; expected one of {SCENE_NAMES}')

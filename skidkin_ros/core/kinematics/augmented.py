@@ -33,7 +33,6 @@ import functools
 from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
-from scipy.signal import lfilter
 
 from skidkin_ros.core.kinematics.extensions import get_extension, ordered
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
@@ -278,6 +277,9 @@ def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
     Rows sampled at a constant period without restart go through scipy's lfilter (the same
     recursion, to rounding); the others through the sample loop the streaming form runs.
     """
+    # scipy.signal takes a second to import: only the fits that reach this line pay it.
+    from scipy.signal import lfilter
+
     d, g = lag_factors(dt_s, tau_s)
     held = np.empty_like(x)
     length = x.shape[1]

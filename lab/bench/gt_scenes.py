@@ -1,0 +1,243 @@
+"""Ground truth on several scenes, scored against the simulator and timed against kiss-icp.
+
+Scenes (skidkin_ros.sim.scene): the ``forest`` (400 trees), the ``courtyard`` (walls, boxes,
+pillars; 0.5 deg lidar), a sparse ``snowfield`` (flat ground, a tree per 50 m2 over a larger
+field) and an open ``plain`` (flat ground, six far posts: hard for ICP). Outdoor scenes use a
+VLP-16-like lidar: 16 rings, 360 columns, 10 Hz, per-point times.
+
+Per scene, on the same bag, as subprocesses, one after the other so all see the machine in the
+same state (the machine is shared: only ratios measured in one run are reported):
+
+* ``kiss``: plain ``kiss_icp_pipeline --topic /points BAG`` (kiss-icp's own pipeline, its
+  defaults, its own threads on every core);
+* ``before``: ``skidkin groundtruth --no-icp-check`` (the fast settings on every scene: the
+  behaviour before the self-check), ``--jobs 2``;
+* ``after``: ``skidkin groundtruth`` with the defaults, ``--jobs 2`` and ``--jobs 1``.
+
+Every skidkin run uses chunks of ``--chunk-s`` (default 20 s: the recordings are sized down
+from a few minutes to about one, so the chunks are too, to keep several seams per scene).
+
+Scores against the simulator's truth: poses kept by the guard, seams tested and cut (from the
+notes), the path length at 1 s steps (the per-frame path adds each frame's jitter) against the
+true path at the same stamps, the median error of the 1 s increments of the kept poses (all
+poses for kiss), and whether kiss-icp's own track is consistent (path within 10 % and 95 % of
+its 1 s increments within 50 cm: no gross failure). Speed: kiss wall time / skidkin wall time,
+and, for kiss and ``--jobs 1``, the same for the CPU time (user + system, getrusage of the
+children; the workers of a process pool are the forkserver's children and are not counted,
+so ``--jobs 2`` has none): on a machine others load, CPU time is the steadier measure of work.
+
+    python lab/bench/gt_scenes.py    # 4 scenes of 60 s, ~5 min on a quiet 2-core machine
+    python lab/bench/gt_scenes.py --duration 120 --scenes forest snowfield
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from pathlib import Path
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+SCENES = ('forest', 'courtyard', 'snowfield', 'plain')
+
+
+def scene_config(scene: str, duration_s: float, seed: int) -> Any:
+    """Return the SimConfig of one benchmark scene."""
+    from skidkin_ros.sim import LidarConfig, SimConfig
+
+    if scene == 'courtyard':
+        lidar = LidarConfig(azimuth_resolution_deg=0.5, mount_xyz_m=(0.3, 0.1, 0.5))
+        return SimConfig(duration_s=duration_s, seed=seed, lidar=lidar, scene='courtyard',
+                         internal_rate_hz=200.0)
+    lidar = LidarConfig(n_rings=16, azimuth_resolution_deg=1.0, rate_hz=10.0,
+                        range_noise_m=0.02, max_range_m=100.0, mount_xyz_m=(0.2, 0.0, 0.7))
+    half = 16.0 if scene == 'forest' else 30.0
+    return SimConfig(duration_s=duration_s, seed=seed, lidar=lidar, scene=scene,
+                     scene_half_size_m=half, arena_radius_m=0.45 * half,
+                     internal_rate_hz=200.0)
+
+
+def _tool(name: str) -> str:
+    return str(Path(sys.executable).with_name(name))
+
+
+_CPU_S: dict[str, float] = {}
+
+
+def _timed(command: Sequence[str], env: dict[str, str] | None = None,
+           cwd: Path | None = None) -> tuple[float, int, str]:
+    """Run a command; return (wall s, exit code, stderr); its CPU s go to _CPU_S['last']."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    tic = time.perf_counter()
+    proc = subprocess.run(list(command), env=env, cwd=cwd, stdout=subprocess.DEVNULL,
+                          stderr=subprocess.PIPE, text=True, timeout=3600)
+    wall = time.perf_counter() - tic
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    _CPU_S['last'] = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, proc.returncode, proc.stderr or ''
+
+
+def _read_csv(path: Path) -> Any:
+    from skidkin_ros.core.drive import PoseTrack
+
+    rows = np.genfromtxt(path, delimiter=',', names=True)
+    return PoseTrack(rows['t_ns'].astype(np.int64), rows['x'], rows['y'], rows['yaw'],
+                     rows['valid'].astype(bool))
+
+
+def _kiss_track(results: Path, bag: Path) -> Any:
+    """Return kiss_icp_pipeline's poses as a base_link track stamped like our frames."""
+    from skidkin_ros.adapters.bag_reader import open_recording
+    from skidkin_ros.core.drive import PoseTrack
+    from skidkin_ros.core.rigid import planar_poses
+
+    poses = np.load(next(results.rglob('*_poses.npy')))
+    with open_recording(bag) as rec:
+        ends = [f.end_ns for f in rec.iter_lidar('/points')]
+        extrinsic = rec.read_extrinsic('base_link', 'lidar')
+    n = min(len(ends), poses.shape[0])
+    rows = planar_poses(poses[:n], extrinsic)
+    return PoseTrack(np.array(ends[:n], dtype=np.int64), rows[:, 0], rows[:, 1],
+                     np.unwrap(rows[:, 2]))
+
+
+def path_1s(t_ns: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
+    """Return the path length (m) over the poses nearest to a 1 s grid."""
+    grid = np.arange(t_ns[0], t_ns[-1] + 1, 1_000_000_000)
+    rows = np.unique(np.clip(np.searchsorted(t_ns, grid), 0, t_ns.size - 1))
+    return float(np.hypot(np.diff(x[rows]), np.diff(y[rows])).sum())
+
+
+def score(track: Any, sim: Any, valid_only: bool) -> dict[str, Any]:
+    """Score a base_link track against the simulator's truth."""
+    from skidkin_ros.sim.accuracy import increment_errors
+
+    true = np.asarray(sim.pose_at(track.t_ns))
+    one = increment_errors(track, sim.pose_at, horizon_s=1.0, valid_only=valid_only)
+    every = increment_errors(track, sim.pose_at, horizon_s=1.0, valid_only=False)
+    true_path = path_1s(track.t_ns, true[:, 0], true[:, 1])
+    path = path_1s(track.t_ns, track.x, track.y)
+    p95 = float(np.percentile(every.position_m, 95)) if every.position_m.size else np.nan
+    return {'poses': int(len(track)), 'kept': float(np.mean(track.valid)),
+            'path_1s_m': path, 'true_path_1s_m': true_path,
+            'path_ratio': path / true_path if true_path > 0 else np.nan,
+            'path_frames_m': float(track.path_length()[-1]),
+            'pos_1s_cm': 100 * one.median_position_m, 'yaw_1s_mrad': 1e3 * one.median_yaw_rad,
+            'p95_1s_cm': 100 * p95}
+
+
+def _notes(stderr: str) -> dict[str, Any]:
+    tested = re.search(r'(\d+) seam\(s\) tested, (\d+) of them cut', stderr)
+    untested = re.search(r'; (\d+) cut untested', stderr)
+    check = ('kept' if 'agree with kiss-icp' in stderr else 'defaults'
+             if 'disagree with kiss-icp' in stderr else 'defaults (fine voxel)'
+             if "finer than kiss-icp's" in stderr else 'off')
+    return {'seams_tested': int(tested.group(1)) if tested else 0,
+            'seams_cut': (int(tested.group(2)) if tested else 0)
+            + (int(untested.group(1)) if untested else 0), 'self_check': check}
+
+
+def run_scene(scene: str, duration_s: float, seed: int, work: Path,
+              chunk_s: float = 20.0) -> dict[str, Any]:
+    """Simulate one scene, run every contender on its bag, score and time them."""
+    from skidkin_ros.adapters.sim_writer import write_bag
+    from skidkin_ros.sim import simulate
+
+    sim = simulate(scene_config(scene, duration_s, seed))
+    bag, _ = write_bag(sim, work / f'{scene}_{int(duration_s)}s')
+    result: dict[str, Any] = {'scene': scene, 'duration_s': duration_s}
+    env = dict(os.environ, kiss_icp_out_dir=str(work / f'kiss_{scene}'))
+    seconds, code, err = _timed([_tool('kiss_icp_pipeline'), '--topic', '/points', str(bag)],
+                                env=env, cwd=work)
+    if code != 0:
+        return {**result, 'error': f'kiss_icp_pipeline exited {code}: {err[-800:]}'}
+    kiss = score(_kiss_track(work / f'kiss_{scene}', bag), sim, valid_only=False)
+    kiss['seconds'] = seconds
+    kiss['cpu_s'] = _CPU_S['last']
+    kiss['consistent'] = bool(abs(kiss['path_ratio'] - 1) <= 0.1 and kiss['p95_1s_cm'] <= 50)
+    result['kiss'] = kiss
+    chunks = ['--chunk-s', f'{chunk_s:g}']
+    runs = (('before', ['--no-icp-check', '--jobs', '2', *chunks]),
+            ('after_j2', ['--jobs', '2', *chunks]), ('after_j1', ['--jobs', '1', *chunks]))
+    for name, extra in runs:
+        out = work / f'{scene}_{name}.csv'
+        seconds, code, err = _timed([_tool('skidkin'), 'groundtruth', str(bag), '--out',
+                                     str(out), '--force', '--no-cache', '--no-progress',
+                                     *extra])
+        if code != 0:
+            result[name] = {'error': f'exited {code}: {err[-800:]}'}
+            continue
+        row = score(_read_csv(out), sim, valid_only=True)
+        row.update(_notes(err), seconds=seconds, speed_vs_kiss=kiss['seconds'] / seconds)
+        if '--jobs' in extra and extra[extra.index('--jobs') + 1] == '1':
+            # the pool's workers are the forkserver's children: getrusage misses them
+            row.update(cpu_s=_CPU_S['last'], cpu_vs_kiss=kiss['cpu_s'] / _CPU_S['last'])
+        result[name] = row
+    j1, j2 = work / f'{scene}_after_j1.csv', work / f'{scene}_after_j2.csv'
+    if j1.is_file() and j2.is_file():
+        result['identical_j1_j2'] = j1.read_bytes() == j2.read_bytes()
+        result['scaling_j1_over_j2'] = result['after_j1']['seconds'] / result['after_j2'][
+            'seconds']
+    return result
+
+
+def _number(value: float | None, digits: int) -> str:
+    return '–' if value is None or not math.isfinite(value) else f'{value:.{digits}f}'
+
+
+def table(results: Sequence[dict[str, Any]]) -> str:
+    """Return the results as a Markdown table."""
+    lines = ['| scene | run | wall s | × kiss | CPU s | × kiss CPU | kept | seams cut/tested | '
+             'path 1 s / true | 1 s cm / mrad | check |',
+             '|---|---|---|---|---|---|---|---|---|---|---|']
+    for res in results:
+        for name in ('kiss', 'before', 'after_j2', 'after_j1'):
+            row = res.get(name)
+            if not row or 'error' in row:
+                lines.append(f'| {res["scene"]} | {name} | error | | | | | | | | |')
+                continue
+            seams = ('' if name == 'kiss' else f'{row["seams_cut"]}/{row["seams_tested"]}')
+            label = name + (' (consistent)' if row.get('consistent') else
+                            ' (NOT consistent)' if name == 'kiss' else '')
+            lines.append(
+                f'| {res["scene"]} | {label} | {row["seconds"]:.1f} | '
+                f'{row.get("speed_vs_kiss", 1.0):.2f} | {_number(row.get("cpu_s"), 1)} | '
+                f'{_number(row.get("cpu_vs_kiss", 1.0 if name == "kiss" else None), 2)} | '
+                f'{100 * row["kept"]:.0f} % | {seams} | '
+                f'{row["path_1s_m"]:.1f} / {row["true_path_1s_m"]:.1f} m | '
+                f'{row["pos_1s_cm"]:.1f} / {row["yaw_1s_mrad"]:.1f} | '
+                f'{row.get("self_check", "")} |')
+    return '\n'.join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--duration', type=float, default=60.0, help='s per scene')
+    parser.add_argument('--chunk-s', type=float, default=20.0, help='chunk length (s)')
+    parser.add_argument('--scenes', nargs='+', default=list(SCENES), choices=SCENES)
+    parser.add_argument('--seed', type=int, default=5)
+    parser.add_argument('--json', type=Path, help='also write the results here')
+    args = parser.parse_args(argv)
+    results = []
+    with tempfile.TemporaryDirectory(prefix='gt_scenes_') as tmp:
+        for scene in args.scenes:
+            print(f'  {scene}: {args.duration:g} s', flush=True)
+            results.append(run_scene(scene, args.duration, args.seed, Path(tmp), args.chunk_s))
+    print(table(results))
+    print(json.dumps(results, indent=1, default=float))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, default=float))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
