@@ -14,8 +14,10 @@ __all__ = [
     'interval',
     'noise',
     'odometer',
+    'params_file',
     'propagation',
     'reference',
+    'schema',
     'uncertainty',
     'wheels',
 ]
