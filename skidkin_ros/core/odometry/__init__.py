@@ -15,6 +15,8 @@ __all__ = [
     'noise',
     'odometer',
     'params_file',
+    'pose_limits',
+    'prediction',
     'propagation',
     'reference',
     'schema',
