@@ -24,8 +24,8 @@ from skidkin_ros.adapters.lidar_chunks import bag_ground_truth, ChunkOptions
 from skidkin_ros.adapters.lidar_gt import IcpConfig
 from skidkin_ros.adapters.table import read_table
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
-from skidkin_ros.core.odometry.config import node_default
 from skidkin_ros.core.odometry.controller import ControllerGeometry
+from skidkin_ros.core.odometry.schema import node_default
 from skidkin_ros.errors import DataError, RecordingError
 
 __all__ = ['SourceOptions', 'LoadedSource', 'load_source', 'load_sources', 'is_table',

@@ -13,8 +13,8 @@ import re
 
 from skidkin_ros.core.kinematics.models import MODELS
 from skidkin_ros.core.kinematics.specs import GEOMETRY_SPECS
-from skidkin_ros.core.odometry.config import parameter_schema, SchemaEntry
 from skidkin_ros.core.odometry.noise import NOISE_SPECS
+from skidkin_ros.core.odometry.schema import parameter_schema, SchemaEntry
 
 __all__ = ['add_parser', 'markdown_tables', 'node_parameter_reference']
 

@@ -1,6 +1,6 @@
 """The node's ROS parameters: declared from the one schema, with descriptors, checked up front.
 
-Every parameter comes from :func:`skidkin_ros.core.odometry.config.parameter_schema` (the same
+Every parameter comes from :func:`skidkin_ros.core.odometry.schema.parameter_schema` (the same
 names the calibrator writes). Values given on the command line or in a parameters file are
 validated by :meth:`OdometryConfig.from_flat` before anything is declared, so a typo or an
 out-of-range value gives one clear message naming the parameter and its range instead of

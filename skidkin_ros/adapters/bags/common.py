@@ -15,7 +15,7 @@ from rosbags.rosbag1 import ReaderError as ReaderError1
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.serde import SerdeError
 
-from skidkin_ros.core.odometry.config import node_default
+from skidkin_ros.core.odometry.schema import node_default
 from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import DataError, RecordingError
 

@@ -14,8 +14,12 @@ __all__ = [
     'interval',
     'noise',
     'odometer',
+    'params_file',
+    'pose_limits',
+    'prediction',
     'propagation',
     'reference',
+    'schema',
     'uncertainty',
     'wheels',
 ]

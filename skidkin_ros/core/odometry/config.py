@@ -1,40 +1,45 @@
-"""The odometry configuration: the node's parameter schema and the ROS 2 parameters file.
+"""The odometry configuration: validating parameters against the node's schema.
 
-One schema (``parameter_schema``) lists every parameter the node declares, with type, default,
-description and range. The node declares exactly these; the calibrator writes a parameters file
-(``/**: ros__parameters:``) with the same names; ``OdometryConfig.from_flat`` validates either.
+One schema (``parameter_schema``, in :mod:`skidkin_ros.core.odometry.schema`) lists every
+parameter the node declares, with type, default, description and range. The node declares exactly
+these; the calibrator writes a parameters file (``/**: ros__parameters:``, read and rendered in
+:mod:`skidkin_ros.core.odometry.params_file`) with the same names; ``OdometryConfig.from_flat``
+validates either, and ``write_params_file`` validates before writing. The names of the schema and
+the parameters file are re-exported here.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-import datetime
-import logging
 import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import numpy as np
-from skidkin_ros import __version__
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
-from skidkin_ros.core.odometry.controller import CONTROLLER_SPECS, ControllerGeometry
-from skidkin_ros.core.odometry.gyro import GYRO_MODES, GYRO_SPECS, GyroParams
+from skidkin_ros.core.odometry.controller import ControllerGeometry
+from skidkin_ros.core.odometry.gyro import GyroParams
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
-from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
-from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
-                                             NOISE_SPECS, NoiseModel)
-from skidkin_ros.core.odometry.reference import ONLINE_SPECS, OnlineParams
-from skidkin_ros.core.odometry.residual_uncertainty import (
-    coefficient_count, RESIDUAL_EXTENSION, ResidualUncertainty)
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, LEGACY_INTERVAL
+from skidkin_ros.core.odometry.noise import NOISE_SPECS, NoiseModel
+# The parameters file and the schema live in their own modules; their names stay importable here.
+from skidkin_ros.core.odometry.params_file import (flatten, MAX_PARAMS_FILE_BYTES,  # noqa: F401
+                                                   nest, params_document, parse_params_text,
+                                                   read_params_document, read_params_file)
+from skidkin_ros.core.odometry.reference import OnlineParams
+from skidkin_ros.core.odometry.residual_uncertainty import (coefficient_count, RESIDUAL_EXTENSION,
+                                                            ResidualUncertainty)
+from skidkin_ros.core.odometry.schema import (DEFAULT_LEFT_JOINTS,  # noqa: F401
+                                              DEFAULT_RIGHT_JOINTS, INPUT_MODES, MIN_RATE_HZ,
+                                              node_default, NODE_SPECS, parameter_schema,
+                                              SCHEMA_VERSION, SchemaEntry)
 from skidkin_ros.core.odometry.uncertainty import (check_parameter_covariance,
                                                    ParameterUncertainty)
-from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 from skidkin_ros.errors import brief, ConfigError, ParameterError
-import yaml
 
 __all__ = [
     'SCHEMA_VERSION',
@@ -56,14 +61,6 @@ __all__ = [
     'params_document',
 ]
 
-SCHEMA_VERSION = 1
-INPUT_MODES = ('joint_state', 'wheel_topics', 'odometry')
-DEFAULT_LEFT_JOINTS = ['front_left_wheel_joint', 'rear_left_wheel_joint']
-DEFAULT_RIGHT_JOINTS = ['front_right_wheel_joint', 'rear_right_wheel_joint']
-# A publish-rate cap below this would silence /odom for minutes (1e-300 Hz: for ever).
-MIN_RATE_HZ = 0.1
-# A parameters file is a few kB; anything near this is not one (and would be read into memory).
-MAX_PARAMS_FILE_BYTES = 8 * 1024 * 1024
 FRAME_PARAMETERS = ('odom_frame_id', 'base_frame_id')
 # ROS integer parameters are 64-bit; a YAML integer beyond them cannot be a parameter (and
 # overflows a float: 10**400).
@@ -75,106 +72,6 @@ VARIANCE_LIMIT = 1e12
 # A model parameter whose range is open-ended is still a length or a coefficient of a robot:
 # beyond this magnitude its twists overflow the covariance propagation.
 MAGNITUDE_LIMIT = 1e9
-
-LOG = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SchemaEntry:
-    """One node parameter: name, type, default, description and range.
-
-    ``kind`` is one of 'double', 'int', 'bool', 'string', 'string_array', 'double_array';
-    ``spec`` gives numeric ranges, ``choices`` the allowed strings.
-    """
-
-    name: str
-    kind: str
-    default: Any
-    description: str
-    spec: ParamSpec | None = None
-    choices: tuple[str, ...] = ()
-    length: int = 0
-
-
-def _spec(name: str, unit: str, default: float, lower: float, upper: float, text: str,
-          lower_open: bool = False) -> ParamSpec:
-    return ParamSpec(name, unit, default, lower, upper, text, lower_open=lower_open)
-
-
-NODE_SPECS: tuple[ParamSpec, ...] = (
-    _spec('max_dt', 's', 0.5, 0.0, 3600.0,
-          'longest step integrated; a longer gap is not integrated across', lower_open=True),
-    _spec('max_wheel_speed', 'rad/s', 100.0, 0.0, 1e4,
-          'wheel speeds beyond this magnitude are rejected as implausible', lower_open=True),
-    _spec('input_timeout', 's', 0.5, 0.0, 3600.0,
-          'no accepted sample for this long: input reported stale', lower_open=True),
-    _spec('pair_tolerance', 's', 0.05, 0.0, 10.0,
-          'wheel_topics input: left and right samples are paired within this time',
-          lower_open=True),
-    _spec('future_tolerance', 's', 0.5, 0.0, 3600.0,
-          'stamps further than this ahead of the node clock are rejected', lower_open=True),
-    _spec('max_rate', 'Hz', 0.0, 0.0, 1e5,
-          f'cap on the odometry publish rate (0: every sample; else at least {MIN_RATE_HZ:g} Hz)'),
-    _spec('max_stamp_step_back', 's', 3.0, 0.0, 3600.0,
-          'input stamps this far behind the last accepted one (driver restarted, its clock '
-          'stepped back) reset the odometry once 3 samples in a row confirm it; a smaller step '
-          'back is rejected as older', lower_open=True),
-    _spec('max_wheel_acceleration', 'rad/s^2', 500.0, 0.0, 1e6,
-          'a wheel speed that changes faster than this from the last accepted sample (measured '
-          'over at least 10 ms) is rejected as a glitch', lower_open=True),
-)
-
-
-def node_default(name: str) -> float:
-    """Return the default of one of the node's own numeric parameters (e.g. pair_tolerance)."""
-    return next(spec.default for spec in NODE_SPECS if spec.name == name)
-
-
-def _model_entries(geometry: Geometry) -> list[SchemaEntry]:
-    entries = []
-    for model in MODELS.values():
-        for spec in model.params:
-            entries.append(SchemaEntry(
-                f'models.{model.name}.{spec.name}', 'double', spec.default_for(geometry),
-                f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec))
-        entries.append(SchemaEntry(
-            f'models.{model.name}.noise.calibrated', 'bool', False,
-            'true when the noise rates below come from a calibration'))
-        for spec in NOISE_SPECS:
-            entries.append(SchemaEntry(
-                f'models.{model.name}.noise.{spec.name}', 'double', spec.default_for(geometry),
-                f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec))
-        size = len(model.params)
-        if size:
-            entries.append(SchemaEntry(
-                f'models.{model.name}.parameter_covariance', 'matrix', [0.0] * (size * size),
-                'covariance of the calibrated parameters (' + ', '.join(model.param_names)
-                + '), row-major; all zeros: not known. Propagated into the pose covariance '
-                'when use_parameter_covariance is true', length=size * size))
-    return entries
-
-
-def _augmented_entries() -> list[SchemaEntry]:
-    entries = [
-        SchemaEntry('augmented.base', 'string', 'ideal_dd',
-                    'base model of the augmented model (model: augmented)',
-                    choices=tuple(MODELS)),
-        SchemaEntry('augmented.extensions', 'string', '',
-                    'extensions of the augmented model, comma-separated (e.g. '
-                    '"time_offset, lateral_skid"); known: ' + ', '.join(EXTENSIONS)),
-    ]
-    for ext in EXTENSIONS.values():
-        for spec in ext.params:
-            entries.append(SchemaEntry(
-                f'augmented.{ext.name}.{spec.name}', 'double', spec.default_for(None),
-                f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec))
-    size = coefficient_count()
-    entries.append(SchemaEntry(
-        f'augmented.{RESIDUAL_EXTENSION}.covariance', 'matrix', [0.0] * (size * size),
-        'posterior covariance of the residual model coefficients (vx_*, vy_*, wz_*), row-major; '
-        'all zeros: not known. Propagated into the pose covariance when '
-        'use_parameter_covariance is true', length=size * size))
-    return entries
 
 
 def implied_interval(flat: Mapping[str, Any]) -> str:
@@ -196,102 +93,6 @@ def parse_extensions(text: str) -> tuple[str, ...]:
     """Return the extension names of a comma-separated list, in application order."""
     names = [part.strip() for part in str(text).replace(';', ',').split(',')]
     return ordered([name for name in names if name])
-
-
-def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
-    """Every parameter the node declares, geometry first (model defaults depend on it)."""
-    geometry = geometry or Geometry(GEOMETRY_SPECS[0].default_for(None),
-                                    GEOMETRY_SPECS[1].default_for(None))
-    entries = [
-        SchemaEntry('schema_version', 'int', SCHEMA_VERSION,
-                    f'parameters file schema; this node reads version {SCHEMA_VERSION}'),
-        SchemaEntry('robot', 'string', '', 'robot the parameters were calibrated for'),
-        SchemaEntry('expected_robot', 'string', '',
-                    'if set, refuse a parameters file whose robot differs'),
-    ]
-    entries += [SchemaEntry(spec.name, 'double', geometry.as_dict()[spec.name],
-                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
-                for spec in GEOMETRY_SPECS]
-    entries += [
-        SchemaEntry('model', 'string', 'ideal_dd',
-                    'kinematic model to run (augmented: a base model plus extensions, see '
-                    'augmented.*)', choices=tuple(MODELS) + (AUGMENTED_NAME,)),
-        SchemaEntry('interval', 'string', DEFAULT_INTERVAL,
-                    'which interval a wheel sample describes: ending (the one up to its stamp, '
-                    'as diff_drive_controller), starting (held from its stamp on) or midpoint '
-                    '(trapezoid); a calibrated file without it means starting',
-                    choices=INTERVALS),
-        SchemaEntry('wheel_signal', 'string', 'velocity',
-                    'what a JointState wheel reading integrates: velocity, position (the travel '
-                    'between two samples, wraps of continuous joints handled) or auto (the '
-                    'positions as position does once they change; the velocities where they are '
-                    'missing, not finite or frozen)', choices=WHEEL_SIGNALS),
-        SchemaEntry('input', 'string', 'joint_state',
-                    'joint_state (sensor_msgs/JointState), wheel_topics (two std_msgs/Float64) '
-                    "or odometry (a drive controller's nav_msgs/Odometry twist, with its "
-                    'geometry in controller.*)', choices=INPUT_MODES),
-        SchemaEntry('left_wheel_joints', 'string_array', list(DEFAULT_LEFT_JOINTS),
-                    'JointState names of the left wheels (speed = mean of their velocities)'),
-        SchemaEntry('right_wheel_joints', 'string_array', list(DEFAULT_RIGHT_JOINTS),
-                    'JointState names of the right wheels (speed = mean of their velocities)'),
-        SchemaEntry('odom_frame_id', 'string', 'odom', 'frame_id of the published odometry'),
-        SchemaEntry('base_frame_id', 'string', 'base_link',
-                    'child_frame_id of the published odometry'),
-        SchemaEntry('publish_tf', 'bool', False,
-                    'broadcast odom -> base_link (needs tf2_ros)'),
-        SchemaEntry('zero_stamp_uses_receive_time', 'bool', False,
-                    'accept JointState with a zero stamp, using the receive time instead'),
-        SchemaEntry('pose_covariance_diagonal', 'double_array', list(FALLBACK_POSE_DIAGONAL),
-                    'fixed pose covariance published when no calibration is loaded '
-                    '(x, y, z, roll, pitch, yaw)', length=6),
-        SchemaEntry('twist_covariance_diagonal', 'double_array', list(FALLBACK_TWIST_DIAGONAL),
-                    'fallback twist covariance when no calibration is loaded '
-                    '(vx, vy, vz, wx, wy, wz)', length=6),
-        SchemaEntry('use_parameter_covariance', 'bool', True,
-                    "add the calibration's own uncertainty (models.<model>.parameter_covariance, "
-                    'when the file has it) to the published pose covariance'),
-    ]
-    entries += [SchemaEntry(spec.name, 'double', spec.default_for(geometry),
-                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
-                for spec in NODE_SPECS]
-    entries += [SchemaEntry(f'controller.{spec.name}', 'double', spec.default_for(None),
-                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
-                for spec in CONTROLLER_SPECS]
-    entries += _model_entries(geometry)
-    entries += _augmented_entries()
-    entries += _imu_entries()
-    entries += _online_entries()
-    return entries
-
-
-def _online_entries() -> list[SchemaEntry]:
-    entries = [
-        SchemaEntry('online.enabled', 'bool', False,
-                    'learn the model parameters online from a reference odometry on '
-                    "reference/odom (nav_msgs/Odometry); off: the file's parameters, as always"),
-        SchemaEntry('online.reference_frame_id', 'string', '',
-                    'refuse reference poses whose header.frame_id differs (empty: any)'),
-        SchemaEntry('online.reference_child_frame_id', 'string', '',
-                    'refuse reference poses whose child_frame_id differs (empty: any)'),
-        SchemaEntry('online.save_path', 'string', '',
-                    '~/save_calibration writes here (empty: skidkin_online_<date>.yaml in the '
-                    'working directory); an existing file is never overwritten'),
-    ]
-    entries += [SchemaEntry(f'online.{spec.name}', 'double', spec.default_for(None),
-                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
-                for spec in ONLINE_SPECS]
-    return entries
-
-
-def _imu_entries() -> list[SchemaEntry]:
-    entries = [SchemaEntry('imu.mode', 'string', 'off',
-                           'gyro use: off (wheels only), adapt (model yaw rate x a gain learned '
-                           'from the gyro) or fuse (the gyro yaw rate replaces the model one)',
-                           choices=GYRO_MODES)]
-    entries += [SchemaEntry(f'imu.{spec.name}', 'double', spec.default_for(None),
-                            f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
-                for spec in GYRO_SPECS]
-    return entries
 
 
 def _number(spec: ParamSpec, value: Any, prefix: str = '') -> float:
@@ -621,181 +422,6 @@ def _check_online(values: Mapping[str, Any]) -> None:
     if values['imu.mode'] == 'adapt':
         raise ConfigError('online.enabled with imu.mode adapt: both would learn the yaw rate; '
                           'use imu.mode fuse or off with online calibration')
-
-
-def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
-    """Turn nested YAML into ROS parameter names: {'a': {'b': 1}} -> {'a.b': 1}."""
-    flat = {}
-    for key, value in tree.items():
-        name = f'{prefix}{key}'
-        if isinstance(value, Mapping):
-            flat.update(flatten(value, name + '.'))
-        else:
-            flat[name] = value
-    return flat
-
-
-def nest(flat: Mapping[str, Any]) -> dict[str, Any]:
-    """Inverse of :func:`flatten`."""
-    tree: dict[str, Any] = {}
-    for name, value in flat.items():
-        node = tree
-        *parents, leaf = name.split('.')
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[leaf] = value
-    return tree
-
-
-class _ParamsLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, made to read a parameters file as ROS does.
-
-    Aliases (``*name``) and merge keys (``<<``) are refused before anything is expanded: ROS's
-    parser refuses them too, and a few hundred bytes of nested aliases expand to gigabytes (an
-    "alias bomb"). A key given twice in one mapping is noted in ``duplicates`` (the last value
-    wins, in ROS as here).
-    """
-
-    def __init__(self, stream: str) -> None:
-        super().__init__(stream)
-        self.duplicates: list[str] = []
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()
-            raise yaml.composer.ComposerError(
-                None, None, f'the alias *{event.anchor} is not allowed in a parameters file (ROS '
-                'refuses aliases too); write the value out', event.start_mark)
-        return super().compose_node(parent, index)
-
-    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
-        seen: set[str] = set()
-        for key_node, _ in node.value:
-            if key_node.tag == 'tag:yaml.org,2002:merge':
-                raise yaml.constructor.ConstructorError(
-                    None, None, 'merge keys (<<) are not allowed in a parameters file (ROS does '
-                    'not expand them); write the values out', key_node.start_mark)
-            if isinstance(key_node, yaml.ScalarNode):
-                if key_node.value in seen:
-                    self.duplicates.append(f'key {brief(key_node.value)} is given twice (line '
-                                           f'{key_node.start_mark.line + 1}); the last value wins')
-                seen.add(key_node.value)
-        return super().construct_mapping(node, deep=deep)
-
-
-def parse_params_text(text: str, source: str | Path) -> tuple[Mapping[str, Any], list[str]]:
-    """Parse the text of a parameters file; return (document, warnings) or raise ConfigError.
-
-    Refused, as the node refuses them: an empty document or one that is not a mapping, aliases
-    and merge keys. A duplicate key is a warning (the last value wins, in the node too).
-    """
-    loader = _ParamsLoader(text)
-    try:
-        document = loader.get_single_data()
-    except yaml.YAMLError as err:
-        raise ConfigError(f'parameters file {source} is not valid YAML: '
-                          f'{" ".join(str(err).split())}') from err
-    except RecursionError as err:
-        raise ConfigError(f'parameters file {source} nests too deeply to be a parameters '
-                          'file') from err
-    finally:
-        loader.dispose()
-    if not isinstance(document, Mapping) or not document:
-        raise ConfigError(f'parameters file {source} is empty or not a mapping; expected '
-                          '"/**: ros__parameters: ..."')
-    return document, [f'parameters file {source}: {text}' for text in loader.duplicates]
-
-
-def read_params_document(path: str | Path) -> tuple[Mapping[str, Any], list[str]]:
-    """Read and parse a parameters file (see :func:`parse_params_text`); refuse what is not one.
-
-    The path must be a regular file (not a folder, a device like /dev/zero or a pipe) of at
-    most ``MAX_PARAMS_FILE_BYTES``, in UTF-8.
-    """
-    source = Path(path)
-    if not source.exists():
-        raise ConfigError(f'parameters file {source} does not exist')
-    if source.is_dir():
-        raise ConfigError(f'parameters file {source} is a directory, expected a YAML file')
-    if not source.is_file():
-        raise ConfigError(f'parameters file {source} is not a regular file (a device or a pipe?); '
-                          'expected a YAML file')
-    try:
-        with source.open('rb') as stream:
-            data = stream.read(MAX_PARAMS_FILE_BYTES + 1)
-        if len(data) > MAX_PARAMS_FILE_BYTES:
-            raise ConfigError(f'parameters file {source} is larger than '
-                              f'{MAX_PARAMS_FILE_BYTES // (1024 * 1024)} MiB; a parameters file '
-                              'is a few kB: is it the right file?')
-        text = data.decode('utf-8')
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f'parameters file {source} cannot be read: {err}') from err
-    return parse_params_text(text, source)
-
-
-def read_params_file(path: str | Path) -> dict[str, Any]:
-    """Read a ROS 2 parameters file and return the flat parameters of its first node entry.
-
-    Warnings (a duplicate key) are logged.
-    """
-    source = Path(path)
-    document, warnings = read_params_document(source)
-    for warning in warnings:
-        LOG.warning(warning)
-    for node_name, body in document.items():
-        if isinstance(body, Mapping) and isinstance(body.get('ros__parameters'), Mapping):
-            return flatten(body['ros__parameters'])
-        raise ConfigError(f'parameters file {source}: entry {brief(node_name)} has no '
-                          '"ros__parameters" mapping')
-    raise ConfigError(f'parameters file {source} has no node entry')
-
-
-def _yaml_float(value: float) -> float:
-    return float(value)
-
-
-def _ros_value(value: Any) -> Any:
-    """Make a provenance value a valid ROS parameter: no None, no mixed or nested lists."""
-    if value is None:
-        return ''
-    if isinstance(value, (bool, int, str)):
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else str(value)
-    if isinstance(value, (list, tuple)):
-        items = [_ros_value(v) for v in value]
-        kinds = {type(v) for v in items}
-        if not items:
-            return ''
-        if len(kinds) == 1 and kinds <= {bool, int, float, str}:
-            return items
-        if kinds <= {int, float}:
-            return [float(v) for v in items]
-        return [str(v) for v in items]
-    return str(value)
-
-
-def params_document(config_values: Mapping[str, Any],
-                    provenance: Mapping[str, Any] | None = None) -> str:
-    """Render flat parameters as a ROS 2 parameters file (floats always written as floats)."""
-    flat = {'schema_version': SCHEMA_VERSION}
-    schema = {entry.name: entry for entry in parameter_schema()}
-    for name, value in config_values.items():
-        entry = schema.get(name)
-        if entry is not None and entry.kind == 'double':
-            value = _yaml_float(value)
-        elif entry is not None and entry.kind in ('double_array', 'matrix'):
-            value = [float(v) for v in value]
-        flat[name] = value
-    prov = dict(provenance or {})
-    prov.setdefault('tool', f'skidkin_ros {__version__}')
-    prov.setdefault('date', datetime.datetime.now(datetime.timezone.utc).isoformat(
-        timespec='seconds'))
-    flat.update({f'provenance.{k}': _ros_value(v) for k, v in flatten(prov).items()})
-    body = {'/**': {'ros__parameters': nest(flat)}}
-    header = ('# skidkin_ros parameters file (ROS 2). Load with:\n'
-              '#   ros2 run skidkin_ros odom_node --ros-args --params-file THIS_FILE\n')
-    return header + yaml.safe_dump(body, sort_keys=False, default_flow_style=None, width=99)
 
 
 def write_params_file(path: str | Path, config_values: Mapping[str, Any],

@@ -30,6 +30,12 @@ node and the offline prediction agree by construction. For one sample:
 Each kind of input enters through its own method and ends in :meth:`Odometer.update`, so a new
 input (encoder positions differenced into speeds, an IMU's yaw rate) or a new stamp check joins
 the same pipeline without touching the node.
+
+The limits of a pose set from outside live in :mod:`~skidkin_ros.core.odometry.pose_limits`, the
+offline result (:class:`Prediction`) and its feeds in :mod:`~skidkin_ros.core.odometry.prediction`;
+both are re-exported here. This module stays over 500 lines for one reason: :class:`Odometer` is
+one state machine (stamp rules, pairing, gyro wait, integration, covariance, publish decision)
+whose steps share its state on every sample; split across modules, each would reach into it.
 """
 
 from __future__ import annotations
@@ -51,6 +57,10 @@ from skidkin_ros.core.odometry.integrator import (IntegratorLimits, SampleStatus
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              moving_time)
+from skidkin_ros.core.odometry.pose_limits import (check_covariance, check_pose, POSE_LIMIT_M,
+                                                   VARIANCE_LIMIT, YAW_LIMIT_RAD,
+                                                   YAW_RESOLUTION_RAD)
+from skidkin_ros.core.odometry.prediction import _GyroFeed, _ReferenceFeed, Prediction
 from skidkin_ros.core.odometry.propagation import (PoseCovariancePropagator,
                                                    TWIST_VARIANCE_FLOOR)
 from skidkin_ros.core.odometry.residual_uncertainty import ResidualUncertainty
@@ -62,16 +72,6 @@ __all__ = ['SampleRules', 'Estimate', 'Odometer', 'Prediction', 'predict_wheels'
            'YAW_RESOLUTION_RAD', 'VARIANCE_LIMIT',
            'STEP_BACK_CONFIRM']
 
-# A pose set from outside is refused beyond this (m): a step from 1e308 m cannot stay finite, and
-# no odometry frame is a million kilometres wide.
-POSE_LIMIT_M = 1e9
-# An unwrapped yaw grows with every turn, so no physical bound fits it (3 rad/s for ten years is
-# 1e9 rad); the honest limit is where float64 stops resolving the angle: beyond YAW_LIMIT_RAD
-# (about 4.5e9 rad, 7e8 turns) two neighbouring floats are more than YAW_RESOLUTION_RAD apart.
-YAW_RESOLUTION_RAD = 1e-6
-YAW_LIMIT_RAD = YAW_RESOLUTION_RAD / float(np.finfo(float).eps)
-# Largest variance (m^2, rad^2) a set covariance may hold: beyond it, propagation overflows.
-VARIANCE_LIMIT = 1e12
 # Wheel samples that may wait for the gyro at once (beyond: the oldest goes on without it).
 MAX_PENDING = 1000
 Triple = tuple[float, float, float]
@@ -133,40 +133,6 @@ _new_estimate = tuple.__new__
 
 def _ignore(*args: object, **kwargs: object) -> None:
     """Ignore an event (the listener of offline prediction)."""
-
-
-def check_pose(pose: Sequence[float]) -> tuple[float, float, float]:
-    """Return (x, y, yaw) as floats, or raise ValueError for a pose the odometry cannot hold.
-
-    x and y must be finite and within ``POSE_LIMIT_M``, yaw finite and within ``YAW_LIMIT_RAD``:
-    from further out, the next step could not stay finite (or exact).
-    """
-    x, y, yaw = (float(v) for v in pose)
-    if not (all(math.isfinite(v) and abs(v) <= POSE_LIMIT_M for v in (x, y))
-            and math.isfinite(yaw) and abs(yaw) <= YAW_LIMIT_RAD):
-        raise ValueError(f'pose (x {x:g} m, y {y:g} m, yaw {yaw:g} rad) is not finite or beyond '
-                         f'{POSE_LIMIT_M:g} m (x, y) or {YAW_LIMIT_RAD:.3g} rad (yaw); expected '
-                         'finite values within them')
-    return x, y, yaw
-
-
-def check_covariance(covariance: np.ndarray) -> np.ndarray:
-    """Return a 3 x 3 (x, y, yaw) covariance made symmetric, or raise ValueError.
-
-    It must be finite, positive semi-definite, with variances up to ``VARIANCE_LIMIT``: a larger
-    one overflows when propagated, and the odometry would never be published again.
-    """
-    block = np.asarray(covariance, dtype=float).reshape(3, 3)
-    if not np.all(np.isfinite(block)):
-        raise ValueError('covariance has a non-finite value; expected finite variances')
-    if np.abs(block).max() > VARIANCE_LIMIT:
-        raise ValueError(f'covariance holds {np.abs(block).max():g}, beyond {VARIANCE_LIMIT:g} '
-                         '(m^2, rad^2); give variances within it')
-    block = 0.5 * (block + block.T)
-    if np.linalg.eigvalsh(block).min() < -1e-9 * max(1.0, float(np.abs(block).max())):
-        raise ValueError('covariance (x, y, yaw block) is not positive semi-definite; expected '
-                         'non-negative variances and consistent correlations')
-    return block
 
 
 class Odometer:
@@ -709,62 +675,6 @@ class Odometer:
                           pose_covs.reshape(-1, 6, 6), covariances, gains)
 
 
-class _ReferenceFeed:
-    """Offline: hands recorded reference poses to the odometer in the order the node gets them."""
-
-    def __init__(self, odometer: Odometer, track: PoseTrack | None) -> None:
-        self.odometer = odometer
-        if track is None or len(track) == 0:
-            self.rows: list[tuple[int, float, float, float]] = []
-        else:
-            self.rows = list(zip(np.asarray(track.t_ns, dtype=np.int64).tolist(),
-                                 np.asarray(track.x, dtype=float).tolist(),
-                                 np.asarray(track.y, dtype=float).tolist(),
-                                 np.asarray(track.yaw, dtype=float).tolist()))
-        self.i = 0
-
-    def until(self, t_ns: int) -> None:
-        rows, n = self.rows, len(self.rows)
-        while self.i < n and rows[self.i][0] <= t_ns:
-            self.odometer.reference_sample(*rows[self.i])
-            self.i += 1
-
-
-class _GyroFeed:
-    """Offline: hands recorded gyro samples to the buffer in the order the node gets them."""
-
-    def __init__(self, gyro: GyroAid | None, imu: ImuSamples | None,
-                 counters: collections.Counter[str]) -> None:
-        self.gyro = gyro
-        self.counters = counters
-        if gyro is None or imu is None or len(imu.t_ns) == 0:
-            self.t: list[int] = []
-            self.rate: list[float] = []
-        else:
-            self.t = np.asarray(imu.t_ns, dtype=np.int64).tolist()
-            self.rate = np.asarray(imu.yaw_rate, dtype=float).tolist()
-            newest = gyro.buffer.newest_ns
-            if newest is not None and self.t[0] <= newest:   # a new recording's clock
-                gyro.buffer.clear()
-        self.i = 0
-
-    def _add(self) -> None:
-        status = self.gyro.buffer.add(self.t[self.i], self.rate[self.i])
-        self.counters['imu_' + status.value] += 1
-        self.i += 1
-
-    def until(self, t_ns: int) -> None:
-        """Feed what has arrived by the wheel sample at t_ns, then what it waits for."""
-        t, n = self.t, len(self.t)
-        while self.i < n and t[self.i] <= t_ns:
-            self._add()
-        if self.i < n:
-            ready = self.gyro.buffer.ready
-            deadline = t_ns + self.gyro.params.max_wait * NS_PER_S
-            while self.i < n and t[self.i] <= deadline and not ready(t_ns):
-                self._add()
-
-
 def _controller(config: OdometryConfig) -> ControllerGeometry | None:
     """Return the drive controller's geometry for input odometry, else None."""
     if config['input'] != 'odometry':
@@ -776,30 +686,6 @@ def _propagator(config: OdometryConfig) -> PoseCovariancePropagator:
     return PoseCovariancePropagator(config.active_noise, config['pose_covariance_diagonal'],
                                     config['twist_covariance_diagonal'],
                                     config.active_parameter_uncertainty)
-
-
-@dataclass(frozen=True)
-class Prediction:
-    """Pose after every wheel sample (x, y, yaw), the held twist, and what happened to it.
-
-    ``pose_covariances``: the pose covariance the node publishes after every sample (6 x 6).
-
-    ``t_ns`` are the stamps the node publishes: the sample stamps plus ``offset_ns``, the time
-    offset of an augmented model (0 for the five base models).
-    """
-
-    t_ns: np.ndarray
-    poses: np.ndarray
-    twists: np.ndarray
-    status: tuple[SampleStatus, ...]
-    offset_ns: int = 0
-    pose_covariances: np.ndarray | None = None  # (N, 6, 6): what the node publishes
-    covariances: np.ndarray | None = None   # (N, 3, 3) pose covariance, with ``restarts``
-    imu_gain: np.ndarray | None = None      # (N,) the learned yaw-rate gain, with ``restarts``
-
-    @property
-    def accepted(self) -> np.ndarray:
-        return np.array([s.accepted for s in self.status], dtype=bool)
 
 
 def predict_wheels(wheels: WheelSamples, source: TwistSource,
