@@ -22,7 +22,7 @@ from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
 from skidkin_ros.core.odometry.controller import CONTROLLER_SPECS, ControllerGeometry
-from skidkin_ros.core.odometry.gyro import GYRO_MODES, GYRO_SPECS, GyroParams
+from skidkin_ros.core.odometry.gyro_params import GYRO_MODES, GYRO_SPECS, GyroParams
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
