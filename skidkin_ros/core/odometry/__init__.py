@@ -19,6 +19,7 @@ __all__ = [
     'odometer',
     'propagation',
     'reference',
+    'se2',
     'uncertainty',
     'wheels',
 ]
