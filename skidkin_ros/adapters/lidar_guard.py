@@ -45,7 +45,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
-from skidkin_ros.core.odometry.gyro import GyroIntegral, usable_gyro
+from skidkin_ros.core.odometry.gyro_buffer import GyroIntegral, usable_gyro
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import ParameterError
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.atomic import atomic_write_text
-from skidkin_ros.core.odometry.integrator import wrap_angle
+from skidkin_ros.core.odometry.se2 import wrap_angle
 from skidkin_ros.core.rotation import yaw_to_quaternion
 from skidkin_ros.core.timeunits import s_to_ns, s_to_ns_array
 from skidkin_ros.errors import ParameterError

@@ -40,7 +40,7 @@ from typing import Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import Drive, fresh_pose_mask, ImuSamples, PoseTrack, WheelSamples
-from skidkin_ros.core.odometry.gyro import GYRO_RATE_LIMIT
+from skidkin_ros.core.odometry.gyro_params import GYRO_RATE_LIMIT
 from skidkin_ros.core.odometry.pose_limits import POSE_LIMIT_M, YAW_LIMIT_RAD, YAW_RESOLUTION_RAD
 from skidkin_ros.core.odometry.schema import NODE_SPECS
 from skidkin_ros.core.timeunits import s_to_ns_array

@@ -16,7 +16,7 @@ from skidkin_ros.core.calibration.gyro_fit import evaluate_gyro_mode
 from skidkin_ros.core.calibration.holdout import split_holdout
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.odometry.gyro import GYRO_MODES
+from skidkin_ros.core.odometry.gyro_params import GYRO_MODES
 from skidkin_ros.errors import DataError, OutputError, ParameterError
 from skidkin_ros.report.figures import error_distributions
 

@@ -13,7 +13,7 @@ from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
 from skidkin_ros.core.odometry.config import check_model_given, OdometryConfig
 from skidkin_ros.core.odometry.controller import ControllerGeometry
-from skidkin_ros.core.odometry.gyro import GYRO_MODES
+from skidkin_ros.core.odometry.gyro_params import GYRO_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.errors import DataError, ParameterError

@@ -13,7 +13,7 @@ import numpy as np  # noqa: E402
 from skidkin_ros.atomic import atomic_write_bytes  # noqa: E402
 from skidkin_ros.core.calibration.pipeline import CalibrationResult, HorizonStudy  # noqa: E402
 from skidkin_ros.core.kinematics.models import get_model  # noqa: E402
-from skidkin_ros.core.odometry.integrator import rollout_segments  # noqa: E402
+from skidkin_ros.core.odometry.se2 import rollout_segments  # noqa: E402
 
 __all__ = ['save_figure', 'error_distributions', 'rotation_per_metre', 'angular_error_map',
            'segment_paths', 'segment_paths_figure', 'horizon_figure']

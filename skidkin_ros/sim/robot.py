@@ -23,7 +23,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from skidkin_ros.core.kinematics.models import BoundModel
-from skidkin_ros.core.odometry.integrator import rollout, wrap_angle
+from skidkin_ros.core.odometry.se2 import rollout, wrap_angle
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.sim.effects import apply_effects, Effect
 

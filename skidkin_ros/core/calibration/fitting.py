@@ -44,7 +44,7 @@ from skidkin_ros.core.calibration.engine import (check_sigma_diag, ParameterLayo
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.kinematics.models import get_model, KinematicModel, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
-from skidkin_ros.core.odometry.integrator import rollout_columns
+from skidkin_ros.core.odometry.se2 import rollout_columns
 from skidkin_ros.errors import DataError, ParameterError
 
 __all__ = [

@@ -47,7 +47,7 @@ from skidkin_ros.core.calibration.noise_fit import mahalanobis, MIN_VARIANCE
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.odometry.gyro import GyroIntegral, usable_gyro
+from skidkin_ros.core.odometry.gyro_buffer import GyroIntegral, usable_gyro
 from skidkin_ros.core.odometry.odometer import Odometer, Prediction
 from skidkin_ros.core.parallel import fork_map, usable_cpus
 from skidkin_ros.core.timeunits import s_to_ns

@@ -63,8 +63,8 @@ from skidkin_ros.core.calibration.fitting import predict_end_poses, segment_erro
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
-from skidkin_ros.core.odometry.integrator import body_increment, rollout_segments
 from skidkin_ros.core.odometry.noise import moving_time, NoiseModel
+from skidkin_ros.core.odometry.se2 import body_increment, rollout_segments
 from skidkin_ros.errors import DataError
 
 __all__ = ['SegmentMotion', 'Consistency', 'HorizonCheck', 'NoiseFit', 'segment_motion',

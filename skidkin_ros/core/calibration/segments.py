@@ -38,8 +38,8 @@ from typing import Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import Drive, WheelSamples
-from skidkin_ros.core.odometry.integrator import wrap_angle
 from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
+from skidkin_ros.core.odometry.se2 import wrap_angle
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError, ParameterError
 

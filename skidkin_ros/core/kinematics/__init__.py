@@ -5,5 +5,6 @@ __all__ = [
     'augmented',
     'extensions',
     'models',
+    'sparse_library',
     'specs',
 ]

@@ -25,7 +25,14 @@ the entry how to fit it (which parameters, their start values from what the trac
 simpler of two equally good explanations is kept), which simpler extension it cannot be told
 from at short time scales, and which residual plot shows it. Adding an extension is adding an
 entry to ``_ALL`` (and its formula), not editing the diagnosis. The sparse fallback's library of
-twist terms is a registry too (``LIBRARY``): a new term is one :class:`LibraryTerm`.
+twist terms is a registry too (``LIBRARY``, in :mod:`~skidkin_ros.core.kinematics.sparse_library`
+with the bound on a data-driven correction; re-exported here): a new term is one
+:class:`LibraryTerm`.
+
+This module stays whole (under 600 lines): it is the registry and the formulas its entries
+name, and each formula sits beside its scalar twin, which must do the same operations in the
+same order so that the node and the batch prediction agree; moving the families elsewhere would
+spread one entry over several modules.
 """
 
 from __future__ import annotations
@@ -37,6 +44,10 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from skidkin_ros.core.kinematics import residual
+from skidkin_ros.core.kinematics.sparse_library import (bounded_correction, LIBRARY,
+                                                        LibraryTerm, SLIP_LEVER_M, SPARSE_FEATURES,
+                                                        sparse_features, SPARSE_OUTPUTS,
+                                                        speeding_up)
 from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 from skidkin_ros.errors import ParameterError
 
@@ -61,9 +72,6 @@ __all__ = [
 
 # Never remove more than this fraction of the forward speed (keeps v_x's sign).
 MAX_SPEED_SLIP = 0.8
-# Lever (m) that turns a yaw rate into a speed in the bound of a data-driven correction
-# (bounded_correction): the largest the named extensions allow (icr_offset's 2 m).
-SLIP_LEVER_M = 2.0
 
 
 @dataclass(frozen=True)
@@ -248,11 +256,6 @@ def _terrain_regime(k, twist, omega_l, omega_r, t_s, rate):
     return out
 
 
-def speeding_up(v: np.ndarray, dv: np.ndarray) -> np.ndarray:
-    """Return dv where the speed's magnitude grows (v dv > 0), else 0: the accelerating part."""
-    return np.where(v * dv > 0.0, dv, 0.0)
-
-
 def _acceleration_slip(k, twist, omega_l, omega_r, t_s, rate):
     out = np.array(twist, dtype=float, copy=True)
     v_x = out[..., 0]
@@ -303,66 +306,6 @@ def _scalar_acceleration_slip(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     dv = rate[0]
     loss = min(k[0] * abs(dv), abs(vx)) if vx * dv > 0.0 else 0.0
     return vx - math.copysign(loss, vx), vy, w
-
-
-# The sparse fallback: a library of candidate terms of the base twist (v = v_x, w = omega) and
-# of its rate of change (dv, dw: backward differences over one wheel sample, as the integrator
-# has them). Derivative terms stop at the first derivative: a second difference of wheel speeds
-# (jerk) is mostly encoder noise.
-@dataclass(frozen=True)
-class LibraryTerm:
-    """One term of the sparse library: a function of the base twist's v_x, omega and rates.
-
-    ``of(v, w, dv, dw)``; ``signal``: the diagnosis trace signal a residual is plotted against
-    for this term.
-    """
-
-    name: str
-    unit: str
-    of: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-    signal: str
-
-
-LIBRARY: tuple[LibraryTerm, ...] = (
-    LibraryTerm('v', 'm/s', lambda v, w, dv, dw: v, 'body_speed'),
-    LibraryTerm('w', 'rad/s', lambda v, w, dv, dw: w, 'yaw_rate'),
-    LibraryTerm('v_abs_v', 'm^2/s^2', lambda v, w, dv, dw: v * np.abs(v), 'v_abs_v'),
-    LibraryTerm('w_abs_w', 'rad^2/s^2', lambda v, w, dv, dw: w * np.abs(w), 'yaw_rate'),
-    LibraryTerm('v_w', 'm rad/s^2', lambda v, w, dv, dw: v * w, 'v_omega'),
-    LibraryTerm('abs_v', 'm/s', lambda v, w, dv, dw: np.abs(v), 'body_speed'),
-    LibraryTerm('abs_w', 'rad/s', lambda v, w, dv, dw: np.abs(w), 'yaw_rate'),
-    LibraryTerm('dv', 'm/s^2', lambda v, w, dv, dw: dv, 'd_body_speed'),
-    LibraryTerm('dw', 'rad/s^2', lambda v, w, dv, dw: dw, 'd_yaw_rate'),
-    LibraryTerm('dv_up', 'm/s^2', lambda v, w, dv, dw: speeding_up(v, dv), 'speeding_up'),
-)
-SPARSE_FEATURES: tuple[tuple[str, str], ...] = tuple((term.name, term.unit) for term in LIBRARY)
-SPARSE_OUTPUTS: tuple[tuple[str, str], ...] = (('vx', 'm/s'), ('vy', 'm/s'), ('wz', 'rad/s'))
-
-
-def sparse_features(twist: np.ndarray, rate: np.ndarray | None = None) -> np.ndarray:
-    """Return the library terms (..., F) of the base twist and its rate, in LIBRARY order."""
-    v = np.asarray(twist)[..., 0]
-    w = np.asarray(twist)[..., 2]
-    rate = np.zeros(np.shape(twist)) if rate is None else np.asarray(rate, dtype=float)
-    dv, dw = rate[..., 0], rate[..., 2]
-    return np.stack([term.of(v, w, dv, dw) for term in LIBRARY], axis=-1)
-
-
-def bounded_correction(twist: np.ndarray, correction: np.ndarray) -> np.ndarray:
-    """Return twist + correction, each component's change bounded by the motion's own size.
-
-    A slip never moves the body faster than its wheels drive it: v_x and v_y change by at most
-    |v_x| + |omega| SLIP_LEVER_M (m/s), omega by at most |omega| + |v_x| / SLIP_LEVER_M (rad/s).
-    So a data-driven correction cannot publish an absurd twist, whatever its coefficients or
-    inputs (and a robot whose wheels stand still stays still).
-    """
-    twist = np.asarray(twist, dtype=float)
-    v = np.abs(twist[..., 0])
-    w = np.abs(twist[..., 2])
-    linear = v + w * SLIP_LEVER_M
-    angular = w + v / SLIP_LEVER_M
-    bound = np.stack([linear, linear, angular], axis=-1)
-    return twist + np.clip(correction, -bound, bound)
 
 
 def _sparse_correction(k, twist, omega_l, omega_r, t_s, rate):

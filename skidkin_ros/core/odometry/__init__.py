@@ -10,6 +10,9 @@ __all__ = [
     'config',
     'controller',
     'gyro',
+    'gyro_buffer',
+    'gyro_filter',
+    'gyro_params',
     'integrator',
     'interval',
     'noise',
@@ -20,6 +23,7 @@ __all__ = [
     'propagation',
     'reference',
     'schema',
+    'se2',
     'uncertainty',
     'wheels',
 ]

@@ -22,7 +22,7 @@ from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
 from skidkin_ros.core.odometry.controller import ControllerGeometry
-from skidkin_ros.core.odometry.gyro import GyroParams
+from skidkin_ros.core.odometry.gyro_params import GyroParams
 from skidkin_ros.core.odometry.integrator import IntegratorLimits
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, LEGACY_INTERVAL
 from skidkin_ros.core.odometry.noise import NOISE_SPECS, NoiseModel

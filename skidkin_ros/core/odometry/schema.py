@@ -15,7 +15,7 @@ from skidkin_ros.core.kinematics.extensions import EXTENSIONS
 from skidkin_ros.core.kinematics.models import MODELS
 from skidkin_ros.core.kinematics.specs import Geometry, GEOMETRY_SPECS, ParamSpec
 from skidkin_ros.core.odometry.controller import CONTROLLER_SPECS
-from skidkin_ros.core.odometry.gyro import GYRO_MODES, GYRO_SPECS
+from skidkin_ros.core.odometry.gyro_params import GYRO_MODES, GYRO_SPECS
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS)

@@ -20,7 +20,8 @@ from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.residuals import pose_residuals, PoseSamples
 from skidkin_ros.core.calibration.engine import TwistSource
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.kinematics.extensions import SPARSE_FEATURES, sparse_features, SPARSE_OUTPUTS
+from skidkin_ros.core.kinematics.sparse_library import (SPARSE_FEATURES, sparse_features,
+                                                        SPARSE_OUTPUTS)
 
 __all__ = ['stlsq', 'library_start']
 
