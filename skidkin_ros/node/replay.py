@@ -20,7 +20,7 @@ import itertools
 import os
 from pathlib import Path
 import time
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -119,6 +119,35 @@ def _joint_state(names: list[str], n_left: int, t_ns: int, omega_l: float,
     return msg
 
 
+def _send_interleaved(harness: '_Harness', samples: WheelSamples, names: list[str], n_left: int,
+                      offset_ns: int, deadline: float,
+                      positions: Sequence[tuple[float, float] | None] | None,
+                      side_t: np.ndarray, send_side: Callable[[int], None],
+                      send_rest: bool) -> None:
+    """Send wheel samples and a side stream (gyro, reference) merged in stamp order.
+
+    A side message stamped up to a wheel sample's stamp goes first, as ``Odometer.predict``
+    hands them over; each message is sent only once the node took the one before.
+    ``send_rest``: the side messages after the last wheel sample are sent too.
+    """
+    counters = harness.odom.counters
+    j = 0
+    for i in range(len(samples)):
+        t_wheel = int(samples.t_ns[i])
+        while j < side_t.size and side_t[j] <= t_wheel:
+            send_side(j)
+            j += 1
+        target = counters['received'] + 1
+        harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
+                                               samples.omega_l[i], samples.omega_r[i],
+                                               None if positions is None else positions[i]))
+        harness.spin_until(lambda: counters['received'] >= target,
+                           max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
+    if send_rest:
+        for k in range(j, side_t.size):
+            send_side(k)
+
+
 def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
                    names: list[str], n_left: int, offset_ns: int, deadline: float,
                    positions: Sequence[tuple[float, float] | None] | None) -> None:
@@ -141,20 +170,9 @@ def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
         harness.spin_until(lambda: counters['imu_received'] >= target,
                            max(deadline - time.monotonic(), 0.0), f'gyro sample {k}')
 
-    j = 0
-    for i in range(len(samples)):
-        t_wheel = int(samples.t_ns[i])
-        while j < gyro_t.size and gyro_t[j] <= t_wheel:
-            send_gyro(j)
-            j += 1
-        target = counters['received'] + 1
-        harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
-                                               samples.omega_l[i], samples.omega_r[i],
-                                               None if positions is None else positions[i]))
-        harness.spin_until(lambda: counters['received'] >= target,
-                           max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
-    for k in range(j, gyro_t.size):   # the rest releases the samples still waiting
-        send_gyro(k)
+    # the gyro samples after the last wheel sample release the samples still waiting
+    _send_interleaved(harness, samples, names, n_left, offset_ns, deadline, positions, gyro_t,
+                      send_gyro, send_rest=True)
 
 
 def _reference_msg(t_ns: int, x: float, y: float, yaw: float, frame_id: str,
@@ -193,17 +211,8 @@ def _send_with_reference(harness: '_Harness', samples: WheelSamples, reference: 
         harness.spin_until(lambda: counters['reference_received'] >= target,
                            max(deadline - time.monotonic(), 0.0), f'reference pose {k}')
 
-    j = 0
-    for i in range(len(samples)):
-        t_wheel = int(samples.t_ns[i])
-        while j < ref_t.size and ref_t[j] <= t_wheel:
-            send_reference(j)
-            j += 1
-        target = counters['received'] + 1
-        harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
-                                               samples.omega_l[i], samples.omega_r[i]))
-        harness.spin_until(lambda: counters['received'] >= target,
-                           max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
+    _send_interleaved(harness, samples, names, n_left, offset_ns, deadline, None, ref_t,
+                      send_reference, send_rest=False)
 
 
 class _Harness:
