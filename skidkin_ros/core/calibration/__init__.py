@@ -9,9 +9,12 @@ __all__ = [
     'gyro_fit',
     'holdout',
     'noise_fit',
+    'noise_notes',
     'pipeline',
     'predictor',
+    'results',
     'segments',
     'selection',
+    'steps',
     'weighting',
 ]
