@@ -7,6 +7,7 @@ __all__ = [
     'evaluation',
     'fitting',
     'gyro_fit',
+    'gyro_windows',
     'holdout',
     'noise_fit',
     'noise_notes',
