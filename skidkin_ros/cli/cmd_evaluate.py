@@ -12,7 +12,7 @@ from skidkin_ros.cli.common import (add_source_args, check_report_dir, print_not
                                     source_options)
 from skidkin_ros.cli.tables import error_table, imu_table
 from skidkin_ros.core.calibration.evaluation import evaluate_models
-from skidkin_ros.core.calibration.gyro_fit import evaluate_gyro_mode
+from skidkin_ros.core.calibration.gyro_windows import evaluate_gyro_mode
 from skidkin_ros.core.calibration.holdout import split_holdout
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.odometry.config import OdometryConfig

@@ -20,7 +20,7 @@ from skidkin_ros.adapters.sources import extrinsic_from_xyz_rpy, LoadedSource, S
 from skidkin_ros.atomic import check_writable_dir
 from skidkin_ros.cli.progress import Progress
 from skidkin_ros.cli.tables import error_table, parameter_lines
-from skidkin_ros.core.calibration.pipeline import CalibrationResult
+from skidkin_ros.core.calibration.results import CalibrationResult
 from skidkin_ros.core.kinematics.specs import DEFAULT_GEOMETRY, Geometry
 from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS

@@ -7,7 +7,7 @@ from typing import Mapping
 
 from skidkin_ros.core.calibration.evaluation import ModelEvaluation, WindowEnd
 from skidkin_ros.core.calibration.fitting import FitResult
-from skidkin_ros.core.calibration.gyro_fit import ModeScore
+from skidkin_ros.core.calibration.gyro_windows import ModeScore
 from skidkin_ros.core.calibration.noise_fit import NoiseFit
 from skidkin_ros.core.calibration.selection import Likelihood
 from skidkin_ros.core.estimation.nees import summarize_nees

@@ -49,34 +49,36 @@ calibration under the winner; the parameters file records it (``interval``).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, replace
 import logging
 import math
-from typing import Any, Mapping, Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from skidkin_ros import __version__
 from skidkin_ros.core.calibration.evaluation import (evaluate_models, ModelEvaluation,
                                                      window_end_errors, WindowEnd)
-from skidkin_ros.core.calibration.fitting import fit_model, FitOptions, FitResult
-from skidkin_ros.core.calibration.gyro_fit import (fit_adapt_yaw_scale, fit_filter_noise,
-                                                   fit_gyro, gyro_parameters, GyroFit)
+from skidkin_ros.core.calibration.fitting import FitResult
+from skidkin_ros.core.calibration.gyro_fit import GyroFit
 from skidkin_ros.core.calibration.holdout import resolve_holdout
 from skidkin_ros.core.calibration.noise_fit import calibrate_noise, NoiseFit
-from skidkin_ros.core.calibration.segments import (cut_segments, HorizonOptions, SegmentOptions,
-                                                   SegmentSet, usable_segments)
+from skidkin_ros.core.calibration.noise_notes import band_notes, noise_warnings
+from skidkin_ros.core.calibration.results import (CalibrationOptions, CalibrationResult,
+                                                  INTERVAL_SEARCHES, result_to_parameters,
+                                                  SELECTIONS, TRAIN_SEGMENTS)
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentSet, usable_segments
 from skidkin_ros.core.calibration.selection import (choose_by_likelihood, heldout_nll,
                                                     Likelihood, paper_scores, paper_ties,
                                                     segment_clusters)
-from skidkin_ros.core.calibration.weighting import fit_models_weighted, WEIGHTINGS
-from skidkin_ros.core.drive import Drive, PoseTrack
-from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
+from skidkin_ros.core.calibration.steps import (_add_gyro, _add_plain_reference, _fit_gyro_outcome,
+                                                _GYRO_TASK, _jobs, plain_window_fit)
+from skidkin_ros.core.calibration.weighting import fit_models_weighted
+from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
-from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.interval import INTERVALS
-from skidkin_ros.core.odometry.noise import NOISE_SPECS
-from skidkin_ros.core.parallel import fork_map, usable_cpus
+from skidkin_ros.core.parallel import fork_map
 from skidkin_ros.errors import DataError, FitError, ParameterError
 
 __all__ = ['band_notes', 'CalibrationOptions', 'CalibrationResult', 'calibrate', 'choose_best',
@@ -86,123 +88,6 @@ __all__ = ['band_notes', 'CalibrationOptions', 'CalibrationResult', 'calibrate',
            'result_to_parameters', 'horizon_study', 'HorizonStudy', 'SELECTIONS']
 
 LOG = logging.getLogger(__name__)
-SELECTIONS = ('likelihood', 'paper')
-INTERVAL_SEARCHES = ('fits', 'full')
-TRAIN_SEGMENTS = ('rotation', 'paper', 'time')
-
-
-@dataclass(frozen=True)
-class CalibrationOptions(HorizonOptions):
-    """Everything that shapes a calibration (saved with the results as provenance)."""
-
-    loss: str = 'linear'
-    f_scale: float = 1.0
-    trim: bool = True
-    n_starts: int = 8
-    seed: int = 0
-    models: tuple[str, ...] = MODEL_NAMES
-    holdout_every: int = 3
-    holdout_mode: str = 'auto'
-    holdout_block_s: float = 60.0
-    holdout_key: str | None = None
-    noise_horizon_factors: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0)
-    noise_constant: bool = True
-    noise_time: bool = True
-    parameter_covariance: bool = True
-    weighting: str = 'iterated'
-    selection: str = 'likelihood'
-    window_s: float = 2.0
-    segments: str = 'rotation'
-    jobs: int = 0   # models calibrated in parallel; 0: every usable CPU (no effect on results)
-
-    def __post_init__(self) -> None:
-        if self.segments not in TRAIN_SEGMENTS:
-            raise ParameterError(f'segments must be one of {TRAIN_SEGMENTS}, '
-                                 f'got {self.segments!r}')
-        if self.weighting not in WEIGHTINGS:
-            raise ParameterError(f'weighting must be one of {WEIGHTINGS}, got {self.weighting!r}')
-        if self.selection not in SELECTIONS:
-            raise ParameterError(f'selection must be one of {SELECTIONS}, '
-                                 f'got {self.selection!r}')
-        if not (math.isfinite(self.window_s) and self.window_s > 0):
-            raise ParameterError(f'window_s must be a duration > 0 s, got {self.window_s!r}')
-        for name in self.models:
-            get_model(name)
-        if not self.models:
-            raise ParameterError('models must name at least one model')
-        for name in ('h_t', 'h_e'):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ParameterError(f'{name} must be a distance > 0 m, got {value!r}')
-        self.fit_options()
-
-    def train_segments(self) -> SegmentOptions:
-        """Training segments as ``segments`` says (module docstring, step 1)."""
-        base = super().train_segments()
-        if self.segments == 'paper':
-            return replace(base, horizon_rad=None)
-        if self.segments == 'time':
-            return replace(base, horizon_s=self.window_s, horizon_rad=None)
-        return base
-
-    def fit_options(self) -> FitOptions:
-        return FitOptions(sigma_diag=tuple(self.sigma_diag), loss=self.loss,
-                          f_scale=self.f_scale, trim=self.trim, n_starts=self.n_starts,
-                          seed=self.seed)
-
-    def as_dict(self) -> dict[str, Any]:
-        out = asdict(self)
-        out['models'] = list(self.models)
-        out['sigma_diag'] = list(self.sigma_diag)
-        out['noise_horizon_factors'] = list(self.noise_horizon_factors)
-        return out
-
-    def noise_horizons(self) -> dict[float, SegmentOptions]:
-        """Return the segment options of every noise-fit horizon but h_e itself."""
-        base = self.eval_segments()
-        return {self.h_e * f: replace(base, horizon_m=self.h_e * f)
-                for f in self.noise_horizon_factors if f > 0 and f != 1.0}
-
-
-@dataclass(frozen=True)
-class CalibrationResult:
-    """What :func:`calibrate` found (the report and the parameters file are made from it)."""
-
-    geometry: Geometry
-    options: CalibrationOptions
-    fits: dict[str, FitResult]
-    evaluation: dict[str, ModelEvaluation]
-    noise: dict[str, NoiseFit]
-    best: str
-    scores: dict[str, float]
-    warnings: tuple[str, ...]
-    train_segments: SegmentSet = field(repr=False)
-    eval_segments: SegmentSet = field(repr=False)
-    holdout: str = 'given'
-    provenance: dict[str, Any] = field(default_factory=dict)
-    likelihood: dict[str, Likelihood] = field(default_factory=dict)
-    window_end: dict[str, WindowEnd] = field(default_factory=dict)
-    selection_rule: str = 'paper'
-    # Held-out median (eps_t m/m, eps_theta deg/m) of the best model under each convention tried.
-    interval_errors: dict[str, tuple[float, float]] = field(default_factory=dict)
-    gyro: GyroFit | None = None
-    # The evaluation drives' ground truth, indexed as eval_segments.drive (the report draws the
-    # true path of a segment beside each model's).
-    eval_truth: tuple[PoseTrack | None, ...] = field(default=(), repr=False)
-    # The written model fitted the plain way (one segment per training window, unit weights, no
-    # trimming), scored on the same held-out window ends: what a user would fit instead.
-    plain_window_end: WindowEnd | None = None
-    plain_values: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def counts(self) -> dict[str, Any]:
-        """Return how many segments were kept or dropped (and why), and trimmed per model."""
-        return {'train': self.train_segments.counts.as_dict(),
-                'evaluate': self.eval_segments.counts.as_dict(),
-                'trimmed': {m: f.segments_trimmed for m, f in self.fits.items()}}
-
-    def fitted_values(self) -> dict[str, dict[str, float]]:
-        return {name: dict(fit.values) for name, fit in self.fits.items()}
 
 
 def choose_best(fits: Mapping[str, FitResult],
@@ -273,38 +158,6 @@ def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
     first = _noise_stage(stage)
     result = _with_interval_errors(_add_gyro(first, train, evaluate, gyro), errors)
     return _add_plain_reference(result, train, evaluate)
-
-
-def plain_window_fit(name: str, geometry: Geometry, train: Sequence[Drive],
-                     options: CalibrationOptions) -> FitResult:
-    """Fit one model the plain way on the training windows (module docstring, step 7).
-
-    Every model gets the multi-start (the calibrator's own fit starts two-parameter models
-    once): with spins in the windows the plain loss has local minima (a Warthog-like
-    simulation: edd_symmetric from its default start ended at b_hat = 0.63 m, 1.49 rad of
-    heading error at the window ends, against 1.70 m and 0.21 rad from the best of the
-    starts), and the reference must be the best plain fit, not a weak one.
-    """
-    windows = cut_segments(train, replace(options.eval_segments(), horizon_s=options.window_s))
-    return fit_model(name, geometry, windows, FitOptions(
-        trim=False, seed=options.seed, n_starts=options.n_starts, multi_start_min_params=1))
-
-
-def _add_plain_reference(result: CalibrationResult, train: Sequence[Drive],
-                         evaluate: Sequence[Drive]) -> CalibrationResult:
-    """Step 7: the written model's plain window-end fit, scored on the same window ends."""
-    name = result.best
-    if not get_model(name).params:
-        return result
-    options = result.options
-    try:
-        plain = plain_window_fit(name, result.geometry, train, options)
-    except DataError as err:
-        return replace(result, warnings=result.warnings + (
-            f'no plain window-end fit to compare with: {err}',))
-    windows = cut_segments(evaluate, replace(options.eval_segments(), horizon_s=options.window_s))
-    end = window_end_errors(name, plain.values, result.geometry, windows)
-    return replace(result, plain_window_end=end, plain_values=dict(plain.values))
 
 
 def _median_errors(stats: ModelEvaluation) -> tuple[float, float]:
@@ -472,52 +325,7 @@ def _noise_stage(stage: _Stage) -> CalibrationResult:
                              eval_truth=tuple(drive.truth for drive in stage.evaluate))
 
 
-def _add_gyro(result: CalibrationResult, train: Sequence[Drive], evaluate: Sequence[Drive],
-              outcome: GyroFit | str | None = None) -> CalibrationResult:
-    """Step 6 of the recipe: the gyro, when the training drives have one."""
-    warnings = list(result.warnings)
-    gyro = None
-    if any(drive.imu is not None for drive in train):
-        outcome = outcome if outcome is not None else _fit_gyro_outcome(train)
-        if isinstance(outcome, str):
-            warnings.append(f'gyro not calibrated (imu.* not written): {outcome}')
-        else:
-            gyro = outcome
-            if gyro.at_grid_edge:
-                warnings.append(f'gyro time offset {gyro.time_offset:+.3f} s is at the edge of '
-                                'the searched range: the gyro and wheel clocks may differ by '
-                                'more; check the stamps')
-    result = replace(result, warnings=tuple(warnings), gyro=gyro)
-    eval_seg = result.eval_segments
-    if gyro is not None:
-        # adapt's filter noise: the written model and gyro on the drives the wheel noise is
-        # fitted on (the evaluation drives), as the node would run them
-        try:
-            config = OdometryConfig.from_flat(result_to_parameters(result, allow_invalid=True))
-            r_floor, r_rel, count = fit_filter_noise(config, evaluate)
-            gyro = replace(gyro, r_floor=r_floor, r_rel=r_rel, r_intervals=count)
-            config = replace(config, values={**config.values, **gyro_parameters(gyro)})
-            scale, windows = fit_adapt_yaw_scale(config, evaluate, eval_seg,
-                                                 _jobs(result.options.jobs))
-            gyro = replace(gyro, adapt_yaw_scale=scale, scale_windows=windows)
-        except (DataError, FitError, ParameterError) as err:
-            result = replace(result, warnings=result.warnings + (
-                f"gyro filter noise not (fully) calibrated (adapt's keeps the defaults it did "
-                f'not fit): {err}',))
-        result = replace(result, gyro=gyro)
-    return result
-
-
-_GYRO_TASK = '(gyro)'
 _NOISE_TASK = '(noise)'
-
-
-def _fit_gyro_outcome(train: Sequence[Drive]) -> GyroFit | str:
-    """Return the gyro fit on the training drives, or why there is none."""
-    try:
-        return fit_gyro(train)
-    except (DataError, FitError) as err:
-        return str(err)
 
 
 @dataclass(frozen=True)
@@ -584,10 +392,6 @@ class _ModelWork:
         return noise, tuple(noise_warnings(noise))
 
 
-def _jobs(jobs: int) -> int:
-    return usable_cpus() if jobs <= 0 else jobs
-
-
 def _choose_by_likelihood(fits: Mapping[str, FitResult], done: Mapping[str, _ModelResult],
                           clusters: np.ndarray) -> tuple[str, dict[str, Likelihood]]:
     """Held-out NLL of every valid fit, then the rule of selection.choose_by_likelihood."""
@@ -600,107 +404,6 @@ def _choose_by_likelihood(fits: Mapping[str, FitResult], done: Mapping[str, _Mod
                         'or hold-out groups')
     nll = {m: done[m].nll for m in valid}
     return choose_by_likelihood(nll, clusters, {m: len(get_model(m).params) for m in valid})
-
-
-def band_notes(fit: NoiseFit, path_m: Mapping[float, np.ndarray]) -> list[str]:
-    """Say why the written model's covariance is outside its NEES band where it is.
-
-    ``path_m``: the held-out segments' path lengths by horizon. Two reasons are stated when the
-    numbers show them: a coverage scale > 1 (errors heavier-tailed than a Gaussian: at the
-    maximum-likelihood scale fewer than 95 % fit inside, so the covariance that holds 95 %
-    is conservative on average); and horizons whose segments are mostly whole windows shorter
-    than the horizon (a windowed recording), where the check repeats the shorter ones.
-    """
-    out = []
-    checks = [c for c in fit.consistency.horizons if c.verdict in ('conservative',
-                                                                   'over-confident')]
-    conservative = [c for c in checks if c.verdict == 'conservative']
-    if conservative and fit.coverage_scale > 1.0:
-        where = ', '.join(f'{c.horizon_m:g}' for c in conservative)
-        nees = ', '.join(f'{c.mean_nees:.2f}' for c in conservative)
-        out.append(f'{fit.model}: the covariance is conservative at {where} m (average NEES '
-                   f'{nees}; band about [{conservative[0].band[0]:.2f}, '
-                   f'{conservative[0].band[1]:.2f}]) and cannot be inside the band while it '
-                   f'holds 95 % of the held-out errors: it is scaled by '
-                   f'{fit.coverage_scale:.2f} to hold them, because these errors are '
-                   'heavier-tailed than a Gaussian (at the maximum-likelihood scale fewer than '
-                   '95 % fit inside); the 95 % coverage is kept')
-    short = {}
-    for check in checks:
-        paths = path_m.get(check.horizon_m)
-        if paths is not None and paths.size:
-            share = float(np.mean(paths < 0.9 * check.horizon_m))
-            if share > 0.5:
-                short[check.horizon_m] = share
-    if short:
-        out.append(f'{fit.model}: ' + ' / '.join(f'{v * 100:.0f} %' for v in short.values())
-                   + ' of the held-out ' + ' / '.join(f'{h:g}' for h in short)
-                   + ' m segments are whole drives or windows shorter than their horizon (a '
-                   'windowed recording): the checks there test the covariance on those '
-                   'shorter stretches, not at these lengths')
-    return out
-
-
-def noise_warnings(fit: NoiseFit) -> list[str]:
-    """Return what the held-out check of a noise model cannot support (one line per horizon).
-
-    Over-confident horizons and horizons with too few segments are said; a conservative one is
-    not (the coverage scale makes the covariance conservative for typical errors on purpose,
-    and the per-horizon NEES is in the provenance).
-    """
-    out = []
-    for check in fit.consistency.horizons:
-        verdict = check.verdict
-        if verdict in ('consistent', 'conservative'):
-            continue
-        if verdict == 'too few segments to tell':
-            out.append(f'{fit.model}: only {check.segments} held-out segments of '
-                       f'{check.horizon_m:g} m: too few to check the covariance there (the '
-                       'data cannot support a consistency claim at this horizon); drive more')
-        else:
-            out.append(f'{fit.model}: the covariance is {verdict} on held-out '
-                       f'{check.horizon_m:g} m segments (average NEES {check.mean_nees:.2f}, band '
-                       f'[{check.band[0]:.2f}, {check.band[1]:.2f}], {check.segments} segments)')
-    return out
-
-
-def result_to_parameters(result: CalibrationResult, base: Mapping[str, Any] | None = None,
-                         allow_invalid: bool = False) -> dict[str, Any]:
-    """Flat parameters for ``write_params_file``: base values, then the calibration on top.
-
-    model = the best model; every valid fitted model's parameters as models.<m>.<p>; its noise
-    rates with models.<m>.noise.calibrated = True. Invalid fits (not converged, on a bound, or
-    not observable: C14/C16) are not written; with ``allow_invalid`` they are written anyway.
-    Raises FitError when no model besides ideal_dd could be calibrated (unless allowed).
-    """
-    flat = dict(base or {})
-    flat['wheel_radius'] = float(result.geometry.wheel_radius)
-    flat['track_width'] = float(result.geometry.track_width)
-    written = []
-    for name, fit in result.fits.items():
-        if not (fit.valid or allow_invalid):
-            continue
-        for param, value in fit.values.items():
-            flat[f'models.{name}.{param}'] = float(value)
-        noise = result.noise.get(name)
-        if noise is not None:
-            flat[f'models.{name}.noise.calibrated'] = True
-            for spec in NOISE_SPECS:
-                flat[f'models.{name}.noise.{spec.name}'] = float(getattr(noise.noise, spec.name))
-            if (fit.covariance is not None and fit.covariance.size
-                    and result.options.parameter_covariance):
-                flat[f'models.{name}.parameter_covariance'] = [
-                    float(v) for v in np.asarray(fit.covariance, dtype=float).ravel()]
-        written.append(name)
-    trained = [m for m in written if get_model(m).params]
-    if not trained and not allow_invalid:
-        problems = '; '.join(w for w in result.warnings) or 'see the fit status'
-        raise FitError(f'no kinematic model could be calibrated from this data: {problems}')
-    flat['model'] = result.best
-    flat['interval'] = result.options.interval
-    if result.gyro is not None:
-        flat.update(gyro_parameters(result.gyro))
-    return flat
 
 
 @dataclass(frozen=True)

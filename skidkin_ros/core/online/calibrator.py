@@ -51,21 +51,23 @@ from __future__ import annotations
 
 import bisect
 import collections
-from dataclasses import dataclass, field
 import math
 from typing import Mapping
 
 import numpy as np
 
-from skidkin_ros.core.calibration.fitting import parameter_scales, segment_errors
-from skidkin_ros.core.calibration.noise_fit import (mahalanobis, parameter_sensitivity,
-                                                    segment_covariances, segment_motion)
+from skidkin_ros.core.calibration.fitting import parameter_scales
+from skidkin_ros.core.calibration.noise_fit import mahalanobis
 from skidkin_ros.core.calibration.segments import HorizonOptions, SegmentOptions, SegmentSet
 from skidkin_ros.core.kinematics.models import BoundModel, KinematicModel
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.noise import NoiseModel
-from skidkin_ros.core.odometry.reference import base_pose, OnlineParams, ReferenceStatus
+from skidkin_ros.core.odometry.reference import OnlineParams
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
+from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
+                                           ReferenceGates)
+from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
+from skidkin_ros.core.online.window import WindowSolver
 from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import ParameterError
 
@@ -73,53 +75,14 @@ __all__ = ['OnlineCalibrator', 'Ground', 'MAX_STEPS', 'STATES']
 
 # Wheel steps kept at most (a minute at 1 kHz): a segment longer than this is abandoned.
 MAX_STEPS = 60_000
-# Jumps in a row that mean the reference relocalised (its chain restarts there).
-JUMP_CONFIRM = 3
 # Wheel steps shorter than this are merged (time-weighted mean speeds) inside learning segments.
 BLOCK_S = 0.05
-# Reference poses kept for the window (beyond: the oldest go).
-MAX_REFERENCES = 4096
-# A ground whose segment NEES is below this (chi2, 3 dof, 99 %) explains the segment.
-CHI2_99_3DOF = 11.34
 STATES = ('holding', 'learning', 'adapting')
+# The reference gates (gates.py), the ground bank and its change detector (grounds.py) and the
+# window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-@dataclass
-class Ground:
-    """One ground: its parameters, prior, window of segments and information.
-
-    Information matrices are in units of each parameter's typical magnitude. ``anchor`` and
-    ``prior`` are the prior (where the ground started, how sure of it); ``window`` the recent
-    segments with their weight matrices and the travel at which they were learned.
-    """
-
-    ident: int
-    k: np.ndarray
-    prior: np.ndarray
-    anchor: np.ndarray = None
-    info: np.ndarray = None
-    window: list = field(default_factory=list)
-    learned_m: float = 0.0
-    segments: int = 0
-    last_used: int = 0
-
-    def __post_init__(self) -> None:
-        if self.anchor is None:
-            self.anchor = self.k.copy()
-        if self.info is None:
-            self.info = self.prior.copy()
-
-
-class _Ref:
-    """One accepted reference pose, base frame, in wheel time, with the cumulative path."""
-
-    __slots__ = ('t_ns', 'x', 'y', 'yaw', 'path_m')
-
-    def __init__(self, t_ns: int, x: float, y: float, yaw: float, path_m: float) -> None:
-        self.t_ns, self.x, self.y, self.yaw, self.path_m = t_ns, x, y, yaw, path_m
-
-
-class OnlineCalibrator:
+class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by
@@ -282,162 +245,6 @@ class OnlineCalibrator:
             del self._t1[:n]
             del self._rows[:n]
 
-    # ------------------------------------------------------------------ reference poses
-    def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
-                  child_frame_id: str = '') -> tuple[ReferenceStatus, bool]:
-        """Take a reference pose of the reference frame, stamped t_ns (reference clock).
-
-        Returns (status on arrival, whether the parameters changed). A pose accepted on arrival
-        may still be judged a gap, a jump or a stall once the wheels cover it (counted then).
-        """
-        status = self._arrival(t_ns, x, y, yaw, frame_id, child_frame_id)
-        if status is not ReferenceStatus.ACCEPTED:
-            self._count(status, f'reference pose {status.value.removeprefix("reference_")}'
-                        f' (stamp {t_ns * 1e-9:.3f} s): not used; the odometry goes on with '
-                        'the parameters learned so far')
-            return status, False
-        self._last_arrival_ns = t_ns
-        bx, by, byaw = base_pose(x, y, yaw, self.params)
-        item = (t_ns - self._offset_ns, bx, by, byaw)
-        before = self.version
-        if self._last_t1 is not None and item[0] <= self._last_t1 and not self._pending:
-            self._judge(*item)
-        else:
-            self._pending.append(item)
-            if len(self._pending) > MAX_REFERENCES:
-                self._count(ReferenceStatus.UNCOVERED, 'reference poses wait for wheel data '
-                            'that does not come: the oldest is dropped')
-                self._pending.popleft()
-        return status, self.version != before
-
-    def _arrival(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str,
-                 child_frame_id: str) -> ReferenceStatus:
-        params = self.params
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw)):
-            return ReferenceStatus.NON_FINITE
-        if t_ns <= 0:
-            return ReferenceStatus.BAD_STAMP
-        if ((params.reference_frame_id and frame_id != params.reference_frame_id)
-                or (params.reference_child_frame_id
-                    and child_frame_id != params.reference_child_frame_id)):
-            return ReferenceStatus.FRAME
-        last = self._last_arrival_ns
-        if last is not None:
-            if t_ns <= last:
-                return ReferenceStatus.OLDER
-            if t_ns - last < self._min_period_ns:
-                return ReferenceStatus.RATE_LIMITED
-        if abs(x) > 1e9 or abs(y) > 1e9:
-            return ReferenceStatus.NON_FINITE
-        return ReferenceStatus.ACCEPTED
-
-    def _count(self, status: ReferenceStatus, message: str) -> None:
-        self.counters[status.value] += 1
-        self._warn(status.value, message)
-
-    def _wheel_motion(self, t_a: int, t_b: int) -> tuple[float, float] | None:
-        """Return the wheel travel (m) and rotation (rad) over (t_a, t_b]; None: not covered."""
-        t1 = self._t1
-        i0 = bisect.bisect_right(t1, t_a)
-        i1 = bisect.bisect_left(t1, t_b)
-        rows = self._rows
-        if i1 >= len(t1) or i0 > i1 or rows[i0][0] > t_a or rows[i0][5] != rows[i1][5]:
-            return None
-        dist = rot = 0.0
-        for i in range(i0, i1 + 1):
-            t0, _, _, speed, yaw_rate, _ = rows[i]
-            dt = (min(t1[i], t_b) - max(t0, t_a)) * 1e-9
-            dist += abs(speed) * dt
-            rot += yaw_rate * dt
-        return dist, rot
-
-    def _judge(self, t_ns: int, x: float, y: float, yaw: float) -> None:
-        """Judge a reference pose the wheels now cover; use it if it is good."""
-        if not self._t1 or t_ns <= self._rows[0][0]:
-            self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
-                        'step kept (time_offset wrong, or wheel data missing)')
-            return
-        seen, self._last_seen = self._last_seen, (t_ns, x, y, yaw)
-        if seen is not None and seen[1:] == (x, y, yaw):
-            moved = self._wheel_motion(seen[0], t_ns)
-            self._stall_m += 0.0 if moved is None else moved[0]
-            if self._stall_m > self.params.stall:
-                self._count(ReferenceStatus.STALL, f'reference frozen while the wheels '
-                            f'travelled {self._stall_m:.2f} m: not used, segment dropped')
-                self._seg_start = None
-                return
-        else:
-            self._stall_m = 0.0
-        last = self._refs[-1] if self._refs else None
-        if last is None:
-            self._start_chain(t_ns, x, y, yaw)
-            return
-        if t_ns - last.t_ns > self.params.max_gap * NS_PER_S:
-            self._count(ReferenceStatus.GAP, f'reference gap of {(t_ns - last.t_ns) * 1e-9:.2f} '
-                        f's (max_gap {self.params.max_gap:g} s): segment dropped, restarting')
-            self._start_chain(t_ns, x, y, yaw)
-            return
-        motion = self._wheel_motion(last.t_ns, t_ns)
-        if motion is None:
-            self._count(ReferenceStatus.WHEEL_GAP, 'the wheel data has a gap since the last '
-                        'reference pose: segment dropped, restarting')
-            self._start_chain(t_ns, x, y, yaw)
-            return
-        yaw = last.yaw + _wrap(yaw - last.yaw)
-        dist = float(np.hypot(x - last.x, y - last.y))
-        wheel_dist, wheel_rot = motion
-        params = self.params
-        if (abs(dist - wheel_dist) > params.max_jump + 0.5 * wheel_dist
-                or abs((yaw - last.yaw) - wheel_rot) > params.max_jump_rad
-                + 0.5 * abs(wheel_rot)):
-            self._jumps += 1
-            self._count(ReferenceStatus.JUMP, f'reference moved {dist:.2f} m / '
-                        f'{yaw - last.yaw:+.2f} rad where the wheels say {wheel_dist:.2f} m / '
-                        f'{wheel_rot:+.2f} rad: refused')
-            if self._jumps >= JUMP_CONFIRM:
-                self._start_chain(t_ns, x, y, yaw)
-            return
-        self._jumps = 0
-        ref = _Ref(t_ns, x, y, yaw, last.path_m + dist)
-        self._accept(ref)
-
-    def _start_chain(self, t_ns: int, x: float, y: float, yaw: float) -> None:
-        self._refs.clear()
-        self._jumps = 0
-        ref = _Ref(t_ns, x, y, yaw, 0.0)
-        self._refs.append(ref)
-        self._seg_start = ref
-        self._seg_version = self.version
-        self._last_accepted_wheel_ns = t_ns
-        self.counters[ReferenceStatus.ACCEPTED.value] += 1
-
-    def _accept(self, ref: _Ref) -> None:
-        refs = self._refs
-        refs.append(ref)
-        self.counters[ReferenceStatus.ACCEPTED.value] += 1
-        self.travel_m += ref.path_m - refs[-2].path_m
-        self._last_accepted_wheel_ns = ref.t_ns
-        if len(refs) > MAX_REFERENCES:
-            refs.popleft()
-        start = self._seg_start
-        if start is None:
-            self._seg_start = ref
-            self._seg_version = self.version
-        elif self.options.ends(start.path_m, ref.path_m, ref.yaw - start.yaw,
-                               ref.t_ns - start.t_ns):
-            self._learn(start, ref)
-            self._seg_start = ref
-            self._seg_version = self.version
-        if len(self.grounds) > 1 and not (
-                0.0 <= ref.path_m - self._recognised_m < 0.5 * self.params.switch_window):
-            self._recognised_m = ref.path_m
-            self._recognise(ref)
-        # the window needs only the last switch_window metres
-        window = self.params.switch_window
-        while len(refs) > 2 and refs[1].path_m <= ref.path_m - window and (
-                self._seg_start is None or refs[1].t_ns <= self._seg_start.t_ns):
-            refs.popleft()
-
     # ------------------------------------------------------------------ segments
     def _segment(self, a: _Ref, b: _Ref) -> SegmentSet | None:
         """Return the segment a -> b as the calibrator's SegmentSet (one row), or None."""
@@ -459,27 +266,6 @@ class OnlineCalibrator:
             t_b_ns=np.array([b.t_ns], np.int64), start=np.array([[a.x, a.y, a.yaw]]),
             end=np.array([[b.x, b.y, b.yaw]]), omega_l=left[None], omega_r=right[None],
             dt_s=dt_s[None], path_m=np.array([b.path_m - a.path_m]))
-
-    def _reference_cov(self) -> np.ndarray:
-        sx, syaw = self.params.sigma_xy, self.params.sigma_yaw
-        return np.diag([2 * sx * sx, 2 * sx * sx, 2 * syaw * syaw])
-
-    def _score(self, ground: Ground, seg: SegmentSet, motion_cov: np.ndarray,
-               with_parameters: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
-        """Return (residual, sensitivity or None, NEES) of a segment under one ground."""
-        e = segment_errors(self.model, ground.k, self.geometry, seg)[0]
-        cov = motion_cov + self._reference_cov()
-        sens = None
-        if with_parameters:
-            sens = parameter_sensitivity(self.model.name, self.model.mapping(ground.k),
-                                         self.geometry, seg)[0] * self.scale
-            cov = cov + sens @ np.linalg.inv(ground.info) @ sens.T
-        return e, sens, float(mahalanobis(cov[None], e[None])[0])
-
-    def _motion_cov(self, seg: SegmentSet) -> np.ndarray:
-        motion = segment_motion(self.model.name, self.model.mapping(self.active.k),
-                                self.geometry, seg)
-        return segment_covariances(self.noise, motion)[0]
 
     def _learn(self, a: _Ref, b: _Ref) -> None:
         """One learning segment: gates, change detection, the update (module docstring)."""
@@ -521,147 +307,6 @@ class OnlineCalibrator:
                                 else (None, None))
         self._update(seg, motion_cov + self._reference_cov(), path, errors, sens)
 
-    def _residuals(self, ground: Ground, segments: list[SegmentSet]
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """Return the residuals (N, 3) and their sensitivities (N, 3, p; scaled units)."""
-        batch = _stack(segments)
-        errors = segment_errors(self.model, ground.k, self.geometry, batch)
-        sens = parameter_sensitivity(self.model.name, self.model.mapping(ground.k),
-                                     self.geometry, batch) * self.scale
-        return errors, sens
-
-    def _change(self, seg: SegmentSet, motion_cov: np.ndarray) -> None:
-        """Take back a known ground, or start a new one (the CUSUM passed its threshold)."""
-        self.cusum = 0.0
-        best, best_nees = None, CHI2_99_3DOF
-        for ground in self.grounds:
-            if ground is self.active:
-                continue
-            nees = self._score(ground, seg, motion_cov, True)[2]
-            if nees < best_nees:
-                best, best_nees = ground, nees
-        if best is not None:
-            self._activate(best, 'online_switch')
-            return
-        ground = Ground(self._next_ident, self.active.k.copy(), self.prior_info.copy())
-        self._next_ident += 1
-        if len(self.grounds) >= int(self.params.max_grounds):
-            oldest = min((g for g in self.grounds if g is not self.active),
-                         key=lambda g: g.last_used, default=None)
-            if oldest is not None:
-                self.grounds.remove(oldest)
-            else:
-                self.grounds.remove(self.active)
-        self.grounds.append(ground)
-        self._adapt_until_m = self.travel_m + self.params.adapt_distance
-        self._activate(ground, 'online_change')
-        self._warn('online_change', f'change of ground detected: learning ground {ground.ident} '
-                   f'from the current parameters ({len(self.grounds)} grounds known)')
-
-    def _note_error(self, seg: SegmentSet, residual: np.ndarray) -> None:
-        """Keep the error the old ground made on the segment that revealed the change.
-
-        The odometry carried that error already, with a covariance that did not know the ground
-        had changed: the odometer adds it (world frame, e e^T) to the published covariance once
-        (:meth:`take_error`), so the covariance stays honest across a change.
-        """
-        c, s = math.cos(float(seg.start[0, 2])), math.sin(float(seg.start[0, 2]))
-        world = np.array([c * residual[0] - s * residual[1], s * residual[0] + c * residual[1],
-                          residual[2]])
-        self._error = self._error + np.outer(world, world)
-
-    def take_error(self) -> np.ndarray | None:
-        """Return the error noted since the last call (3 x 3, world frame), or None."""
-        error, self._error = self._error, np.zeros((3, 3))
-        return error if error.any() else None
-
-    def _activate(self, ground: Ground, cause: str) -> None:
-        self.counters[cause] += 1
-        self.active = ground
-        ground.last_used = self.counters['online_segments'] + self.counters[cause]
-        self.version += 1
-
-    def _update(self, seg: SegmentSet, cov: np.ndarray, path_m: float,
-                errors: np.ndarray | None = None, sens: np.ndarray | None = None) -> None:
-        """Add the segment to the window; one Gauss-Newton step in the observable directions.
-
-        The window's segments fade by exp(-path / memory) at every new segment (forgetting:
-        faster while adapting, and what faded then stays faded) and are
-        relinearised at the current parameters (no early linearisation stays baked in, as in a
-        plain recursive filter); the prior (the ground's start, its information) keeps the
-        unobserved directions where they were and bounds their uncertainty. ``errors`` and
-        ``sens``: the residuals of the window and the segment at the current parameters, when
-        known (None: computed here).
-        """
-        ground = self.active
-        params = self.params
-        memory = params.adapt_memory if self.travel_m < self._adapt_until_m else params.memory
-        fade = math.exp(-path_m / memory)
-        for item in ground.window:
-            item[2] *= fade
-        items = ground.window + [[seg, np.linalg.inv(cov), 1.0]]
-        first = max(len(items) - int(params.window), 0)
-        keep = [i for i in range(first, len(items)) if items[i][2] > 1e-3]
-        ground.window = [items[i] for i in keep]
-        self.counters['online_segments'] += 1
-        ground.segments += 1
-        ground.learned_m += path_m
-        ground.last_used = self.counters['online_segments']
-        if errors is None or len(errors) != len(items):
-            e, sens = self._residuals(ground, [item[0] for item in ground.window])
-        else:
-            e, sens = errors[keep], sens[keep]
-        weights = np.array([item[2] for item in ground.window])
-        inverse = np.stack([item[1] for item in ground.window]) * weights[:, None, None]
-        data = np.einsum('nip,nij,njq->pq', sens, inverse, sens)
-        data = 0.5 * (data + data.T)
-        u_offset = (ground.k - ground.anchor) / self.scale
-        gradient = np.einsum('nip,nij,nj->p', sens, inverse, e) - ground.prior @ u_offset
-        ground.info = data + ground.prior
-        values, vectors = np.linalg.eigh(data)
-        observed = values >= max(params.min_information, 1e-9 * max(values.max(), 0.0))
-        if not observed.any():
-            self.counters['online_unobservable'] += 1
-            return
-        basis = vectors[:, observed]
-        step = basis @ np.linalg.solve(basis.T @ ground.info @ basis, basis.T @ gradient)
-        k = np.clip(ground.k + step * self.scale, self._lo, self._hi)
-        try:
-            self.model.check_constraints(k)
-        except ParameterError:
-            self.counters['online_update_refused'] += 1
-            return
-        ground.k = k
-        self.version += 1
-
-    def _recognise(self, ref: _Ref) -> None:
-        """Score the last switch_window metres under every ground; take a clearly better one."""
-        refs = self._refs
-        window = self.params.switch_window
-        if ref.path_m - refs[0].path_m < window:
-            return
-        start = refs[0]
-        for item in refs:
-            if item.path_m > ref.path_m - window:
-                break
-            start = item
-        seg = self._segment(start, ref)
-        if seg is None:
-            return
-        path = ref.path_m - start.path_m
-        rot = abs(ref.yaw - start.yaw)
-        # a diagonal weight from the noise rates (the grounds are compared on the same one)
-        var_x, var_y, var_yaw = self.noise.step_variances(path, rot)
-        motion_cov = np.diag([var_x + self.noise.var_x_const, var_y + self.noise.var_y_const,
-                              var_yaw + self.noise.var_yaw_const]) + 1e-9 * np.eye(3)
-        scores = [(self._score(g, seg, motion_cov, False), g) for g in self.grounds]
-        active, residual = next((s[2], s[0]) for s, g in scores if g is self.active)
-        best, ground = min(((s[2], g) for s, g in scores), key=lambda item: item[0])
-        if ground is not self.active and active - best > self.params.switch_margin:
-            self._note_error(seg, residual)
-            self._activate(ground, 'online_switch')
-            self.cusum = 0.0
-
 
 def _blocks(left: np.ndarray, right: np.ndarray, dt_s: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -679,29 +324,3 @@ def _blocks(left: np.ndarray, right: np.ndarray, dt_s: np.ndarray
     dt_b = np.add.reduceat(dt_s, first)
     return (np.add.reduceat(left * dt_s, first) / dt_b,
             np.add.reduceat(right * dt_s, first) / dt_b, dt_b)
-
-
-def _stack(segments: list[SegmentSet]) -> SegmentSet:
-    """Return one-row segment sets as one set, padded with dt = 0 to the longest."""
-    if len(segments) == 1:
-        return segments[0]
-    width = max(seg.dt_s.shape[1] for seg in segments)
-
-    def pad(name: str) -> np.ndarray:
-        out = np.zeros((len(segments), width))
-        for i, seg in enumerate(segments):
-            row = getattr(seg, name)[0]
-            out[i, :row.size] = row
-        return out
-    return SegmentSet(
-        drive=np.zeros(len(segments), dtype=int),
-        t_a_ns=np.concatenate([seg.t_a_ns for seg in segments]),
-        t_b_ns=np.concatenate([seg.t_b_ns for seg in segments]),
-        start=np.concatenate([seg.start for seg in segments]),
-        end=np.concatenate([seg.end for seg in segments]),
-        omega_l=pad('omega_l'), omega_r=pad('omega_r'), dt_s=pad('dt_s'),
-        path_m=np.concatenate([seg.path_m for seg in segments]))
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi

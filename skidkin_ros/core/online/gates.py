@@ -1,0 +1,197 @@
+"""Online calibration: the reference quality gates (steps 1 and 2 of the recipe).
+
+A reference pose is judged on arrival (NaN, stamp, frame, rate), turned into the base frame's
+pose in wheel time, and judged once the wheel steps cover it (gap, wheel gap, jump, stall);
+a good one is accepted into the chain of reference poses that the segments are cut from. The
+methods are those of :class:`~skidkin_ros.core.online.calibrator.OnlineCalibrator` (a mixin;
+the recipe is in that module's docstring).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+
+import numpy as np
+
+from skidkin_ros.core.odometry.reference import base_pose, ReferenceStatus
+from skidkin_ros.core.timeunits import NS_PER_S
+
+__all__ = ['ReferenceGates', 'JUMP_CONFIRM', 'MAX_REFERENCES']
+
+# Jumps in a row that mean the reference relocalised (its chain restarts there).
+JUMP_CONFIRM = 3
+# Reference poses kept for the window (beyond: the oldest go).
+MAX_REFERENCES = 4096
+
+
+class _Ref:
+    """One accepted reference pose, base frame, in wheel time, with the cumulative path."""
+
+    __slots__ = ('t_ns', 'x', 'y', 'yaw', 'path_m')
+
+    def __init__(self, t_ns: int, x: float, y: float, yaw: float, path_m: float) -> None:
+        self.t_ns, self.x, self.y, self.yaw, self.path_m = t_ns, x, y, yaw, path_m
+
+
+class ReferenceGates:
+    """The reference poses of :class:`OnlineCalibrator`: judged, then accepted (a mixin)."""
+
+    def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
+                  child_frame_id: str = '') -> tuple[ReferenceStatus, bool]:
+        """Take a reference pose of the reference frame, stamped t_ns (reference clock).
+
+        Returns (status on arrival, whether the parameters changed). A pose accepted on arrival
+        may still be judged a gap, a jump or a stall once the wheels cover it (counted then).
+        """
+        status = self._arrival(t_ns, x, y, yaw, frame_id, child_frame_id)
+        if status is not ReferenceStatus.ACCEPTED:
+            self._count(status, f'reference pose {status.value.removeprefix("reference_")}'
+                        f' (stamp {t_ns * 1e-9:.3f} s): not used; the odometry goes on with '
+                        'the parameters learned so far')
+            return status, False
+        self._last_arrival_ns = t_ns
+        bx, by, byaw = base_pose(x, y, yaw, self.params)
+        item = (t_ns - self._offset_ns, bx, by, byaw)
+        before = self.version
+        if self._last_t1 is not None and item[0] <= self._last_t1 and not self._pending:
+            self._judge(*item)
+        else:
+            self._pending.append(item)
+            if len(self._pending) > MAX_REFERENCES:
+                self._count(ReferenceStatus.UNCOVERED, 'reference poses wait for wheel data '
+                            'that does not come: the oldest is dropped')
+                self._pending.popleft()
+        return status, self.version != before
+
+    def _arrival(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str,
+                 child_frame_id: str) -> ReferenceStatus:
+        params = self.params
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw)):
+            return ReferenceStatus.NON_FINITE
+        if t_ns <= 0:
+            return ReferenceStatus.BAD_STAMP
+        if ((params.reference_frame_id and frame_id != params.reference_frame_id)
+                or (params.reference_child_frame_id
+                    and child_frame_id != params.reference_child_frame_id)):
+            return ReferenceStatus.FRAME
+        last = self._last_arrival_ns
+        if last is not None:
+            if t_ns <= last:
+                return ReferenceStatus.OLDER
+            if t_ns - last < self._min_period_ns:
+                return ReferenceStatus.RATE_LIMITED
+        if abs(x) > 1e9 or abs(y) > 1e9:
+            return ReferenceStatus.NON_FINITE
+        return ReferenceStatus.ACCEPTED
+
+    def _count(self, status: ReferenceStatus, message: str) -> None:
+        self.counters[status.value] += 1
+        self._warn(status.value, message)
+
+    def _wheel_motion(self, t_a: int, t_b: int) -> tuple[float, float] | None:
+        """Return the wheel travel (m) and rotation (rad) over (t_a, t_b]; None: not covered."""
+        t1 = self._t1
+        i0 = bisect.bisect_right(t1, t_a)
+        i1 = bisect.bisect_left(t1, t_b)
+        rows = self._rows
+        if i1 >= len(t1) or i0 > i1 or rows[i0][0] > t_a or rows[i0][5] != rows[i1][5]:
+            return None
+        dist = rot = 0.0
+        for i in range(i0, i1 + 1):
+            t0, _, _, speed, yaw_rate, _ = rows[i]
+            dt = (min(t1[i], t_b) - max(t0, t_a)) * 1e-9
+            dist += abs(speed) * dt
+            rot += yaw_rate * dt
+        return dist, rot
+
+    def _judge(self, t_ns: int, x: float, y: float, yaw: float) -> None:
+        """Judge a reference pose the wheels now cover; use it if it is good."""
+        if not self._t1 or t_ns <= self._rows[0][0]:
+            self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
+                        'step kept (time_offset wrong, or wheel data missing)')
+            return
+        seen, self._last_seen = self._last_seen, (t_ns, x, y, yaw)
+        if seen is not None and seen[1:] == (x, y, yaw):
+            moved = self._wheel_motion(seen[0], t_ns)
+            self._stall_m += 0.0 if moved is None else moved[0]
+            if self._stall_m > self.params.stall:
+                self._count(ReferenceStatus.STALL, f'reference frozen while the wheels '
+                            f'travelled {self._stall_m:.2f} m: not used, segment dropped')
+                self._seg_start = None
+                return
+        else:
+            self._stall_m = 0.0
+        last = self._refs[-1] if self._refs else None
+        if last is None:
+            self._start_chain(t_ns, x, y, yaw)
+            return
+        if t_ns - last.t_ns > self.params.max_gap * NS_PER_S:
+            self._count(ReferenceStatus.GAP, f'reference gap of {(t_ns - last.t_ns) * 1e-9:.2f} '
+                        f's (max_gap {self.params.max_gap:g} s): segment dropped, restarting')
+            self._start_chain(t_ns, x, y, yaw)
+            return
+        motion = self._wheel_motion(last.t_ns, t_ns)
+        if motion is None:
+            self._count(ReferenceStatus.WHEEL_GAP, 'the wheel data has a gap since the last '
+                        'reference pose: segment dropped, restarting')
+            self._start_chain(t_ns, x, y, yaw)
+            return
+        yaw = last.yaw + _wrap(yaw - last.yaw)
+        dist = float(np.hypot(x - last.x, y - last.y))
+        wheel_dist, wheel_rot = motion
+        params = self.params
+        if (abs(dist - wheel_dist) > params.max_jump + 0.5 * wheel_dist
+                or abs((yaw - last.yaw) - wheel_rot) > params.max_jump_rad
+                + 0.5 * abs(wheel_rot)):
+            self._jumps += 1
+            self._count(ReferenceStatus.JUMP, f'reference moved {dist:.2f} m / '
+                        f'{yaw - last.yaw:+.2f} rad where the wheels say {wheel_dist:.2f} m / '
+                        f'{wheel_rot:+.2f} rad: refused')
+            if self._jumps >= JUMP_CONFIRM:
+                self._start_chain(t_ns, x, y, yaw)
+            return
+        self._jumps = 0
+        ref = _Ref(t_ns, x, y, yaw, last.path_m + dist)
+        self._accept(ref)
+
+    def _start_chain(self, t_ns: int, x: float, y: float, yaw: float) -> None:
+        self._refs.clear()
+        self._jumps = 0
+        ref = _Ref(t_ns, x, y, yaw, 0.0)
+        self._refs.append(ref)
+        self._seg_start = ref
+        self._seg_version = self.version
+        self._last_accepted_wheel_ns = t_ns
+        self.counters[ReferenceStatus.ACCEPTED.value] += 1
+
+    def _accept(self, ref: _Ref) -> None:
+        refs = self._refs
+        refs.append(ref)
+        self.counters[ReferenceStatus.ACCEPTED.value] += 1
+        self.travel_m += ref.path_m - refs[-2].path_m
+        self._last_accepted_wheel_ns = ref.t_ns
+        if len(refs) > MAX_REFERENCES:
+            refs.popleft()
+        start = self._seg_start
+        if start is None:
+            self._seg_start = ref
+            self._seg_version = self.version
+        elif self.options.ends(start.path_m, ref.path_m, ref.yaw - start.yaw,
+                               ref.t_ns - start.t_ns):
+            self._learn(start, ref)
+            self._seg_start = ref
+            self._seg_version = self.version
+        if len(self.grounds) > 1 and not (
+                0.0 <= ref.path_m - self._recognised_m < 0.5 * self.params.switch_window):
+            self._recognised_m = ref.path_m
+            self._recognise(ref)
+        # the window needs only the last switch_window metres
+        window = self.params.switch_window
+        while len(refs) > 2 and refs[1].path_m <= ref.path_m - window and (
+                self._seg_start is None or refs[1].t_ns <= self._seg_start.t_ns):
+            refs.popleft()
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
