@@ -28,7 +28,8 @@ class IcpConfig:
     depend on the machine or on how many run at once; kiss-icp 1.3's threaded reduction changes
     the last bits of the poses, docs/ground-truth.md; 0: every core). ``quality_points``:
     source points sampled per frame to measure the registration's quality.
-    The defaults come from the speed/accuracy table of bench/icp_settings.py (docs/benchmarks.md).
+    The defaults come from the speed/accuracy table of lab/bench/icp_settings.py
+    (docs/benchmarks.md).
     """
 
     max_range_m: float = 100.0
@@ -107,7 +108,7 @@ def auto_voxel_size(xyz: np.ndarray, config: IcpConfig) -> float:
     voxel that holds a few points of the scan at hand, so it grows with how sparse the scan is:
     0.55 m for a 16-ring lidar at 0.5 deg in a courtyard (median spacing 9 cm), 1.4 m for the
     same lidar at 1 deg among trees (23 cm). The factor comes from the speed/accuracy table of
-    bench/icp_settings.py. Rounded to 5 cm, within 0.2-3 m.
+    lab/bench/icp_settings.py. Rounded to 5 cm, within 0.2-3 m.
     """
     from scipy.spatial import cKDTree
 

@@ -121,7 +121,7 @@ def finer_than_reference(config: IcpConfig, reference: IcpConfig) -> bool:
     The fast settings save time with a coarser voxel than kiss-icp's and a looser convergence;
     with a finer voxel (a dense scan: 0.55 m in the courtyard against kiss-icp's 1 m) they cost
     twice kiss-icp's CPU time per scan, and were no more accurate there (3.1 cm against 2.9 cm
-    over 1 s, bench/gt_scenes.py), so kiss-icp's defaults are used without a check.
+    over 1 s, lab/bench/gt_scenes.py), so kiss-icp's defaults are used without a check.
     """
     return (config.voxel_size_m is not None and reference.voxel_size_m is not None
             and config.voxel_size_m < reference.voxel_size_m)
