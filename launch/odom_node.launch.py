@@ -8,6 +8,9 @@ Examples::
     # A drive controller's odometry as the input (input: odometry in the parameters file):
     ros2 launch skidkin_ros odom_node.launch.py params_file:=odom_input.yaml \
         wheel_odom_topic:=/diff_drive_controller/odom odom_topic:=/wheel/odometry
+    # Online calibration against kiss-icp's odometry (online.enabled: true in the file):
+    ros2 launch skidkin_ros odom_node.launch.py params_file:=online.yaml \
+        reference_topic:=/kiss/odometry
 
 ``params_file`` defaults to the installed example (share/skidkin_ros/config/odom_node.yaml);
 a file written by ``skidkin calibrate`` loads the same way. Each ``*_topic`` argument remaps
@@ -33,6 +36,7 @@ REMAPS = {
     'right_wheel_topic': 'wheel/right/velocity',
     'wheel_odom_topic': 'wheel_odom',
     'imu_topic': 'imu/data',
+    'reference_topic': 'reference/odom',
     'odom_topic': 'odom',
 }
 
