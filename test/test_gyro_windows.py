@@ -62,3 +62,28 @@ def test_c180_windows_run_on_ground_truth_stamped_off_the_wheel_samples():
     # (interpolating 10 Hz poses costs well under a millimetre at these speeds).
     assert medians['grid'] < 0.01
     assert medians['lidar'] < 2 * medians['grid'] + 0.002
+
+
+def test_covariances_read_at_the_window_ends_only_are_the_same():
+    """Reading the covariance out at the window ends only changes none of the numbers."""
+    grid, _, config = _drives()
+    assert grid.imu is not None
+    prefix = f'models.{config.model}.noise.'
+    flat = {**config.values, 'imu.mode': 'adapt', prefix + 'calibrated': True,
+            prefix + 'var_x_const': 1e-4, prefix + 'var_yaw_per_s': 1e-5}
+    adapt = OdometryConfig.from_flat(flat)
+    assert adapt.active_noise is not None
+    segments = cut_segments([grid], SegmentOptions(horizon_m=2.0, interval='midpoint'))
+    windows = segment_windows([grid], segments)
+    full = run_windows(adapt, [grid], segments, windows)
+    ends = run_windows(adapt, [grid], segments, windows, ends_only=True)
+    assert np.array_equal(full[0], ends[0]) and np.array_equal(full[1], ends[1])
+    assert np.all(np.isfinite(full[1])) and np.any(full[1][:, 2, 2] > 0.0)
+    j = [j for _, j, _ in windows[0]]
+    a, b = full[2][0], ends[2][0]
+    assert np.array_equal(a.poses, b.poses)
+    assert np.array_equal(a.covariances[j], b.covariances[j])
+    assert np.array_equal(a.imu_gain[j], b.imu_gain[j])
+    assert np.array_equal(a.pose_covariances[j], b.pose_covariances[j])
+    others = np.setdiff1d(np.arange(len(a.poses)), j)
+    assert np.all(np.isnan(b.covariances[others])) and np.all(np.isfinite(a.covariances))

@@ -279,7 +279,7 @@ def fit_filter_noise(config: OdometryConfig, drives: Sequence[Drive]
     odometer.gyro.record = records = []
     for drive in drives:
         if drive.imu is not None:
-            odometer.predict(drive.wheels, (0.0, 0.0, 0.0), drive.imu)
+            odometer.predict(drive.wheels, (0.0, 0.0, 0.0), drive.imu, covariance_at=())
     if len(records) < MIN_PAIRS:
         raise DataError(f'{len(records)} wheel intervals in motion are covered by the gyro; '
                         f"the filter's noise needs at least {MIN_PAIRS}")
@@ -324,7 +324,8 @@ def fit_adapt_yaw_scale(config: OdometryConfig, drives: Sequence[Drive], segment
 
     def heading(share: float) -> tuple[np.ndarray, np.ndarray]:
         values = {**config.values, 'imu.mode': 'adapt', 'imu.adapt.yaw_noise_scale': share}
-        errors, covs, _ = run_windows(replace(config, values=values), drives, segments, windows)
+        errors, covs, _ = run_windows(replace(config, values=values), drives, segments, windows,
+                                      ends_only=True)
         return covs[:, 2, 2], errors[:, 2]
 
     # the two runs are independent: one per core (the same numbers either way)

@@ -49,7 +49,7 @@ calibration under the winner; the parameters file records it (``interval``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 import logging
 import math
 from typing import Mapping, Sequence
@@ -147,14 +147,17 @@ def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
                                     train, evaluate)
     model = stage.best
     errors = {intervals[0]: _median_errors(stage.done[model].evaluation)}
+    refits = {}
     for interval in intervals[1:]:
-        errors[interval] = _interval_errors(model, train, evaluate, geometry,
-                                            replace(options, interval=interval))
+        errors[interval], refits[interval] = _interval_errors(
+            model, train, evaluate, geometry, replace(options, interval=interval))
     chosen, _ = choose_interval(errors)
     if chosen != intervals[0]:
         # the gyro fit does not depend on the convention: kept; the noise is calibrated
-        # only under the convention that is written
-        stage = _fit_stage(train, evaluate, holdout, geometry, replace(options, interval=chosen))
+        # only under the convention that is written; the model refitted under it to compare
+        # the conventions is the same fit (same segments and options): not fitted again
+        stage = _fit_stage(train, evaluate, holdout, geometry, replace(options, interval=chosen),
+                           known_fits={model: refits[chosen]})
     first = _noise_stage(stage)
     result = _with_interval_errors(_add_gyro(first, train, evaluate, gyro), errors)
     return _add_plain_reference(result, train, evaluate)
@@ -165,10 +168,12 @@ def _median_errors(stats: ModelEvaluation) -> tuple[float, float]:
 
 
 def _interval_errors(model: str, train: Sequence[Drive], evaluate: Sequence[Drive],
-                     geometry: Geometry, options: CalibrationOptions) -> tuple[float, float]:
+                     geometry: Geometry, options: CalibrationOptions
+                     ) -> tuple[tuple[float, float], FitResult]:
     """Held-out median (eps_t, eps_theta) of one model fitted under ``options.interval``.
 
-    The same fit and scoring as :func:`calibrate` (its step 2 and 3), without the rest.
+    The same fit and scoring as :func:`calibrate` (its step 2 and 3), without the rest; the
+    fit is returned too.
     """
     train_seg = usable_segments(train, options.train_segments(), 'training',
                                 needed_by='a calibration')
@@ -178,7 +183,7 @@ def _interval_errors(model: str, train: Sequence[Drive], evaluate: Sequence[Driv
                                options.weighting)
     evaluation = evaluate_models({model: fits[model].values}, geometry, eval_seg,
                                  options.min_eval_path_m)
-    return _median_errors(evaluation[model])
+    return _median_errors(evaluation[model]), fits[model]
 
 
 def _with_interval_errors(result: CalibrationResult,
@@ -253,8 +258,13 @@ class _Stage:
 
 
 def _fit_stage(train: Sequence[Drive], evaluate: Sequence[Drive], holdout: str,
-               geometry: Geometry, options: CalibrationOptions, gyro: bool = False) -> _Stage:
-    """Run steps 1-3 and 5: fit, score and choose, each model a parallel task (and the gyro)."""
+               geometry: Geometry, options: CalibrationOptions, gyro: bool = False,
+               known_fits: Mapping[str, FitResult] | None = None) -> _Stage:
+    """Run steps 1-3 and 5: fit, score and choose, each model a parallel task (and the gyro).
+
+    ``known_fits``: models already fitted under these ``options`` (the same call of
+    :func:`fit_models_weighted`), scored without fitting them again.
+    """
     train_seg = usable_segments(train, options.train_segments(), 'training',
                                 needed_by='a calibration')
     eval_seg = usable_segments(evaluate, options.eval_segments(), 'evaluation',
@@ -266,7 +276,7 @@ def _fit_stage(train: Sequence[Drive], evaluate: Sequence[Drive], holdout: str,
     if options.selection == 'likelihood':
         clusters = segment_clusters(eval_seg, evaluate, options.holdout_key)
     work = _ModelWork(geometry, options, train_seg, eval_seg, windows, other, clusters,
-                      tuple(train) if gyro else ())
+                      tuple(train) if gyro else (), dict(known_fits or {}))
     # The costliest tasks first, so the workers finish together.
     order = sorted(models, key=lambda m: -len(get_model(m).params))
     if gyro and any(drive.imu is not None for drive in train):
@@ -355,6 +365,7 @@ class _ModelWork:
     other: Mapping[float, SegmentSet]
     clusters: np.ndarray | None
     gyro_train: tuple[Drive, ...] = ()
+    known_fits: Mapping[str, FitResult] = field(default_factory=dict)
 
     def __call__(self, item):
         """Run one task: a model's fit and scores, a model's noise (a tuple), or the gyro."""
@@ -367,8 +378,10 @@ class _ModelWork:
 
     def fit(self, name: str) -> _ModelResult:
         options, geometry = self.options, self.geometry
-        fit = fit_models_weighted(geometry, self.train_seg, options.fit_options(), (name,),
-                                  options.weighting)[name]
+        fit = self.known_fits.get(name)
+        if fit is None:
+            fit = fit_models_weighted(geometry, self.train_seg, options.fit_options(), (name,),
+                                      options.weighting)[name]
         evaluation = evaluate_models({name: fit.values}, geometry, self.eval_seg,
                                      options.min_eval_path_m)[name]
         window_end = window_end_errors(name, fit.values, geometry, self.windows)

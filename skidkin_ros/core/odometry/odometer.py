@@ -43,7 +43,7 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass, replace
 import math
-from typing import Any, Callable, Mapping, NamedTuple, Protocol, Sequence
+from typing import Any, Callable, Container, Mapping, NamedTuple, Protocol, Sequence
 
 import numpy as np
 
@@ -626,7 +626,8 @@ class Odometer:
                 imu: ImuSamples | None = None,
                 restarts: Mapping[int, Sequence[float]] | None = None,
                 reference: PoseTrack | None = None,
-                jumps_dropped: bool = False) -> 'Prediction':
+                jumps_dropped: bool = False,
+                covariance_at: Container[int] | None = None) -> 'Prediction':
         """Restart at ``start`` and run every sample through :meth:`step`, as the node does.
 
         With the gyro in use, ``imu`` samples arrive in stamp order, as the node receives them:
@@ -641,16 +642,21 @@ class Odometer:
         ``jumps_dropped``: the
         reader applied the wheel-jump rule already, exempting speeds measured by encoder
         positions as the node does (a bag read with wheel_signal position or auto); the
-        integrator then does not apply it again.
+        integrator then does not apply it again. ``covariance_at`` (sample indices): the
+        covariances (and the gain) are read out after these samples only, NaN elsewhere; the
+        propagation itself is unchanged, so the values read are the same (a calibration that
+        needs them at window ends only skips the per-sample read-out).
         """
         self._restart(start)
         poses = np.empty((len(wheels), 3))
         twists = np.empty((len(wheels), 3))
         pose_covs = np.empty((len(wheels), 36))
+        if covariance_at is not None:
+            pose_covs.fill(np.nan)
         covariances = gains = None
         if restarts is not None:
-            covariances = np.empty((len(wheels), 3, 3))
-            gains = np.ones(len(wheels))
+            covariances = np.full((len(wheels), 3, 3), np.nan)
+            gains = np.ones(len(wheels)) if covariance_at is None else np.full(len(wheels), np.nan)
         status = []
         gyro = self.gyro
         feed = _GyroFeed(gyro, imu, self.counters)
@@ -662,11 +668,14 @@ class Odometer:
             result = self.step(int(t_ns), omega_l, omega_r, not jumps_dropped)
             poses[i] = result.pose
             twists[i] = result.twist
-            pose_covs[i] = self.covariance.pose_covariance_flat()
             status.append(result.status)
+            read = covariance_at is None or i in covariance_at
+            if read:
+                pose_covs[i] = self.covariance.pose_covariance_flat()
             if restarts is not None:
-                covariances[i] = self.covariance.total_cov()
-                gains[i] = gyro.filter.gain if gyro is not None else 1.0
+                if read:
+                    covariances[i] = self.covariance.total_cov()
+                    gains[i] = gyro.filter.gain if gyro is not None else 1.0
                 if i in restarts:
                     self.integrator.restart_pose(check_pose(restarts[i]))
                     self.covariance.reset(float(restarts[i][2]))
