@@ -185,7 +185,6 @@ def test_the_seam_note_counts_tested_and_untested_cuts_apart():
     assert '2 seam(s) tested, 1 of them cut; 1 cut untested (after a failed chunk' in note
 
 
-
 _MAIN_PROBE = """
 import sys
 from concurrent.futures import ProcessPoolExecutor
