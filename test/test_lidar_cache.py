@@ -66,12 +66,14 @@ def test_clouds_without_x_y_z_are_named_as_the_cause_not_a_damaged_recording(tmp
 def test_ctrl_c_with_two_jobs_stops_the_workers_instead_of_waiting_for_their_chunks(tmp_path):
     # A bound on a hang, not a speed target: the workers ignore Ctrl-C (left to the parent),
     # which waited for their chunks (7 s with 5 s chunks, about 15 s with these 10 s ones).
+    # 60 s in 6 chunks: the run must still be going 6 s in (workers no longer import the CLI,
+    # and 30 s of this drive could finish in that time).
     import os
     import signal
     import subprocess
     import sys
     import time
-    sim = simulate(SimConfig(duration_s=30.0, seed=8, lidar=LidarConfig(
+    sim = simulate(SimConfig(duration_s=60.0, seed=8, lidar=LidarConfig(
         azimuth_resolution_deg=1.0, mount_xyz_m=(0.3, 0.1, 0.5), mount_yaw_rad=0.4),
         internal_rate_hz=200.0))
     bag, _ = write_bag(sim, tmp_path / 'drive')
