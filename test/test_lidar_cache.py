@@ -66,12 +66,15 @@ def test_clouds_without_x_y_z_are_named_as_the_cause_not_a_damaged_recording(tmp
 def test_ctrl_c_with_two_jobs_stops_the_workers_instead_of_waiting_for_their_chunks(tmp_path):
     # A bound on a hang, not a speed target: the workers ignore Ctrl-C (left to the parent),
     # which waited for their chunks (7 s with 5 s chunks, about 15 s with these 10 s ones).
+    # The signal goes once the pool's workers are up (their chunks take seconds each): 180 s in
+    # 18 chunks keeps the run going well past that on a fast machine (60 s took 5.7 s in all).
     import os
     import signal
     import subprocess
     import sys
     import time
-    sim = simulate(SimConfig(duration_s=30.0, seed=8, lidar=LidarConfig(
+    import psutil
+    sim = simulate(SimConfig(duration_s=180.0, seed=8, lidar=LidarConfig(
         azimuth_resolution_deg=1.0, mount_xyz_m=(0.3, 0.1, 0.5), mount_yaw_rad=0.4),
         internal_rate_hz=200.0))
     bag, _ = write_bag(sim, tmp_path / 'drive')
@@ -79,7 +82,11 @@ def test_ctrl_c_with_two_jobs_stops_the_workers_instead_of_waiting_for_their_chu
                str(tmp_path / 'gt.csv'), '--jobs', '2', '--no-cache', '--chunk-s', '10',
                '--chunk-overlap', '2', '--no-progress']
     run = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
-    time.sleep(6.0)   # imports, the bag read: the two workers are registering their chunks
+    parent, deadline = psutil.Process(run.pid), time.monotonic() + 60.0
+    # the forkserver and the two workers under it: the chunks are being registered
+    while len(parent.children(recursive=True)) < 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(1.0)
     assert run.poll() is None
     interrupted = time.monotonic()
     run.send_signal(signal.SIGINT)

@@ -183,3 +183,43 @@ def test_the_seam_note_counts_tested_and_untested_cuts_apart():
     assert joined.seams_cut == 2
     note = joined.seams_note(len(tasks), CHUNKS)
     assert '2 seam(s) tested, 1 of them cut; 1 cut untested (after a failed chunk' in note
+
+
+_MAIN_PROBE = """
+import sys
+from concurrent.futures import ProcessPoolExecutor
+
+from skidkin_ros.adapters import lidar_pool
+
+if __name__ == '__main__':
+    # a worker that reran this file has it as __main__ under the name __mp_main__
+    probe = "__import__('sys').modules['__main__'].__name__ == '__mp_main__'"
+    context = lidar_pool._pool_context()
+    with ProcessPoolExecutor(1, mp_context=context) as executor:
+        plain = executor.submit(eval, probe).result()
+    main = sys.modules['__main__']
+    with ProcessPoolExecutor(1, mp_context=context) as executor:
+        with lidar_pool._bare_main():
+            future = executor.submit(eval, probe)
+        restored = sys.modules['__main__'] is main
+        bare = future.result()
+    print(plain, bare, restored)
+"""
+
+
+def test_pool_workers_do_not_rerun_the_parents_main_module(tmp_path):
+    # A forkserver/spawn worker reruns the parent's main script (for `skidkin`: the whole CLI,
+    # about 1.5 s of CPU) unless the pool starts under _bare_main; a chunk needs none of it.
+    import os
+    from pathlib import Path
+    import subprocess
+    import sys
+
+    script = tmp_path / 'main_script.py'
+    script.write_text(_MAIN_PROBE)
+    root = str(Path(__file__).resolve().parents[1])
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [root, *filter(None, [os.environ.get('PYTHONPATH')])]))
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          env=env, timeout=120, check=True)
+    assert done.stdout.split() == ['True', 'False', 'True']

@@ -9,12 +9,15 @@ from __future__ import annotations
 
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+import contextlib
 import logging
 import multiprocessing
 import os
 from pathlib import Path
 import signal
-from typing import Any, Callable, Mapping, Sequence
+import sys
+import types
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 from skidkin_ros.adapters import cluster
 from skidkin_ros.adapters.lidar_cache import _cache_path, _read_cached, _write_cached, chunk_key
@@ -110,6 +113,28 @@ def _pool_context() -> Any:
     return multiprocessing.get_context('forkserver' if 'forkserver' in methods else 'spawn')
 
 
+@contextlib.contextmanager
+def _bare_main() -> Iterator[None]:
+    """Start worker processes without re-running the parent's main module in each of them.
+
+    A forkserver or spawn worker first imports the module the parent was started as (its
+    ``__main__``: for ``skidkin`` the whole CLI with every command, scipy and matplotlib, about
+    1.5 s of CPU per worker) before it unpickles a task. The tasks name their functions by
+    module (this one), so the workers need none of it: while the pool starts its processes the
+    parent's ``__main__`` is an empty module with no file and no spec, and multiprocessing then
+    asks the workers to import nothing but what the task names.
+    """
+    real = sys.modules.get('__main__')
+    sys.modules['__main__'] = types.ModuleType('__main__')
+    try:
+        yield
+    finally:
+        if real is None:
+            del sys.modules['__main__']
+        else:
+            sys.modules['__main__'] = real
+
+
 def _run_pool(tasks: Sequence[ChunkTask], jobs: int, tally: _Tally,
               store: Callable[[ChunkOutcome], None]) -> list[ChunkTask]:
     """Run tasks on a process pool; return the tasks left unfinished by a dead worker."""
@@ -117,7 +142,9 @@ def _run_pool(tasks: Sequence[ChunkTask], jobs: int, tally: _Tally,
     queue = context.SimpleQueue()
     executor = ProcessPoolExecutor(min(jobs, len(tasks)), mp_context=context,
                                    initializer=_init_worker, initargs=(queue,))
-    pending = {executor.submit(run_chunk, task): task for task in tasks}
+    # Not fork: the pool starts all its processes at the first submit, in this thread.
+    with _bare_main():
+        pending = {executor.submit(run_chunk, task): task for task in tasks}
     unfinished: list[ChunkTask] = []
     try:
         while pending:

@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from skidkin_ros.adapters.bag_reader import check_overlap, NoWheelInputError, open_recording
 from skidkin_ros.adapters.icp_selfcheck import SelfCheckOptions
@@ -49,6 +48,8 @@ def extrinsic_from_xyz_rpy(values: Sequence[float]) -> np.ndarray:
     out = np.eye(4)
     # Intrinsic z-y'-x'' (yaw, then pitch, then roll): R = Rz(yaw) Ry(pitch) Rx(roll), as URDF
     # and tf2 read rpy.
+    from scipy.spatial.transform import Rotation  # scipy.spatial: only for an extrinsic
+
     out[:3, :3] = Rotation.from_euler('ZYX', [yaw, pitch, roll]).as_matrix()
     out[:3, 3] = [x, y, z]
     return out

@@ -19,7 +19,6 @@ from skidkin_ros.core.kinematics.models import get_model, MODEL_NAMES
 from skidkin_ros.core.odometry.config import write_params_file
 from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.errors import FitError
-from skidkin_ros.report.page import write_report
 
 __all__ = ['add_parser']
 
@@ -89,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
             # result.options: the interval the calibration chose, not the default
             study = horizon_study(drives_t, drives_e, geometry, result.options,
                                   (1.0, 2.0, 5.0), (0.5, 1.0, 2.0, 5.0))
+        from skidkin_ros.report.page import write_report  # matplotlib: only for a report
+
         page = write_report(result, args.report, force=args.force, study=study)
         say(f'report: {page}')
     invalid = [m for m, f in result.fits.items() if not f.valid and get_model(m).params]

@@ -35,7 +35,6 @@ from skidkin_ros.core.calibration.pipeline import (calibrate, calibrate_interval
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.errors import OutputError
-from skidkin_ros.report.page import write_report
 from skidkin_ros.sim.simulate import SimConfig, simulate
 
 __all__ = ['add_parser', 'pipeline', 'DEMO_TRAIN', 'DEMO_EVAL']
@@ -124,6 +123,8 @@ def pipeline(args: argparse.Namespace) -> dict:
                                          **input_parameters([train_src])})
     prov = calibration_provenance(result, [train_src], eval_srcs, 'skidkin demo')
     write_params_file(params, flat, prov)
+    from skidkin_ros.report.page import write_report  # matplotlib: only here
+
     page = write_report(result, out / 'report', force=True)
     say(f'      parameters file: {params}\n      report: {page}')
 

@@ -14,7 +14,6 @@ from skidkin_ros.core.kinematics.extensions import EXTENSIONS
 from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
 from skidkin_ros.core.odometry.interval import INTERVALS
 from skidkin_ros.core.parallel import usable_cpus
-from skidkin_ros.report.diagnosis import write_diagnosis_report
 
 __all__ = ['add_parser']
 
@@ -53,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
     say(f'parameters file: {written} (model {"augmented" if result.extensions else base}); '
         f'run it with: ros2 run skidkin_ros odom_node --ros-args --params-file {written}')
     if args.report is not None:
+        from skidkin_ros.report.diagnosis import write_diagnosis_report  # matplotlib
+
         say(f'report: {write_diagnosis_report(result, args.report, force=args.force)}')
     return 0
 

@@ -18,7 +18,6 @@ from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.gyro_params import GYRO_MODES
 from skidkin_ros.errors import DataError, OutputError, ParameterError
-from skidkin_ros.report.figures import error_distributions
 
 __all__ = ['add_parser']
 
@@ -57,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
             raise OutputError(f'cannot create report folder {args.report}: {err}') from err
         shim = SimpleNamespace(evaluation=evaluation, eval_segments=segments,
                                options=SimpleNamespace(h_e=args.h_e))
+        from skidkin_ros.report.figures import error_distributions  # matplotlib: only here
+
         error_distributions(shim, args.report / 'errors.png')
         page = (f'# skidkin evaluate\n\nParameters: `{args.params}`; sources: '
                 + ', '.join(f'`{s.path}`' for s in sources)

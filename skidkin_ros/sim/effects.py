@@ -25,7 +25,6 @@ import math
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.signal import lfilter
 
 from skidkin_ros.core.kinematics.extensions import ratio_bump
 from skidkin_ros.errors import ParameterError
@@ -236,6 +235,8 @@ def _first_order(signal: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarra
         return signal
     dt_s = float(np.median(np.diff(t_s)))
     decay = math.exp(-dt_s / tau_s)
+    from scipy.signal import lfilter  # scipy.signal: about 1 s of CPU to import
+
     return lfilter([0.0, 1.0 - decay], [1.0, -decay], signal, axis=0)
 
 

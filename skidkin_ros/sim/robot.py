@@ -20,7 +20,6 @@ import math
 from typing import Sequence
 
 import numpy as np
-from scipy.signal import lfilter
 
 from skidkin_ros.core.kinematics.models import BoundModel
 from skidkin_ros.core.odometry.se2 import rollout, wrap_angle
@@ -77,6 +76,8 @@ def motor_response(cmd: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
     if tau_s <= 0.0:
         return np.asarray(cmd, dtype=float).copy()
     decay = math.exp(-dt_s / tau_s)
+    from scipy.signal import lfilter  # scipy.signal: about 1 s of CPU to import
+
     return lfilter([0.0, 1.0 - decay], [1.0, -decay], np.asarray(cmd, dtype=float), axis=0)
 
 
