@@ -84,7 +84,7 @@ def _skidkin_command() -> list[str]:
     return [str(Path(sys.executable).with_name('skidkin'))]
 
 
-def _kiss_track(results_dir: Path, bag: Path) -> Any:
+def kiss_track(results_dir: Path, bag: Path) -> Any:
     """Return kiss_icp_pipeline's poses as a base_link PoseTrack stamped like our frames."""
     from skidkin_ros.adapters.bag_reader import open_recording
 
@@ -126,7 +126,7 @@ def side_by_side(bag: Path, sim: Any, jobs: int, rounds: int = 2) -> dict[str, A
                           ours['valid'].astype(bool))
         errors['skidkin'] = _errors(track, sim)
         errors['skidkin']['valid_share'] = float(track.valid.mean())
-        errors['kiss'] = _errors(_kiss_track(work / 'kiss', bag), sim)
+        errors['kiss'] = _errors(kiss_track(work / 'kiss', bag), sim)
     return {'duration_s': duration_s, 'frames': int(len(track)), 'kiss_s': kiss_s,
             'skidkin_s': ours_s, 'jobs': jobs, 'speedup': sum(kiss_s) / sum(ours_s),
             'kiss_rtf': duration_s * len(kiss_s) / sum(kiss_s),

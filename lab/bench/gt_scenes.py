@@ -45,6 +45,7 @@ import tempfile
 import time
 from typing import Any, Sequence
 
+import gt_bench
 import numpy as np
 
 SCENES = ('forest', 'courtyard', 'snowfield', 'plain')
@@ -92,22 +93,6 @@ def _read_csv(path: Path) -> Any:
     rows = np.genfromtxt(path, delimiter=',', names=True)
     return PoseTrack(rows['t_ns'].astype(np.int64), rows['x'], rows['y'], rows['yaw'],
                      rows['valid'].astype(bool))
-
-
-def _kiss_track(results: Path, bag: Path) -> Any:
-    """Return kiss_icp_pipeline's poses as a base_link track stamped like our frames."""
-    from skidkin_ros.adapters.bag_reader import open_recording
-    from skidkin_ros.core.drive import PoseTrack
-    from skidkin_ros.core.rigid import planar_poses
-
-    poses = np.load(next(results.rglob('*_poses.npy')))
-    with open_recording(bag) as rec:
-        ends = [f.end_ns for f in rec.iter_lidar('/points')]
-        extrinsic = rec.read_extrinsic('base_link', 'lidar')
-    n = min(len(ends), poses.shape[0])
-    rows = planar_poses(poses[:n], extrinsic)
-    return PoseTrack(np.array(ends[:n], dtype=np.int64), rows[:, 0], rows[:, 1],
-                     np.unwrap(rows[:, 2]))
 
 
 def path_1s(t_ns: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
@@ -160,7 +145,7 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path,
                                 env=env, cwd=work)
     if code != 0:
         return {**result, 'error': f'kiss_icp_pipeline exited {code}: {err[-800:]}'}
-    kiss = score(_kiss_track(work / f'kiss_{scene}', bag), sim, valid_only=False)
+    kiss = score(gt_bench.kiss_track(work / f'kiss_{scene}', bag), sim, valid_only=False)
     kiss['seconds'] = seconds
     kiss['cpu_s'] = _CPU_S['last']
     kiss['consistent'] = bool(abs(kiss['path_ratio'] - 1) <= 0.1 and kiss['p95_1s_cm'] <= 50)
