@@ -144,8 +144,7 @@ def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
                        with_noise=len(intervals) == 1)
     gyro = stage.gyro
     if len(intervals) == 1:
-        return _add_plain_reference(_add_gyro(_noise_stage(stage), train, evaluate, gyro),
-                                    train, evaluate)
+        return _add_gyro(_noise_stage(stage), train, evaluate, gyro, plain=True)
     model = stage.best
     errors = {intervals[0]: _median_errors(stage.done[model].evaluation)}
     refits = {}
@@ -163,9 +162,8 @@ def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
         # compare the conventions is the same fit (same segments and options): not fitted again
         stage = _fit_stage(train, evaluate, holdout, geometry, replace(options, interval=chosen),
                            known_fits={model: refits[chosen]}, with_noise=True)
-    first = _noise_stage(stage)
-    result = _with_interval_errors(_add_gyro(first, train, evaluate, gyro), errors)
-    return _add_plain_reference(result, train, evaluate)
+    return _add_gyro(_with_interval_errors(_noise_stage(stage), errors), train, evaluate, gyro,
+                     plain=True)
 
 
 def _median_errors(stats: ModelEvaluation) -> tuple[float, float]:
