@@ -163,7 +163,7 @@ def _normal_lstsq(big_g: np.ndarray, dt: np.ndarray, dyaw: np.ndarray,
 
 def _trimmed_fit(big_g: np.ndarray, dt: np.ndarray, dyaw: np.ndarray, exact: bool = True
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Iteratively trimmed least squares (module docstring): (coefficients, residuals, kept).
+    """Return (coefficients, residuals, kept) of the iteratively trimmed least squares.
 
     ``exact`` False: solved by :func:`_normal_lstsq` (the bootstrap draws; the written scale
     and bias keep ``np.linalg.lstsq``).
