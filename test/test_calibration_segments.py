@@ -119,3 +119,34 @@ def test_calibrate_prints_the_plain_fit_beside_the_written_model(tmp_path, capsy
     with pytest.raises(SystemExit) as stop:
         main(['calibrate', str(table), '--out', str(out), '--segments', 'spins'])
     assert stop.value.code == 2 and 'invalid choice' in capsys.readouterr().err
+
+
+@pytest.mark.heavy
+def test_c192_another_convention_and_a_gyro_give_the_earlier_result():
+    # C192: when another sample-interval convention than the first wins (wheels sampled at
+    # their stamps: midpoint) the models are refitted under it with each model's noise in the
+    # task that fits it; the gyro's filter-noise replay runs without the wheel noise beside
+    # the plain window-end fit. All of it as the whole recipe per convention, one model after
+    # the other, gave.
+    drives = [simulate(SimConfig(duration_s=150.0, seed=60 + k)).drive(f'd{k}')
+              for k in range(3)]
+    assert all(d.imu is not None for d in drives)
+    options = CalibrationOptions(holdout_mode='time', holdout_block_s=30.0,
+                                 models=('edd_symmetric', 'edd_asymmetric'))
+    geometry = SimConfig().geometry
+    today = calibrate_interval(drives, None, geometry, replace(options, jobs=2))
+    earlier = calibrate_interval(drives, None, geometry, replace(options, jobs=1),
+                                 interval_search='full')
+    assert today.options.interval == earlier.options.interval != 'ending'
+    assert today.best == earlier.best and today.interval_errors == earlier.interval_errors
+    for name in today.fits:
+        assert today.fits[name].values == earlier.fits[name].values
+    assert {n: nf.noise for n, nf in today.noise.items()} == {
+        n: nf.noise for n, nf in earlier.noise.items()}
+    assert today.warnings == earlier.warnings
+    assert today.plain_values == earlier.plain_values
+    assert today.plain_window_end == earlier.plain_window_end
+    gyro = ('scale', 'bias', 'time_offset', 'r_floor', 'r_rel', 'r_intervals',
+            'adapt_yaw_scale', 'scale_windows')
+    assert today.gyro is not None and today.gyro.r_intervals > 0
+    assert ([getattr(today.gyro, f) for f in gyro] == [getattr(earlier.gyro, f) for f in gyro])

@@ -267,6 +267,52 @@ def test_fit_gyro_refuses_an_upside_down_imu():
         fit_gyro([drive], bootstrap=0)
 
 
+def test_c190_the_gyro_fit_solves_two_columns_as_lstsq_does_within_ulps():
+    """C190: the offset search and the bootstrap solve the 2 x 2 normal equations.
+
+    Within a few ulps of ``np.linalg.lstsq`` (weighted or not); when G and dt are nearly
+    parallel (a robot turning at one rate) the normal equations would lose digits: lstsq.
+    """
+    from skidkin_ros.core.calibration.gyro_fit import _normal_lstsq
+    rng = np.random.default_rng(3)
+    dt = 0.05 + 0.001 * rng.standard_normal(5000)
+    big_g = 0.4 * rng.standard_normal(5000) * dt
+    dyaw = 0.98 * big_g - 0.002 * dt + 1e-4 * rng.standard_normal(5000)
+    weight = rng.uniform(0.2, 1.0, 5000)
+    design = np.stack([big_g, dt], axis=1)
+    plain = np.linalg.lstsq(design, dyaw, rcond=None)[0]
+    root = np.sqrt(weight)
+    weighted = np.linalg.lstsq(design * root[:, None], dyaw * root, rcond=None)[0]
+    np.testing.assert_allclose(_normal_lstsq(big_g, dt, dyaw), plain, rtol=1e-12)
+    np.testing.assert_allclose(_normal_lstsq(big_g, dt, dyaw, weight), weighted, rtol=1e-12)
+    one_rate = 0.3 * dt * (1.0 + 1e-9 * rng.standard_normal(5000))
+    y = 0.98 * one_rate - 0.002 * dt
+    expected = np.linalg.lstsq(np.stack([one_rate, dt], axis=1), y, rcond=None)[0]
+    assert np.array_equal(_normal_lstsq(one_rate, dt, y), expected)
+
+
+def test_c190_the_gyro_fit_writes_what_lstsq_everywhere_wrote(monkeypatch):
+    """The fitted scale, bias and time offset are lstsq's bit for bit; standard errors ~1e-9."""
+    from dataclasses import replace
+
+    from skidkin_ros.core.calibration import gyro_fit
+    from skidkin_ros.sim.simulate import SimConfig, simulate
+    sim = simulate(SimConfig(duration_s=60.0, seed=6))
+    drive = replace(sim.drive('g'), imu=_shifted_gyro(sim, 1.02, 0.01, 0.03))
+    today = gyro_fit.fit_gyro([drive], bootstrap=20)
+
+    def lstsq(big_g, dt, dyaw, weight=None):
+        root = np.ones(dyaw.size) if weight is None else np.sqrt(weight)
+        return np.linalg.lstsq(np.stack([big_g, dt], axis=1) * root[:, None], dyaw * root,
+                               rcond=None)[0]
+    monkeypatch.setattr(gyro_fit, '_normal_lstsq', lstsq)
+    earlier = gyro_fit.fit_gyro([drive], bootstrap=20)
+    assert (today.scale, today.bias, today.time_offset, today.trimmed) == (
+        earlier.scale, earlier.bias, earlier.time_offset, earlier.trimmed)
+    assert today.scale_se == pytest.approx(earlier.scale_se, rel=1e-9)
+    assert today.bias_se == pytest.approx(earlier.bias_se, rel=1e-9)
+
+
 def test_old_parameter_files_load_with_the_gyro_off(tmp_path):
     from skidkin_ros.core.odometry.config import write_params_file
     path = write_params_file(tmp_path / 'old.yaml', {'model': 'ideal_dd'})

@@ -87,3 +87,22 @@ def test_covariances_read_at_the_window_ends_only_are_the_same():
     assert np.array_equal(a.pose_covariances[j], b.pose_covariances[j])
     others = np.setdiff1d(np.arange(len(a.poses)), j)
     assert np.all(np.isnan(b.covariances[others])) and np.all(np.isfinite(a.covariances))
+
+
+def test_c191_the_filter_noise_replay_without_the_wheel_noise_fits_the_same():
+    """C191: adapt's filter noise fits the filter's measurement against the model's rate.
+
+    Neither depends on the pose covariance, so the calibration replays it without the wheel
+    noise (no covariance propagated, a third cheaper): the same numbers, bit for bit. And the
+    filter records the same intervals either way.
+    """
+    from skidkin_ros.core.calibration.gyro_fit import fit_filter_noise
+    grid, _, config = _drives()
+    prefix = f'models.{config.model}.noise.'
+    noisy = OdometryConfig.from_flat({**config.values, prefix + 'calibrated': True,
+                                      prefix + 'var_x_const': 1e-4,
+                                      prefix + 'var_yaw_per_s': 1e-5})
+    assert noisy.active_noise is not None and config.active_noise is None
+    with_noise = fit_filter_noise(noisy, [grid, grid])
+    without = fit_filter_noise(config, [grid, grid])
+    assert with_noise == without and with_noise[2] > 100

@@ -96,8 +96,10 @@ def run(sizes_km: Sequence[float], drive_s: float, holdout_block_s: float = 60.0
     blas = blas_threads(first_km(drives, min(sizes_km)), geometry, options)
     # as skidkin calibrate runs it: today's path beside the earlier one (calib_speed.py)
     speed_km = 2.0 if 2.0 in sizes_km else max(sizes_km)
-    speed = {'km': speed_km, **calib_speed.before_after(first_km(drives, speed_km), geometry,
-                                                        options)}
+    speed_options = {'holdout_mode': 'time', 'holdout_block_s': holdout_block_s,
+                     **({'n_starts': n_starts} if n_starts is not None else {})}
+    speed = {'km': speed_km, **calib_speed.before_after(first_km(drives, speed_km),
+                                                        speed_options)}
     return {
         'blas': blas, 'before_after': speed,
         'rows': rows, 'simulate_s': simulate_s, 'drive_s': drive_s,

@@ -135,10 +135,20 @@ def _calib_section(calib: Mapping[str, Any]) -> list[str]:
     if speed:
         lines += [f'`skidkin calibrate` of {speed["km"]:g} km, the earlier path and today\'s in '
                   f'the same run (calib_speed.py, {speed["rounds"]} round(s), '
-                  f'{speed["cpus"]} CPUs): earlier {speed["earlier_s"]:.2f} s, today '
-                  f'{speed["today_s"]:.2f} s (fits {speed["fit_s_today"]:.2f} s): '
-                  f'{speed["ratio"]:.2f}x faster; same written model and values: '
-                  f'{"yes" if speed["same_result"] else "NO"}.', '']
+                  f'{speed["cpus"]} CPUs, each in a fresh process; wall / process CPU '
+                  f'seconds): earlier {speed["earlier_s"]:.2f} / '
+                  f'{speed.get("earlier_cpu_s", math.nan):.2f} s, today '
+                  f'{speed["today_s"]:.2f} / {speed.get("today_cpu_s", math.nan):.2f} s '
+                  f'(fits {speed["fit_s_today"]:.2f} s): {speed["ratio"]:.2f}x faster; same '
+                  f'written model and values: {"yes" if speed["same_result"] else "NO"}.', '']
+        if 'issue_s' in speed:
+            lines += [f'The issue-time code ({speed["issue_code"]}, its own defaults) in the same '
+                      f'run: {speed["issue_s"]:.2f} / {speed["issue_cpu_s"]:.2f} s, '
+                      f'{speed["issue_ratio"]:.2f}x today\'s wall time, '
+                      f'{speed["issue_cpu_ratio"]:.2f}x its CPU time. Goal: at most 8 s on '
+                      '2 cores (a quiet machine).', '']
+        elif speed.get('issue_error'):
+            lines += [f'The issue-time code did not run: {speed["issue_error"]}', '']
     return lines
 
 

@@ -140,27 +140,30 @@ def calibrate_interval(train: Sequence[Drive], evaluate: Sequence[Drive] | None,
                                                options.holdout_mode, options.holdout_block_s,
                                                options.holdout_key)
     stage = _fit_stage(train, evaluate, holdout, geometry,
-                       replace(options, interval=intervals[0]), gyro=True)
+                       replace(options, interval=intervals[0]), gyro=True,
+                       with_noise=len(intervals) == 1)
     gyro = stage.gyro
     if len(intervals) == 1:
-        return _add_plain_reference(_add_gyro(_noise_stage(stage), train, evaluate, gyro),
-                                    train, evaluate)
+        return _add_gyro(_noise_stage(stage), train, evaluate, gyro, plain=True)
     model = stage.best
     errors = {intervals[0]: _median_errors(stage.done[model].evaluation)}
     refits = {}
-    for interval in intervals[1:]:
-        errors[interval], refits[interval] = _interval_errors(
-            model, train, evaluate, geometry, replace(options, interval=interval))
+    # the other conventions' refits are independent: parallel tasks
+    others = fork_map(lambda interval: _interval_errors(
+        model, train, evaluate, geometry, replace(options, interval=interval)),
+        intervals[1:], _jobs(options.jobs))
+    for interval, (error, fit) in zip(intervals[1:], others):
+        errors[interval], refits[interval] = error, fit
     chosen, _ = choose_interval(errors)
     if chosen != intervals[0]:
         # the gyro fit does not depend on the convention: kept; the noise is calibrated
-        # only under the convention that is written; the model refitted under it to compare
-        # the conventions is the same fit (same segments and options): not fitted again
+        # only under the convention that is written, so each model's noise is calibrated in
+        # the task that fits it (no wait for the other fits); the model refitted under it to
+        # compare the conventions is the same fit (same segments and options): not fitted again
         stage = _fit_stage(train, evaluate, holdout, geometry, replace(options, interval=chosen),
-                           known_fits={model: refits[chosen]})
-    first = _noise_stage(stage)
-    result = _with_interval_errors(_add_gyro(first, train, evaluate, gyro), errors)
-    return _add_plain_reference(result, train, evaluate)
+                           known_fits={model: refits[chosen]}, with_noise=True)
+    return _add_gyro(_with_interval_errors(_noise_stage(stage), errors), train, evaluate, gyro,
+                     plain=True)
 
 
 def _median_errors(stats: ModelEvaluation) -> tuple[float, float]:
@@ -234,7 +237,7 @@ def _calibrate_resolved(train: Sequence[Drive], evaluate: Sequence[Drive], holdo
     the models), as one more parallel task. Returns (result, the gyro fit or why there is none;
     None when not asked or without a gyro), for :func:`_add_gyro`.
     """
-    stage = _fit_stage(train, evaluate, holdout, geometry, options, gyro)
+    stage = _fit_stage(train, evaluate, holdout, geometry, options, gyro, with_noise=True)
     return _noise_stage(stage), stage.gyro
 
 
@@ -259,11 +262,14 @@ class _Stage:
 
 def _fit_stage(train: Sequence[Drive], evaluate: Sequence[Drive], holdout: str,
                geometry: Geometry, options: CalibrationOptions, gyro: bool = False,
-               known_fits: Mapping[str, FitResult] | None = None) -> _Stage:
+               known_fits: Mapping[str, FitResult] | None = None,
+               with_noise: bool = False) -> _Stage:
     """Run steps 1-3 and 5: fit, score and choose, each model a parallel task (and the gyro).
 
     ``known_fits``: models already fitted under these ``options`` (the same call of
-    :func:`fit_models_weighted`), scored without fitting them again.
+    :func:`fit_models_weighted`), scored without fitting them again. ``with_noise``: each
+    task also calibrates its model's noise (step 4, the same call :func:`_noise_stage` makes),
+    for a stage whose noise is sure to be needed.
     """
     train_seg = usable_segments(train, options.train_segments(), 'training',
                                 needed_by='a calibration')
@@ -276,7 +282,7 @@ def _fit_stage(train: Sequence[Drive], evaluate: Sequence[Drive], holdout: str,
     if options.selection == 'likelihood':
         clusters = segment_clusters(eval_seg, evaluate, options.holdout_key)
     work = _ModelWork(geometry, options, train_seg, eval_seg, windows, other, clusters,
-                      tuple(train) if gyro else (), dict(known_fits or {}))
+                      tuple(train) if gyro else (), dict(known_fits or {}), with_noise)
     # The costliest tasks first, so the workers finish together.
     order = sorted(models, key=lambda m: -len(get_model(m).params))
     if gyro and any(drive.imu is not None for drive in train):
@@ -300,9 +306,11 @@ def _noise_stage(stage: _Stage) -> CalibrationResult:
     """Step 4 for every model (parallel tasks), then the result of steps 1-5."""
     options, work, models, done = stage.options, stage.work, stage.models, stage.done
     fits = {m: done[m].fit for m in models}
-    order = sorted(models, key=lambda m: -len(get_model(m).params))
+    order = [m for m in sorted(models, key=lambda m: -len(get_model(m).params))
+             if done[m].noise is None]
     calibrated = dict(zip(order, fork_map(work, [(_NOISE_TASK, m, fits[m]) for m in order],
                                           _jobs(options.jobs))))
+    calibrated.update({m: done[m].noise for m in models if done[m].noise is not None})
     noise = {m: calibrated[m][0] for m in models if calibrated[m][0] is not None}
     warnings = [w for m in models for w in fits[m].warnings]
     for m in models:
@@ -347,6 +355,7 @@ class _ModelResult:
     window_end: WindowEnd
     nll: np.ndarray | None
     nll_error: str | None
+    noise: tuple[NoiseFit | None, tuple[str, ...]] | None = None  # with_noise: step 4 too
 
 
 @dataclass(frozen=True)
@@ -366,6 +375,7 @@ class _ModelWork:
     clusters: np.ndarray | None
     gyro_train: tuple[Drive, ...] = ()
     known_fits: Mapping[str, FitResult] = field(default_factory=dict)
+    with_noise: bool = False
 
     def __call__(self, item):
         """Run one task: a model's fit and scores, a model's noise (a tuple), or the gyro."""
@@ -391,7 +401,8 @@ class _ModelWork:
                 nll = heldout_nll(name, fit.values, geometry, self.eval_seg, self.clusters)
             except DataError as err:
                 nll_error = str(err)
-        return _ModelResult(fit, evaluation, window_end, nll, nll_error)
+        noise = self.noise(name, fit) if self.with_noise else None
+        return _ModelResult(fit, evaluation, window_end, nll, nll_error, noise)
 
     def noise(self, name: str, fit: FitResult) -> tuple[NoiseFit | None, tuple[str, ...]]:
         options = self.options
