@@ -26,7 +26,13 @@ from typing import Any, Mapping
 from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 from skidkin_ros.core.timeunits import s_to_ns
 
-__all__ = ['ONLINE_SPECS', 'OnlineParams', 'ReferenceStatus', 'base_pose']
+__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'OnlineParams', 'ReferenceStatus', 'base_pose']
+
+# Extensions of an augmented model that online calibration learns (with the base model's
+# parameters): twist-stage ones that depend on the wheel speeds and the base twist only
+# (skidkin_ros.core.online.augmented says why the others are refused).
+ONLINE_EXTENSIONS: tuple[str, ...] = ('speed_slip', 'direction_asymmetry', 'lateral_skid',
+                                      'icr_offset', 'ratio_yaw_slip')
 
 ONLINE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('time_offset', 's', 0.0, -1.0, 1.0,

@@ -7,9 +7,11 @@ from typing import Callable
 
 import numpy as np
 
+from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.core.online.augmented import AugmentedCalibrator, LayoutModel, online_layout
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
 
 __all__ = ['attach_online', 'online_odometer', 'make_calibrator']
@@ -22,8 +24,17 @@ def make_calibrator(config: OdometryConfig,
 
     It starts from the file's parameters of the active model; their covariance
     (models.<m>.parameter_covariance), when the file has one, is the first ground's information
-    on top of the broad prior (online.prior_sigma).
+    on top of the broad prior (online.prior_sigma). An augmented model learns its base model's
+    parameters and its extensions' fitted ones (:mod:`skidkin_ros.core.online.augmented`).
     """
+    if config.model == AUGMENTED_NAME:
+        layout = online_layout(config.augmented_base, config.geometry,
+                               config.model_values[config.augmented_base],
+                               config.augmented_values, config.augmented_extensions)
+        augmented = LayoutModel(layout)
+        return AugmentedCalibrator(augmented, augmented.mapping(layout.vector()),
+                                   config.geometry, config.active_noise, config.online,
+                                   config['interval'], None, counters, warn)
     model = get_model(config.model)
     flat = config.values.get(f'models.{model.name}.parameter_covariance')
     size = len(model.params)
