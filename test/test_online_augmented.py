@@ -80,6 +80,23 @@ def test_driving_straight_leaves_an_unobserved_extension_alone():
     assert values['y_l'] == pytest.approx(DEFAULT_TRUE_PARAMS['y_l'], rel=0.02)
 
 
+def test_alternating_grounds_are_recognised_with_an_augmented_model():
+    """Two grounds every 4 m: the known ground is taken back (a score with its uncertainty)."""
+    effects = (make_effect('speed_slip', SPEED_SLIP),
+               make_effect('terrain_regime', SLIP, mode='alternate', period_m=4.0,
+                           yaw=YAW_SLIP))
+    sim = simulate(SimConfig(duration_s=150.0, seed=6, effects=effects))
+    eps = {}
+    for name, online in (('fixed', False), ('online', True)):
+        odometer = online_odometer(OdometryConfig.from_flat({**AUGMENTED,
+                                                             'online.enabled': online}))
+        eps[name] = _eps_t(sim, odometer.predict(
+            sim.wheels, reference=_reference(sim) if online else None).poses)
+    assert odometer.counters['online_switch'] >= 2
+    assert len(odometer.learner.grounds) >= 2
+    assert eps['online'] < 0.7 * eps['fixed']   # 0.56 on this drive
+
+
 @pytest.mark.parametrize('extensions', ['first_order_lag', 'speed_slip,time_offset',
                                         'residual_model', 'terrain_regime'])
 def test_extensions_that_need_state_or_rates_are_refused_with_the_reason(extensions):

@@ -12,7 +12,9 @@ augmented twist, the Jacobian is the central difference of
 :func:`~skidkin_ros.core.calibration.noise_fit.parameter_sensitivity` takes), the noise weighting
 is the base model's noise (an augmented model publishes its base model's noise), and the window,
 the eigen-direction rule, the change detection and the reference gates are the plain model's
-(:class:`~skidkin_ros.core.online.calibrator.OnlineCalibrator`, unchanged).
+(:class:`~skidkin_ros.core.online.calibrator.OnlineCalibrator`, unchanged; the two places
+that ask for the Jacobian by model name, the window's residuals and a ground's score with its
+parameter uncertainty, are overridden here to take it from the layout model).
 
 Which extensions can be learned online (``ONLINE_EXTENSIONS``): those of the twist stage whose
 formula depends on the wheel speeds and the base twist only (speed_slip, direction_asymmetry,
@@ -32,7 +34,8 @@ import numpy as np
 
 from skidkin_ros.core.calibration.engine import BASE, ParameterLayout
 from skidkin_ros.core.calibration.fitting import predict_end_poses, segment_errors
-from skidkin_ros.core.calibration.noise_fit import segment_covariances, segment_motion
+from skidkin_ros.core.calibration.noise_fit import (mahalanobis, segment_covariances,
+                                                    segment_motion)
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.kinematics.augmented import BoundAugmented
 from skidkin_ros.core.kinematics.extensions import get_extension
@@ -126,6 +129,15 @@ class AugmentedCalibrator(OnlineCalibrator):
                 batch.start, predict_end_poses(self.model, plus, self.geometry, batch),
                 predict_end_poses(self.model, minus, self.geometry, batch)) / (2.0 * step)
         return errors, sens * self.scale
+
+    def _score(self, ground: Ground, seg: SegmentSet, motion_cov: np.ndarray,
+               with_parameters: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
+        if not with_parameters:  # segment_errors takes the layout model as it is
+            return super()._score(ground, seg, motion_cov, with_parameters)
+        errors, sens = self._residuals(ground, [seg])
+        cov = (motion_cov + self._reference_cov()
+               + sens[0] @ np.linalg.inv(ground.info) @ sens[0].T)
+        return errors[0], sens[0], float(mahalanobis(cov[None], errors[0][None])[0])
 
     def _motion_cov(self, seg: SegmentSet) -> np.ndarray:
         base_k, _ = self.model.layout.parameters(self.active.k)
