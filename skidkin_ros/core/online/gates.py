@@ -9,7 +9,6 @@ the recipe is in that module's docstring).
 
 from __future__ import annotations
 
-import bisect
 import math
 
 import numpy as np
@@ -62,6 +61,7 @@ class ReferenceGates:
                 self._count(ReferenceStatus.UNCOVERED, 'reference poses wait for wheel data '
                             'that does not come: the oldest is dropped')
                 self._pending.popleft()
+            self._due_ns = self._pending[0][0]
         return status, self.version != before
 
     def _arrival(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str,
@@ -91,23 +91,11 @@ class ReferenceGates:
 
     def _wheel_motion(self, t_a: int, t_b: int) -> tuple[float, float] | None:
         """Return the wheel travel (m) and rotation (rad) over (t_a, t_b]; None: not covered."""
-        t1 = self._t1
-        i0 = bisect.bisect_right(t1, t_a)
-        i1 = bisect.bisect_left(t1, t_b)
-        rows = self._rows
-        if i1 >= len(t1) or i0 > i1 or rows[i0][0] > t_a or rows[i0][5] != rows[i1][5]:
-            return None
-        dist = rot = 0.0
-        for i in range(i0, i1 + 1):
-            t0, _, _, speed, yaw_rate, _ = rows[i]
-            dt = (min(t1[i], t_b) - max(t0, t_a)) * 1e-9
-            dist += abs(speed) * dt
-            rot += yaw_rate * dt
-        return dist, rot
+        return self._steps.motion(t_a, t_b)
 
     def _judge(self, t_ns: int, x: float, y: float, yaw: float) -> None:
         """Judge a reference pose the wheels now cover; use it if it is good."""
-        if not self._t1 or t_ns <= self._rows[0][0]:
+        if not self._t1 or t_ns <= self._steps.first_start():
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
                         'step kept (time_offset wrong, or wheel data missing)')
             return
