@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import functools
 from typing import Callable
 
 import numpy as np
@@ -10,6 +11,7 @@ import numpy as np
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.gyro import GyroStatus
 from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.core.online.augmented import AugmentedCalibrator, LayoutModel, online_layout
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
@@ -50,8 +52,20 @@ def attach_online(odometer: Odometer, config: OdometryConfig,
     learner = None
     if config.online.enabled:
         learner = make_calibrator(config, odometer.counters, warn)
+        # the gyro, when there is one (imu.mode fuse), judges the reference's heading
+        learner.gyro_turn = functools.partial(_gyro_turn, odometer)
+        learner.gyro_noise = (config.imu.arw, config.imu.bias_sigma)
     odometer.attach_learner(learner)
     return learner
+
+
+def _gyro_turn(odometer: Odometer, t_a_ns: int, t_b_ns: int) -> float | None:
+    """Return the gyro's yaw (rad) over a wheel-time interval; None where it cannot tell."""
+    gyro = odometer.gyro
+    if gyro is None or t_b_ns <= t_a_ns:
+        return None
+    status, mean = gyro.buffer.mean_rate(t_a_ns, t_b_ns)
+    return mean * ((t_b_ns - t_a_ns) * 1e-9) if status is GyroStatus.COVERED else None
 
 
 def online_odometer(config: OdometryConfig, **kwargs) -> Odometer:
