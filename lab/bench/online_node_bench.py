@@ -82,9 +82,10 @@ class OnlineDriver(Driver):
         self.twist = reference_twist()
         self.first_ns: int | None = None
         self.references = 0
+        self.with_reference = True
 
-    def online_status(self) -> dict[str, str]:
-        """Return the last /diagnostics values of a node learning online ({} if none came)."""
+    def online_status(self, namespace: str) -> dict[str, str]:
+        """Return the last /diagnostics values of the node in ``namespace`` ({}: none came)."""
         last: dict[str, str] = {}
         handle = self.diag_sub.handle
         while True:
@@ -94,7 +95,7 @@ class OnlineDriver(Driver):
                 return last
             for status in item[0].status:
                 values = {kv.key: kv.value for kv in status.values}
-                if 'online.state' in values:
+                if status.name.startswith(namespace + '/'):
                     last = values
 
     def publish(self) -> int:
@@ -105,7 +106,7 @@ class OnlineDriver(Driver):
 
     def publish_reference(self) -> None:
         """Publish the reference pose of the arc at the wall clock now."""
-        if self.first_ns is None:
+        if self.first_ns is None or not self.with_reference:
             return
         stamp_ns = time.time_ns()
         x, y, yaw, _, _ = step_scalar(0.0, 0.0, 0.0, *self.twist,
@@ -150,17 +151,20 @@ class OnlineDriver(Driver):
 class OnlineSut:
     """One node process and its driver (as node_bench.Sut, with the reference driver)."""
 
-    def __init__(self, label: str, online: bool, domain_id: int, cpu: int | None) -> None:
+    def __init__(self, label: str, online: bool, domain_id: int, cpu: int | None,
+                 with_reference: bool = True) -> None:
         import subprocess
         self.label = label
-        namespace = f'/online_bench_{os.getpid()}_{label}'
+        namespace = f'/online_bench_{os.getpid()}_{label.replace(",", "").replace(" ", "_")}'
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
         self.proc = subprocess.Popen(sut_command('odom', namespace, node_params(online)),
                                      env=env, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True)
         if cpu is not None:
             pin(self.proc.pid, cpu)
+        self.namespace = namespace
         self.driver = OnlineDriver(namespace, domain_id)
+        self.driver.with_reference = with_reference
         self.driver.wait_connected(30.0, self.proc)
         if online:   # the reference subscription matched too
             deadline = time.monotonic() + 30.0
@@ -197,7 +201,7 @@ class OnlineSut:
                 'references': self.driver.references}
 
     def close(self) -> str:
-        self.status = self.driver.online_status()
+        self.status = self.driver.online_status(self.namespace)
         self.driver.close()
         self.proc.terminate()
         try:
@@ -214,11 +218,16 @@ def main(argv: list[str] | None = None) -> int:
                         help='driving time per node, split into --rounds blocks')
     parser.add_argument('--rounds', type=int, default=6)
     parser.add_argument('--rate', type=float, default=1000.0, help='JointState rate (Hz)')
+    parser.add_argument('--no-reference-node', action='store_true',
+                        help='also run a third node, online on but sent no reference (splits '
+                        'the subscription and per-sample cost from the learning)')
     args = parser.parse_args(argv)
     cpu = pin_driver(sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity')
                      else [])
     domain = 40 + os.getpid() % 50
     suts = [OnlineSut('off', False, domain, cpu), OnlineSut('on', True, domain, cpu)]
+    if args.no_reference_node:
+        suts.append(OnlineSut('on, no reference', True, domain, cpu, with_reference=False))
     try:
         block_s = args.seconds / args.rounds
         for index in range(args.rounds):
@@ -227,22 +236,24 @@ def main(argv: list[str] | None = None) -> int:
         rows = [sut.row() for sut in suts]
     finally:
         logs = [sut.close() for sut in suts]
-    off, on = rows
+    off, on = rows[:2]
     for row in rows:
-        print(f"online {row['label']:>3}: {row['cpu_us_per_sample']:.1f} us CPU per wheel "
+        print(f"online {row['label']}: {row['cpu_us_per_sample']:.1f} us CPU per wheel "
               f"sample sent, {row['cpu_us_per_output']:.1f} per Odometry back ({row['sent']} "
               f"JointState at {args.rate:g} Hz, {row['received']} Odometry back, "
               f"{row['references']} reference poses at {REFERENCE_HZ:g} Hz, "
               f"p50 latency {row['p50_latency_us']:.0f} us)")
-    print(f'ratio on/off per wheel sample sent: '
-          f'{on["cpu_us_per_sample"] / off["cpu_us_per_sample"]:.3f}; per Odometry back: '
-          f'{on["cpu_us_per_output"] / off["cpu_us_per_output"]:.3f} (process CPU time of each '
-          'node, this run; a node that cannot keep up drops JointState: see the counts)')
-    status = suts[1].status
-    print('online node /diagnostics: ' + ', '.join(
-        f'{key} {status.get(key, "?")}' for key in (
-            'online.state', 'count.online_segments', 'count.reference_accepted',
-            'online.alpha_l', 'online.alpha_r')))
+    for row in rows[1:]:
+        print(f'ratio {row["label"]} / off per wheel sample sent: '
+              f'{row["cpu_us_per_sample"] / off["cpu_us_per_sample"]:.3f}; per Odometry back: '
+              f'{row["cpu_us_per_output"] / off["cpu_us_per_output"]:.3f}')
+    print('(process CPU time of each node, this run; a node that cannot keep up drops '
+          'JointState: see the counts)')
+    for sut in suts:
+        print(f'node {sut.label} /diagnostics: ' + ', '.join(
+            f'{key} {sut.status.get(key, "-")}' for key in (
+                'count.integrated', 'online.state', 'count.online_segments',
+                'count.reference_accepted', 'online.alpha_l', 'online.alpha_r')))
     if logs[1]:
         print('online node stderr (last lines):', *logs[1].splitlines()[-3:], sep='\n  ')
     return 0
