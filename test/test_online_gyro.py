@@ -68,7 +68,9 @@ def test_a_reference_turning_where_the_gyro_does_not_pauses_learning(drive):
     good = _learn(drive, _reference(drive), 'fuse')
     counters = judged.counters
     assert counters['reference_gyro'] >= 50
-    assert judged.learner.summary()['last_refusal'] == 'reference_gyro'
+    summary = judged.learner.summary()
+    assert summary['last_refusal'] == 'reference_gyro'
+    assert summary['state'] == 'holding' and blind.learner.summary()['state'] != 'holding'
     # learning paused: no segment of the bad half was learned, no false change of ground
     assert counters['online_segments'] < 0.6 * good.counters['online_segments']
     assert counters['online_change'] == 0 < blind.counters['online_change']

@@ -185,11 +185,16 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
                                              self.covariance)
 
     def state(self, wheel_now_ns: int | None = None) -> str:
-        """Return 'holding' (no usable reference lately), 'adapting' or 'learning'."""
+        """Return 'holding', 'adapting' or 'learning'.
+
+        Holding: no usable reference for online.max_gap, or the gyro refused one that lately.
+        """
         now = self._last_t1 if wheel_now_ns is None else wheel_now_ns
         last = self._last_accepted_wheel_ns
         if last is None or now is None or now - last > self.params.max_gap * NS_PER_S:
             return 'holding'
+        if now - self.gyro_refused_ns <= self.params.max_gap * NS_PER_S:
+            return 'holding'   # the gyro refused the reference lately: learning paused
         return 'adapting' if self.travel_m < self._adapt_until_m else 'learning'
 
     def summary(self) -> dict[str, float | str]:

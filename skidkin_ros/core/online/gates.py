@@ -53,6 +53,7 @@ class ReferenceGates:
     _gyro_refused = 0
     _gyro_epoch = 0
     last_refusal = ''   # the cause of the last reference pose not used (/diagnostics)
+    gyro_refused_ns = -(1 << 62)   # wheel time of the last pose the gyro refused
 
     def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
                   child_frame_id: str = '') -> tuple[ReferenceStatus, bool]:
@@ -193,6 +194,7 @@ class ReferenceGates:
             limit = sigmas * math.sqrt(ref_var + arw * arw * t_s + (bias_sigma * t_s) ** 2)
             if abs(diff) > limit:
                 self._gyro_refused += 1
+                self.gyro_refused_ns = ref.t_ns
                 self._seg_start = None
                 self._count(ReferenceStatus.GYRO, f'reference heading changed {diff:+.3f} rad '
                             f'more than the gyro over {t_s:.2f} s (limit {limit:.3f} rad, '
