@@ -158,3 +158,22 @@ def test_the_node_learns_an_augmented_model_as_predict_does(tmp_path, slip_drive
     np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
     for cause in ('online_segments', 'online_change', 'reference_accepted'):
         assert result.counters.get(cause, 0) == odometer.counters[cause]
+
+
+def test_the_parameter_uncertainty_is_the_central_difference_on_floats(slip_drive):
+    """The per-sample Jacobian of a layout model: the rebuilt-model form's, to rounding."""
+    from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
+    config = OdometryConfig.from_flat({**AUGMENTED, 'augmented.extensions': 'speed_slip,'
+                                       'lateral_skid', 'augmented.lateral_skid.k': 0.03,
+                                       'online.enabled': True})
+    learner = online_odometer(config).learner
+    fast = learner.uncertainty()
+    slow = ParameterUncertainty.of_model(learner.model, learner.k, learner.geometry,
+                                         learner.covariance)
+    assert fast.size == slow.size == 7
+    for wheels in ((2.0, 3.0), (-1.5, 1.5), (4.0, 4.0), (0.0, 0.0)):
+        a = np.array(fast.twist_jacobian(0.0, 0.0, 0.0, wheels))
+        b = np.array(slow.twist_jacobian(0.0, 0.0, 0.0, wheels))
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+        assert np.any(a != 0.0) == (wheels != (0.0, 0.0))
+    assert fast.twist_jacobian(0.0, 0.0, 0.0, None) is None

@@ -27,7 +27,7 @@ start (the lags, time_offset). A configuration with one of them is refused with 
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Mapping
 
 import numpy as np
@@ -47,7 +47,7 @@ from skidkin_ros.core.online.calibrator import OnlineCalibrator
 from skidkin_ros.core.online.grounds import Ground
 from skidkin_ros.core.online.window import _stack
 
-__all__ = ['LayoutModel', 'AugmentedCalibrator', 'ONLINE_EXTENSIONS']
+__all__ = ['LayoutModel', 'LayoutUncertainty', 'AugmentedCalibrator', 'ONLINE_EXTENSIONS']
 
 # Relative step of the central differences (parameter_sensitivity's).
 REL_STEP = 1e-6
@@ -149,5 +149,49 @@ class AugmentedCalibrator(OnlineCalibrator):
         return self.model.source(self.active.k.copy())
 
     def uncertainty(self) -> ParameterUncertainty | None:
-        return ParameterUncertainty.of_model(self.model, self.active.k, self.geometry,
-                                             self.covariance)
+        return LayoutUncertainty.of_layout(self.model, self.active.k, self.geometry,
+                                           self.covariance)
+
+
+@dataclass(frozen=True)
+class LayoutUncertainty(ParameterUncertainty):
+    """The parameter uncertainty of a layout model, carried per wheel sample on floats.
+
+    d(twist)/dk_j is the central difference of the augmented twist at the step's wheel speeds
+    (as :class:`ParameterUncertainty` takes it for a model not linear in them), with the 2p
+    perturbed models bound once per parameter vector and evaluated on plain floats
+    (:meth:`BoundAugmented.scalar_memoryless`) instead of a model rebuilt per sample and
+    parameter: at 1 kHz the rebuilt form cost 150 us per sample.
+    """
+
+    pairs: tuple = ()   # per parameter: (model at k + h, model at k - h, 1 / 2h)
+
+    @classmethod
+    def of_layout(cls, model: LayoutModel, k: np.ndarray, geometry: Geometry,
+                  covariance: np.ndarray) -> 'LayoutUncertainty | None':
+        k = np.asarray(k, dtype=float)
+        covariance = np.asarray(covariance, dtype=float)
+        if k.size == 0 or not np.any(covariance):
+            return None
+        pairs = []
+        for j in range(k.size):
+            step = REL_STEP * max(abs(float(k[j])), 1.0)
+            plus, minus = k.copy(), k.copy()
+            plus[j] += step
+            minus[j] -= step
+            pairs.append((model.source(plus), model.source(minus), 1.0 / (2.0 * step)))
+        return cls(covariance, (), (model, tuple(k.tolist()), geometry, REL_STEP), tuple(pairs))
+
+    def twist_jacobian(self, vx: float, vy: float, w: float,
+                       wheels: tuple[float, float] | None = None
+                       ) -> list[tuple[float, float, float]] | None:
+        if wheels is None:
+            return None
+        left, right = wheels
+        out = []
+        for plus, minus, inverse in self.pairs:
+            a = plus.scalar_memoryless(left, right, 0.0)
+            b = minus.scalar_memoryless(left, right, 0.0)
+            out.append(((a[0] - b[0]) * inverse, (a[1] - b[1]) * inverse,
+                        (a[2] - b[2]) * inverse))
+        return out
