@@ -16,7 +16,10 @@ time). Four odometries on the same wheel samples:
 Scores: ε_t and ε_θ over the whole drive (mean increment error over 2 m of true path,
 :func:`skidkin_ros.sim.accuracy.increment_errors`). Run::
 
-    python -m lab.bench.online_augmented_study [--seeds 1 2 11 12 13 14]
+    python -m lab.bench.online_augmented_study [--seeds 1 2 11 12 13 14] [--effect ratio_yaw_slip]
+
+``--effect ratio_yaw_slip``: the truth loses up to 40 % of its yaw rate at a slow/fast wheel
+speed ratio near 0.5 instead (the model edd_asymmetric + ratio_yaw_slip).
 """
 
 from __future__ import annotations
@@ -39,38 +42,44 @@ __all__ = ['ODOMETRIES', 'AugmentedResult', 'run_seed', 'table']
 
 SPEED_SLIP = 0.25
 SLIP, YAW_SLIP = 0.25, 0.15
+# The effect on the truth and the extension that covers it: (strength, the extension's k on the
+# new ground). speed_slip: v = (1 - SLIP) v0 (1 - k |v0|) = v1 (1 - k / (1 - SLIP) |v1|);
+# ratio_yaw_slip (the simulator's peak 0.5 and width 0.15 are the extension's defaults):
+# omega = (1 - YAW_SLIP) omega0 (1 - k bump) = omega1 (1 - k bump), the same k.
+EFFECTS = {'speed_slip': (SPEED_SLIP, SPEED_SLIP / (1.0 - SLIP)),
+           'ratio_yaw_slip': (0.4, 0.4)}
 MODEL = 'edd_asymmetric'
 ODOMETRIES = ('fixed augmented', 'online plain', 'online augmented', 'true')
 
 
-def _flat(model: str, online: bool, values: dict | None = None, k: float = SPEED_SLIP) -> dict:
-    values = values or DEFAULT_TRUE_PARAMS
+def _flat(model: str, online: bool, effect: str = 'speed_slip') -> dict:
+    values = DEFAULT_TRUE_PARAMS
     flat = {'model': model, 'robot': 'sim', f'models.{MODEL}.noise.calibrated': True,
             **{f'models.{MODEL}.{name}': v for name, v in values.items()},
             'online.enabled': online}
     if model == 'augmented':
-        flat.update({'augmented.base': MODEL, 'augmented.extensions': 'speed_slip',
-                     'augmented.speed_slip.k': k})
+        flat.update({'augmented.base': MODEL, 'augmented.extensions': effect,
+                     f'augmented.{effect}.k': EFFECTS[effect][0]})
     return flat
 
 
-def _new_ground() -> tuple[dict, float]:
-    """Return the new ground's true base values and speed_slip k (module docstring)."""
+def _new_ground(effect: str = 'speed_slip') -> tuple[dict, float]:
+    """Return the new ground's true base values and the extension's k (module docstring)."""
     base = dict(DEFAULT_TRUE_PARAMS)
     ratio = (1.0 - SLIP) / (1.0 - YAW_SLIP)
     values = {'alpha_l': base['alpha_l'] * (1 - SLIP), 'alpha_r': base['alpha_r'] * (1 - SLIP),
               'x_v': base['x_v'] / (1.0 - YAW_SLIP), 'y_l': base['y_l'] * ratio,
               'y_r': base['y_r'] * ratio}
-    # v = (1 - SLIP) v0 (1 - k |v0|) = v1 (1 - k / (1 - SLIP) |v1|), v1 = (1 - SLIP) v0
-    return values, SPEED_SLIP / (1.0 - SLIP)
+    return values, EFFECTS[effect][1]
 
 
-def _true_poses(sim: Simulation, interval: str) -> np.ndarray:
+def _true_poses(sim: Simulation, interval: str, effect: str) -> np.ndarray:
     geometry = sim.config.geometry
-    structure = AugmentedModel(MODEL, ('speed_slip',))
-    new_values, new_k = _new_ground()
-    sources = [structure.bind(get_model(MODEL).bind(values, geometry), {'speed_slip': {'k': k}})
-               for values, k in ((DEFAULT_TRUE_PARAMS, SPEED_SLIP), (new_values, new_k))]
+    structure = AugmentedModel(MODEL, (effect,))
+    new_values, new_k = _new_ground(effect)
+    sources = [structure.bind(get_model(MODEL).bind(values, geometry), {effect: {'k': k}})
+               for values, k in ((DEFAULT_TRUE_PARAMS, EFFECTS[effect][0]),
+                                 (new_values, new_k))]
     mask = sim.trace.masks.get('terrain_regime')
     on = np.interp(sim.wheels.t_ns, sim.trace.t_ns, mask.astype(float)) > 0.5
     integrator = StreamingIntegrator(sources[0], None, interval)
@@ -90,15 +99,17 @@ class AugmentedResult:
     """One drive: ε_t and ε_θ per odometry, the learned values, the drive's length."""
 
     seed: int
+    effect: str
     eps_t: dict
     eps_th: dict
     learned: dict
     length_m: float
 
 
-def run_seed(seed: int, duration_s: float = 200.0) -> AugmentedResult:
+def run_seed(seed: int, duration_s: float = 200.0, effect: str = 'speed_slip'
+             ) -> AugmentedResult:
     """Run the four odometries on one drive (module docstring)."""
-    effects = (make_effect('speed_slip', SPEED_SLIP),
+    effects = (make_effect(effect, EFFECTS[effect][0]),
                make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.5, yaw=YAW_SLIP))
     sim = simulate(SimConfig(duration_s=duration_s, seed=seed, effects=effects))
     reference = _reference(sim, np.random.default_rng(seed))
@@ -107,32 +118,32 @@ def run_seed(seed: int, duration_s: float = 200.0) -> AugmentedResult:
     for name, model, online in (('fixed augmented', 'augmented', False),
                                 ('online plain', MODEL, True),
                                 ('online augmented', 'augmented', True)):
-        config = OdometryConfig.from_flat(_flat(model, online))
+        config = OdometryConfig.from_flat(_flat(model, online, effect))
         odometer = online_odometer(config)
         poses[name] = odometer.predict(sim.wheels, reference=reference if online else None).poses
         if online:
             learned[name] = odometer.learner.values
-    poses['true'] = _true_poses(sim, config['interval'])
+    poses['true'] = _true_poses(sim, config['interval'], effect)
     scores = {name: _scores(sim, p) for name, p in poses.items()}
-    return AugmentedResult(seed, {k: float(v[0].mean()) for k, v in scores.items()},
+    return AugmentedResult(seed, effect, {k: float(v[0].mean()) for k, v in scores.items()},
                            {k: float(v[1].mean()) for k, v in scores.items()}, learned,
                            float(sim.truth.path_length()[-1]))
 
 
 def table(results: Sequence[AugmentedResult]) -> str:
     """Return the study's table: ε_t (mm/m... as metres per 2 m) and ε_θ per odometry."""
-    head = ('| seed | path m | ' + ' | '.join(f'ε_t {n}' for n in ODOMETRIES)
+    head = ('| effect | seed | path m | ' + ' | '.join(f'ε_t {n}' for n in ODOMETRIES)
             + ' | online aug / online plain | online aug / fixed aug | ε_θ online aug / plain |'
-              ' speed_slip.k learned (true new ground) |')
+              ' k learned (true new ground) |')
     lines = [head, '|' + '---|' * (head.count('|') - 1)]
-    _, new_k = _new_ground()
     for r in results:
         e = r.eps_t
+        _, new_k = _new_ground(r.effect)
         lines.append(
-            f'| {r.seed} | {r.length_m:.0f} | '
+            f'| {r.effect} | {r.seed} | {r.length_m:.0f} | '
             + ' | '.join(f'{e[n]:.4f}' for n in ODOMETRIES)
             + f' | {e["online augmented"] / e["online plain"]:.2f}'
             f' | {e["online augmented"] / e["fixed augmented"]:.2f}'
             f' | {r.eps_th["online augmented"] / r.eps_th["online plain"]:.2f}'
-            f' | {r.learned["online augmented"]["speed_slip.k"]:.3f} ({new_k:.3f}) |')
+            f' | {r.learned["online augmented"][f"{r.effect}.k"]:.3f} ({new_k:.3f}) |')
     return '\n'.join(lines)
