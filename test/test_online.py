@@ -232,7 +232,8 @@ def test_memory_stays_bounded_on_a_long_drive():
 
 
 @pytest.mark.parametrize('flat, words', [
-    ({'model': 'augmented', 'augmented.base': 'edd_symmetric'}, 'augmented'),
+    ({'model': 'augmented', 'augmented.base': 'edd_symmetric',
+      'augmented.extensions': 'speed_slip,first_order_lag'}, 'first_order_lag'),
     ({'model': 'ideal_dd'}, 'no parameter'),
     ({'imu.mode': 'adapt'}, 'imu.mode adapt'),
 ])

@@ -119,43 +119,44 @@ def _joint_state(names: list[str], n_left: int, t_ns: int, omega_l: float,
     return msg
 
 
+Side = tuple[np.ndarray, Callable[[int], None], bool]
+
+
 def _send_interleaved(harness: '_Harness', samples: WheelSamples, names: list[str], n_left: int,
                       offset_ns: int, deadline: float,
                       positions: Sequence[tuple[float, float] | None] | None,
-                      side_t: np.ndarray, send_side: Callable[[int], None],
-                      send_rest: bool) -> None:
-    """Send wheel samples and a side stream (gyro, reference) merged in stamp order.
+                      sides: Sequence[Side]) -> None:
+    """Send wheel samples and side streams (gyro, reference) merged in stamp order.
 
-    A side message stamped up to a wheel sample's stamp goes first, as ``Odometer.predict``
-    hands them over; each message is sent only once the node took the one before.
-    ``send_rest``: the side messages after the last wheel sample are sent too.
+    ``sides``: (stamps, send one, send the rest) per stream, in the order ``Odometer.predict``
+    hands them over: before a wheel sample, each stream's messages stamped up to its stamp (the
+    gyro's, then the reference's); each message is sent only once the node took the one before.
+    A stream's third item: its messages after the last wheel sample are sent too.
     """
     counters = harness.odom.counters
-    j = 0
+    next_of = [0] * len(sides)
     for i in range(len(samples)):
         t_wheel = int(samples.t_ns[i])
-        while j < side_t.size and side_t[j] <= t_wheel:
-            send_side(j)
-            j += 1
+        for s, (side_t, send_side, _) in enumerate(sides):
+            j = next_of[s]
+            while j < side_t.size and side_t[j] <= t_wheel:
+                send_side(j)
+                j += 1
+            next_of[s] = j
         target = counters['received'] + 1
         harness.publisher.publish(_joint_state(names, n_left, t_wheel + offset_ns,
                                                samples.omega_l[i], samples.omega_r[i],
                                                None if positions is None else positions[i]))
         harness.spin_until(lambda: counters['received'] >= target,
                            max(deadline - time.monotonic(), 0.0), f'wheel sample {i}')
-    if send_rest:
-        for k in range(j, side_t.size):
-            send_side(k)
+    for (side_t, send_side, send_rest), j in zip(sides, next_of):
+        if send_rest:
+            for k in range(j, side_t.size):
+                send_side(k)
 
 
-def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
-                   names: list[str], n_left: int, offset_ns: int, deadline: float,
-                   positions: Sequence[tuple[float, float] | None] | None) -> None:
-    """Send wheel and gyro samples merged in stamp order, waiting for the node to take each.
-
-    ``positions`` as :func:`replay_through_node` takes them (fault matrix N70: they were
-    dropped when a gyro was replayed too).
-    """
+def _gyro_side(harness: '_Harness', imu: ImuSamples, offset_ns: int, deadline: float) -> Side:
+    """Return the gyro stream of :func:`_send_interleaved` (the node subscribed to it)."""
     harness.spin_until(lambda: harness.imu_publisher.get_subscription_count() > 0,
                        max(deadline - time.monotonic(), 0.0), 'the node to subscribe to imu')
     counters = harness.odom.counters
@@ -169,10 +170,20 @@ def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
         harness.imu_publisher.publish(msg)
         harness.spin_until(lambda: counters['imu_received'] >= target,
                            max(deadline - time.monotonic(), 0.0), f'gyro sample {k}')
-
     # the gyro samples after the last wheel sample release the samples still waiting
-    _send_interleaved(harness, samples, names, n_left, offset_ns, deadline, positions, gyro_t,
-                      send_gyro, send_rest=True)
+    return gyro_t, send_gyro, True
+
+
+def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
+                   names: list[str], n_left: int, offset_ns: int, deadline: float,
+                   positions: Sequence[tuple[float, float] | None] | None) -> None:
+    """Send wheel and gyro samples merged in stamp order, waiting for the node to take each.
+
+    ``positions`` as :func:`replay_through_node` takes them (fault matrix N70: they were
+    dropped when a gyro was replayed too).
+    """
+    _send_interleaved(harness, samples, names, n_left, offset_ns, deadline, positions,
+                      [_gyro_side(harness, imu, offset_ns, deadline)])
 
 
 def _reference_msg(t_ns: int, x: float, y: float, yaw: float, frame_id: str,
@@ -191,11 +202,12 @@ def _reference_msg(t_ns: int, x: float, y: float, yaw: float, frame_id: str,
 
 def _send_with_reference(harness: '_Harness', samples: WheelSamples, reference: PoseTrack,
                          names: list[str], n_left: int, offset_ns: int, deadline: float,
-                         frames: tuple[str, str]) -> None:
-    """Send wheel samples and reference poses in stamp order, one at a time.
+                         frames: tuple[str, str], imu: ImuSamples | None = None) -> None:
+    """Send wheel samples and reference poses (and gyro samples) in stamp order, one at a time.
 
-    A reference pose stamped up to a wheel sample's stamp goes first, as ``Odometer.predict``
-    hands them over; the yaw goes through a quaternion, as on the wire.
+    A reference pose stamped up to a wheel sample's stamp goes first (after the gyro samples up
+    to it), as ``Odometer.predict`` hands them over; the yaw goes through a quaternion, as on
+    the wire.
     """
     harness.spin_until(lambda: harness.reference_publisher.get_subscription_count() > 0,
                        max(deadline - time.monotonic(), 0.0), 'the node to subscribe to the '
@@ -211,8 +223,9 @@ def _send_with_reference(harness: '_Harness', samples: WheelSamples, reference: 
         harness.spin_until(lambda: counters['reference_received'] >= target,
                            max(deadline - time.monotonic(), 0.0), f'reference pose {k}')
 
-    _send_interleaved(harness, samples, names, n_left, offset_ns, deadline, None, ref_t,
-                      send_reference, send_rest=False)
+    sides = [] if imu is None else [_gyro_side(harness, imu, offset_ns, deadline)]
+    _send_interleaved(harness, samples, names, n_left, offset_ns, deadline, None,
+                      sides + [(ref_t, send_reference, False)])
 
 
 class _Harness:
@@ -306,7 +319,7 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
         n = len(samples)
         if reference is not None:
             _send_with_reference(harness, samples, reference, names, len(left), offset_ns,
-                                 deadline, reference_frames)
+                                 deadline, reference_frames, imu)
             sent = n
         elif imu is not None:
             _send_with_imu(harness, samples, imu, names, len(left), offset_ns, deadline,

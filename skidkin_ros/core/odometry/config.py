@@ -30,7 +30,7 @@ from skidkin_ros.core.odometry.noise import NOISE_SPECS, NoiseModel
 from skidkin_ros.core.odometry.params_file import (flatten, MAX_PARAMS_FILE_BYTES,  # noqa: F401
                                                    nest, params_document, parse_params_text,
                                                    read_params_document, read_params_file)
-from skidkin_ros.core.odometry.reference import OnlineParams
+from skidkin_ros.core.odometry.reference import ONLINE_EXTENSIONS, OnlineParams
 from skidkin_ros.core.odometry.residual_uncertainty import (coefficient_count, RESIDUAL_EXTENSION,
                                                             ResidualUncertainty)
 from skidkin_ros.core.odometry.schema import (DEFAULT_LEFT_JOINTS,  # noqa: F401
@@ -413,10 +413,19 @@ def _check_online(values: Mapping[str, Any]) -> None:
         return
     model = values['model']
     if model == AUGMENTED_NAME:
-        raise ConfigError('online.enabled: an augmented model cannot be learned online yet; run '
-                          'its base model (model: ' + values['augmented.base'] + ') or turn '
-                          'online.enabled off')
-    if not get_model(model).params:
+        others = [name for name in parse_extensions(values['augmented.extensions'])
+                  if name not in ONLINE_EXTENSIONS]
+        if others:
+            raise ConfigError(
+                f'online.enabled: the extension(s) {others} cannot be learned online (they need '
+                'the time since the drive started, the wheel acceleration of every sample or a '
+                'state carried between segments); online calibration learns augmented models '
+                f'built from {list(ONLINE_EXTENSIONS)}: drop the others, run the base model '
+                f'(model: {values["augmented.base"]}) or turn online.enabled off')
+        # every online extension has a fitted parameter: only a bare base can have none
+        model = ('' if parse_extensions(values['augmented.extensions'])
+                 else values['augmented.base'])
+    if model and not get_model(model).params:
         raise ConfigError(f'online.enabled: model {model} has no parameter to learn; choose a '
                           'calibrated model (e.g. edd_asymmetric, full_linear)')
     if values['imu.mode'] == 'adapt':

@@ -212,7 +212,7 @@ class StepResult:
     detail: str = ''
     start_pose: Triple | None = None
     step_twist: Triple | None = None
-    step_wheels: tuple[float, float] | None = None  # the speeds integrated (stateless sources)
+    step_wheels: tuple[float, float] | None = None  # the wheel speeds the step integrated
 
 
 class StreamingIntegrator:
@@ -411,14 +411,12 @@ class StreamingIntegrator:
             return self._result(SampleStatus.NON_FINITE_STATE, dt_s,
                                 'integration produced a non-finite pose; kept the last finite one')
         self._pose = (x, y, theta)
-        wheels = None
         if self._stateful:
             self.state = new_state
             self.step_state = new_state  # the state whose twist the step integrated
             self._restart = False
-        else:
-            wheels = (interval_speed(held_l, omega_l, self.interval),
-                      interval_speed(held_r, omega_r, self.interval))
+        wheels = (interval_speed(held_l, omega_l, self.interval),
+                  interval_speed(held_r, omega_r, self.interval))
         if self._deferred:  # the twist the interval ended with (its rate terms included)
             published = self.source.published(new_state)
         elif self.interval == 'ending' and not self._stateful:

@@ -26,7 +26,13 @@ from typing import Any, Mapping
 from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 from skidkin_ros.core.timeunits import s_to_ns
 
-__all__ = ['ONLINE_SPECS', 'OnlineParams', 'ReferenceStatus', 'base_pose']
+__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'OnlineParams', 'ReferenceStatus', 'base_pose']
+
+# Extensions of an augmented model that online calibration learns (with the base model's
+# parameters): twist-stage ones that depend on the wheel speeds and the base twist only
+# (skidkin_ros.core.online.augmented says why the others are refused).
+ONLINE_EXTENSIONS: tuple[str, ...] = ('speed_slip', 'direction_asymmetry', 'lateral_skid',
+                                      'icr_offset', 'ratio_yaw_slip')
 
 ONLINE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('time_offset', 's', 0.0, -1.0, 1.0,
@@ -78,6 +84,11 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('stall', 'm', 0.3, 0.0, 1e6,
               'a reference that does not move while the wheels travel this far is stalled',
               lower_open=True),
+    ParamSpec('gyro_sigmas', '', 5.0, 0.0, 1e6,
+              'with a gyro (imu.mode fuse): a reference whose heading change since the last '
+              'pose, or since the segment start, differs from the gyro integrated yaw by more '
+              'than this many standard deviations of their noise is refused (counted '
+              'reference_gyro) and the segment dropped', lower_open=True),
     ParamSpec('cusum_drift', '', 6.0, 0.0, 1e6,
               'change detection: the CUSUM of segment NEES minus this (3 dof: 3 on average)',
               lower_open=True),
@@ -121,6 +132,7 @@ class OnlineParams:
     max_jump: float = 0.5
     max_jump_rad: float = 0.5
     stall: float = 0.3
+    gyro_sigmas: float = 5.0
     cusum_drift: float = 6.0
     cusum_threshold: float = 40.0
     switch_window: float = 0.5
@@ -161,6 +173,7 @@ class ReferenceStatus(enum.Enum):
     GAP = 'reference_gap'                    # longer than max_gap after the last: segment broken
     JUMP = 'reference_jump'                  # disagrees with the wheels by metres: refused
     STALL = 'reference_stall'                # frozen while the wheels travel: refused
+    GYRO = 'reference_gyro'                  # its heading change disagrees with the gyro's
     UNCOVERED = 'reference_uncovered'        # no wheel data at its time: not used
     WHEEL_GAP = 'reference_wheel_gap'        # the wheels have a gap since the last one: restart
 

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import collections
+import functools
 from typing import Callable
 
 import numpy as np
 
+from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.gyro import GyroStatus
 from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.core.online.augmented import AugmentedCalibrator, LayoutModel, online_layout
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
 
 __all__ = ['attach_online', 'online_odometer', 'make_calibrator']
@@ -22,8 +26,17 @@ def make_calibrator(config: OdometryConfig,
 
     It starts from the file's parameters of the active model; their covariance
     (models.<m>.parameter_covariance), when the file has one, is the first ground's information
-    on top of the broad prior (online.prior_sigma).
+    on top of the broad prior (online.prior_sigma). An augmented model learns its base model's
+    parameters and its extensions' fitted ones (:mod:`skidkin_ros.core.online.augmented`).
     """
+    if config.model == AUGMENTED_NAME:
+        layout = online_layout(config.augmented_base, config.geometry,
+                               config.model_values[config.augmented_base],
+                               config.augmented_values, config.augmented_extensions)
+        augmented = LayoutModel(layout)
+        return AugmentedCalibrator(augmented, augmented.mapping(layout.vector()),
+                                   config.geometry, config.active_noise, config.online,
+                                   config['interval'], None, counters, warn)
     model = get_model(config.model)
     flat = config.values.get(f'models.{model.name}.parameter_covariance')
     size = len(model.params)
@@ -39,8 +52,20 @@ def attach_online(odometer: Odometer, config: OdometryConfig,
     learner = None
     if config.online.enabled:
         learner = make_calibrator(config, odometer.counters, warn)
+        # the gyro, when there is one (imu.mode fuse), judges the reference's heading
+        learner.gyro_turn = functools.partial(_gyro_turn, odometer)
+        learner.gyro_noise = (config.imu.arw, config.imu.bias_sigma)
     odometer.attach_learner(learner)
     return learner
+
+
+def _gyro_turn(odometer: Odometer, t_a_ns: int, t_b_ns: int) -> float | None:
+    """Return the gyro's yaw (rad) over a wheel-time interval; None where it cannot tell."""
+    gyro = odometer.gyro
+    if gyro is None or t_b_ns <= t_a_ns:
+        return None
+    status, mean = gyro.buffer.mean_rate(t_a_ns, t_b_ns)
+    return mean * ((t_b_ns - t_a_ns) * 1e-9) if status is GyroStatus.COVERED else None
 
 
 def online_odometer(config: OdometryConfig, **kwargs) -> Odometer:

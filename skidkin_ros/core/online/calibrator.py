@@ -67,6 +67,7 @@ from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
+from skidkin_ros.core.online.steps import WheelSteps
 from skidkin_ros.core.online.window import WindowSolver
 from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import ParameterError
@@ -75,6 +76,10 @@ __all__ = ['OnlineCalibrator', 'Ground', 'MAX_STEPS', 'STATES']
 
 # Wheel steps kept at most (a minute at 1 kHz): a segment longer than this is abandoned.
 MAX_STEPS = 60_000
+# Steps between two checks of that bound (and trims of the steps no longer needed).
+CHECK_STEPS = 256
+# No reference pose pending: no wheel step is due for one.
+NEVER_NS = 1 << 62
 # Wheel steps shorter than this are merged (time-weighted mean speeds) inside learning segments.
 BLOCK_S = 0.05
 STATES = ('holding', 'learning', 'adapting')
@@ -132,14 +137,19 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
 
     # ------------------------------------------------------------------ state
     def _restart_buffers(self) -> None:
-        # Wheel steps (t0, t1] with the speeds integrated and the model's twist; chain ids
-        # tell contiguous steps apart from steps after a gap.
-        self._t1: list[int] = []
-        # per step: (t0, left speed, right speed, model v_x, model yaw rate, chain id)
-        self._rows: list[tuple[int, float, float, float, float, int]] = []
+        # Wheel steps (t0, t1] with the speeds integrated and the model's twist (steps.py);
+        # chain ids tell contiguous steps apart from steps after a gap.
+        self._steps = WheelSteps()
+        self._t1 = self._steps.t1        # the lists wheel_step appends to (the same objects)
+        self._rows = self._steps.rows
         self._chain_id = 0
+        self._travel = self._turn = 0.0   # running sums of |v_x| dt and omega dt (steps.py)
         self._last_t1: int | None = None
         self._pending: collections.deque[tuple[int, float, float, float]] = collections.deque()
+        # wheel_step has work beyond appending when a step reaches _due_ns (the oldest pending
+        # reference pose) or after _countdown more steps (the bound on the steps kept)
+        self._due_ns = NEVER_NS
+        self._countdown = CHECK_STEPS
         self._refs: collections.deque[_Ref] = collections.deque()
         self._seg_start: _Ref | None = None
         self._seg_version = self.version
@@ -175,11 +185,16 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
                                              self.covariance)
 
     def state(self, wheel_now_ns: int | None = None) -> str:
-        """Return 'holding' (no usable reference lately), 'adapting' or 'learning'."""
+        """Return 'holding', 'adapting' or 'learning'.
+
+        Holding: no usable reference for online.max_gap, or the gyro refused one that lately.
+        """
         now = self._last_t1 if wheel_now_ns is None else wheel_now_ns
         last = self._last_accepted_wheel_ns
         if last is None or now is None or now - last > self.params.max_gap * NS_PER_S:
             return 'holding'
+        if now - self.gyro_refused_ns <= self.params.max_gap * NS_PER_S:
+            return 'holding'   # the gyro refused the reference lately: learning paused
         return 'adapting' if self.travel_m < self._adapt_until_m else 'learning'
 
     def summary(self) -> dict[str, float | str]:
@@ -188,7 +203,8 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
                                        'grounds': float(len(self.grounds)),
                                        'learned_m': self.active.learned_m,
                                        'travel_m': self.travel_m, 'cusum': self.cusum,
-                                       'last_nees': self.last_nees}
+                                       'last_nees': self.last_nees,
+                                       'last_refusal': self.last_refusal or 'none'}
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
         for name, value, sd in zip(self.model.param_names, self.active.k, sigma):
             out[f'{name}'] = float(value)
@@ -210,24 +226,43 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
 
     def wheel_step(self, t1_ns: int, wheels: tuple[float, float] | None,
                    twist: tuple[float, float, float]) -> bool:
-        """Take one integrated step ending at t1_ns; True when the parameters changed."""
+        """Take one integrated step ending at t1_ns; True when the parameters changed.
+
+        Per wheel sample this appends the step and compares two numbers; the work (judging a
+        reference pose, cutting and learning a segment, trimming) happens when a pending
+        reference pose is covered, or every CHECK_STEPS steps.
+        """
         t0 = self._last_t1
         self._last_t1 = t1_ns
         if t0 is None or wheels is None:
             self._chain_id += 1
             return False
+        dt_s = (t1_ns - t0) * 1e-9
+        v_x, yaw_rate = twist[0], twist[2]
+        travel = self._travel = self._travel + abs(v_x) * dt_s
+        turn = self._turn = self._turn + yaw_rate * dt_s
         self._t1.append(t1_ns)
-        self._rows.append((t0, wheels[0], wheels[1], twist[0], twist[2], self._chain_id))
-        if len(self._t1) > MAX_STEPS:
-            self.counters['online_segment_too_long'] += 1
-            self._seg_start = None
-            self._refs.clear()
-            self._trim(t1_ns)
+        self._rows.append((t0, wheels[0], wheels[1], v_x, yaw_rate, self._chain_id, travel, turn))
+        self._countdown -= 1
+        if t1_ns < self._due_ns and self._countdown > 0:
+            return False
+        return self._wheel_work(t1_ns)
+
+    def _wheel_work(self, t1_ns: int) -> bool:
+        """Judge the reference poses the steps now cover; bound the steps kept."""
+        if self._countdown <= 0:
+            self._countdown = CHECK_STEPS
+            if len(self._t1) > MAX_STEPS:
+                self.counters['online_segment_too_long'] += 1
+                self._seg_start = None
+                self._refs.clear()
+                self._trim(t1_ns)
         before = self.version
         pending = self._pending
         while pending and pending[0][0] <= t1_ns:
             self._judge(*pending.popleft())
-        if not pending and not len(self._t1) & 255:
+        self._due_ns = pending[0][0] if pending else NEVER_NS
+        if not pending:
             self._trim_old()
         return self.version != before
 
@@ -242,25 +277,18 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
         """Drop the wheel steps that end before keep_ns (amortised: in halves)."""
         n = bisect.bisect_left(self._t1, keep_ns)
         if n > 256 and (n > len(self._t1) // 2 or len(self._t1) > MAX_STEPS):
-            del self._t1[:n]
-            del self._rows[:n]
+            self._steps.drop(n)
 
     # ------------------------------------------------------------------ segments
     def _segment(self, a: _Ref, b: _Ref) -> SegmentSet | None:
         """Return the segment a -> b as the calibrator's SegmentSet (one row), or None."""
-        t1, rows = self._t1, self._rows
-        i0 = bisect.bisect_right(t1, a.t_ns)
-        i1 = bisect.bisect_left(t1, b.t_ns)
-        if i1 >= len(t1) or i0 > i1 or rows[i0][0] > a.t_ns or rows[i0][5] != rows[i1][5]:
+        steps = self._steps.speeds(a.t_ns, b.t_ns)
+        if steps is None:
             return None
-        stamps = np.array(t1[i0:i1 + 1], dtype=np.int64)
-        chunk = rows[i0:i1 + 1]
-        starts = np.array([row[0] for row in chunk], dtype=np.int64)
-        table = np.array([row[1:3] for row in chunk])
-        dt_s = (np.minimum(stamps, b.t_ns) - np.maximum(starts, a.t_ns)) * 1e-9
+        left, right, dt_s = steps
         if dt_s.max() > self.options.max_gap_s:
             return None
-        left, right, dt_s = _blocks(table[:, 0], table[:, 1], dt_s)
+        left, right, dt_s = _blocks(left, right, dt_s)
         return SegmentSet(
             drive=np.zeros(1, dtype=int), t_a_ns=np.array([a.t_ns], np.int64),
             t_b_ns=np.array([b.t_ns], np.int64), start=np.array([[a.x, a.y, a.yaw]]),

@@ -9,8 +9,8 @@ the recipe is in that module's docstring).
 
 from __future__ import annotations
 
-import bisect
 import math
+from typing import Callable
 
 import numpy as np
 
@@ -26,16 +26,34 @@ MAX_REFERENCES = 4096
 
 
 class _Ref:
-    """One accepted reference pose, base frame, in wheel time, with the cumulative path."""
+    """One accepted reference pose, base frame, in wheel time, with the cumulative path.
 
-    __slots__ = ('t_ns', 'x', 'y', 'yaw', 'path_m')
+    ``gyro``: the gyro's integrated yaw since the start of its ``epoch`` (a run of reference
+    intervals the gyro covered without a break; NaN without a gyro).
+    """
 
-    def __init__(self, t_ns: int, x: float, y: float, yaw: float, path_m: float) -> None:
+    __slots__ = ('t_ns', 'x', 'y', 'yaw', 'path_m', 'gyro', 'epoch')
+
+    def __init__(self, t_ns: int, x: float, y: float, yaw: float, path_m: float,
+                 gyro: float = math.nan, epoch: int = 0) -> None:
         self.t_ns, self.x, self.y, self.yaw, self.path_m = t_ns, x, y, yaw, path_m
+        self.gyro, self.epoch = gyro, epoch
 
 
 class ReferenceGates:
-    """The reference poses of :class:`OnlineCalibrator`: judged, then accepted (a mixin)."""
+    """The reference poses of :class:`OnlineCalibrator`: judged, then accepted (a mixin).
+
+    ``gyro_turn(t_a, t_b)``: the gyro's yaw (rad) over that wheel-time interval, None where it
+    does not cover it; None (the attribute): no gyro, the reference is not judged by one.
+    ``gyro_noise``: (white noise rad/sqrt(s), bias sigma rad/s) of that gyro.
+    """
+
+    gyro_turn: Callable[[int, int], float | None] | None = None
+    gyro_noise: tuple[float, float] = (0.0, 0.0)
+    _gyro_refused = 0
+    _gyro_epoch = 0
+    last_refusal = ''   # the cause of the last reference pose not used (/diagnostics)
+    gyro_refused_ns = -(1 << 62)   # wheel time of the last pose the gyro refused
 
     def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
                   child_frame_id: str = '') -> tuple[ReferenceStatus, bool]:
@@ -62,6 +80,7 @@ class ReferenceGates:
                 self._count(ReferenceStatus.UNCOVERED, 'reference poses wait for wheel data '
                             'that does not come: the oldest is dropped')
                 self._pending.popleft()
+            self._due_ns = self._pending[0][0]
         return status, self.version != before
 
     def _arrival(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str,
@@ -87,27 +106,16 @@ class ReferenceGates:
 
     def _count(self, status: ReferenceStatus, message: str) -> None:
         self.counters[status.value] += 1
+        self.last_refusal = status.value
         self._warn(status.value, message)
 
     def _wheel_motion(self, t_a: int, t_b: int) -> tuple[float, float] | None:
         """Return the wheel travel (m) and rotation (rad) over (t_a, t_b]; None: not covered."""
-        t1 = self._t1
-        i0 = bisect.bisect_right(t1, t_a)
-        i1 = bisect.bisect_left(t1, t_b)
-        rows = self._rows
-        if i1 >= len(t1) or i0 > i1 or rows[i0][0] > t_a or rows[i0][5] != rows[i1][5]:
-            return None
-        dist = rot = 0.0
-        for i in range(i0, i1 + 1):
-            t0, _, _, speed, yaw_rate, _ = rows[i]
-            dt = (min(t1[i], t_b) - max(t0, t_a)) * 1e-9
-            dist += abs(speed) * dt
-            rot += yaw_rate * dt
-        return dist, rot
+        return self._steps.motion(t_a, t_b)
 
     def _judge(self, t_ns: int, x: float, y: float, yaw: float) -> None:
         """Judge a reference pose the wheels now cover; use it if it is good."""
-        if not self._t1 or t_ns <= self._rows[0][0]:
+        if not self._t1 or t_ns <= self._steps.first_start():
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
                         'step kept (time_offset wrong, or wheel data missing)')
             return
@@ -153,12 +161,56 @@ class ReferenceGates:
             return
         self._jumps = 0
         ref = _Ref(t_ns, x, y, yaw, last.path_m + dist)
+        if self.gyro_turn is not None and not self._gyro_agrees(last, ref):
+            return
         self._accept(ref)
+
+    def _gyro_agrees(self, last: _Ref, ref: _Ref) -> bool:
+        """Judge the reference's heading change against the gyro's (sets ref.gyro, epoch).
+
+        Over the interval from the last pose and over the segment so far, the reference's
+        heading change and the gyro's integrated yaw may differ by ``gyro_sigmas`` standard
+        deviations of their noise: the reference's heading noise at both ends (sigma_yaw), the
+        gyro's white noise (imu.arw) and bias uncertainty (imu.bias_sigma) over the time. A pose
+        beyond is refused (counted reference_gyro) and the segment dropped: learning pauses
+        while the reference turns where the gyro does not. JUMP_CONFIRM refusals in a row restart
+        the chain there (a reference that relocalised its heading).
+        """
+        turn = self.gyro_turn(last.t_ns, ref.t_ns)
+        if turn is None or math.isnan(last.gyro):   # the gyro does not cover it: a new epoch
+            self._gyro_epoch += 1
+            ref.gyro, ref.epoch = 0.0, self._gyro_epoch
+            return True
+        ref.gyro, ref.epoch = last.gyro + turn, last.epoch
+        arw, bias_sigma = self.gyro_noise
+        sigmas = self.params.gyro_sigmas
+        ref_var = 2.0 * self.params.sigma_yaw ** 2
+        start = self._seg_start
+        for a in (last, start):
+            if a is None or a.epoch != ref.epoch or math.isnan(a.gyro):
+                continue
+            t_s = (ref.t_ns - a.t_ns) * 1e-9
+            diff = (ref.yaw - a.yaw) - (ref.gyro - a.gyro)
+            limit = sigmas * math.sqrt(ref_var + arw * arw * t_s + (bias_sigma * t_s) ** 2)
+            if abs(diff) > limit:
+                self._gyro_refused += 1
+                self.gyro_refused_ns = ref.t_ns
+                self._seg_start = None
+                self._count(ReferenceStatus.GYRO, f'reference heading changed {diff:+.3f} rad '
+                            f'more than the gyro over {t_s:.2f} s (limit {limit:.3f} rad, '
+                            f'{sigmas:g} sigma): refused, segment dropped; learning paused')
+                if self._gyro_refused >= JUMP_CONFIRM:
+                    self._start_chain(ref.t_ns, ref.x, ref.y, ref.yaw)
+                return False
+        self._gyro_refused = 0
+        return True
 
     def _start_chain(self, t_ns: int, x: float, y: float, yaw: float) -> None:
         self._refs.clear()
         self._jumps = 0
-        ref = _Ref(t_ns, x, y, yaw, 0.0)
+        self._gyro_refused = 0
+        self._gyro_epoch += 1
+        ref = _Ref(t_ns, x, y, yaw, 0.0, 0.0, self._gyro_epoch)
         self._refs.append(ref)
         self._seg_start = ref
         self._seg_version = self.version

@@ -22,10 +22,18 @@ def learned_values(config: OdometryConfig, learner: OnlineCalibrator) -> dict[st
     """
     values = dict(config.values)
     name = learner.model.name
-    for key, value in learner.values.items():
-        values[f'models.{name}.{key}'] = float(value)
     cov = learner.covariance
-    values[f'models.{name}.parameter_covariance'] = (0.5 * (cov + cov.T)).ravel().tolist()
+    file_values = getattr(learner.model, 'file_values', None)
+    if file_values is not None:  # an augmented model: models.<base>.*, augmented.<ext>.*
+        values.update(file_values(learner.k))
+        size = len(learner.model.base.params)
+        cov = cov[:size, :size]
+        name = learner.model.base.name
+    else:
+        for key, value in learner.values.items():
+            values[f'models.{name}.{key}'] = float(value)
+    if cov.size:
+        values[f'models.{name}.parameter_covariance'] = (0.5 * (cov + cov.T)).ravel().tolist()
     return values
 
 

@@ -1,0 +1,149 @@
+"""Online calibration of an augmented model: online+augmented, online+plain, fixed augmented.
+
+Simulated drives (``edd_asymmetric`` truth with a forward slip that grows with speed,
+``speed_slip`` of ``SPEED_SLIP`` s/m, which the augmented model ``edd_asymmetric + speed_slip``
+covers and the plain model cannot), 20 Hz wheels with encoder noise, a 10 Hz reference (the
+truth plus white noise, as in :mod:`lab.studies.online`); from half the drive on, a new ground:
+the forward speed loses ``SLIP`` and the yaw rate ``YAW_SLIP`` more (``terrain_regime`` mode
+time). Four odometries on the same wheel samples:
+
+* **fixed augmented**: the augmented model with the calibration ground's true values (the best a
+  fixed file of that model can be: a conservative baseline for online);
+* **online plain**: ``edd_asymmetric`` learning online from the same start;
+* **online augmented**: the augmented model learning online (base and speed_slip.k);
+* **true**: the augmented model with the true values of the ground under the robot (the floor).
+
+Scores: ε_t and ε_θ over the whole drive (mean increment error over 2 m of true path,
+:func:`skidkin_ros.sim.accuracy.increment_errors`). Run::
+
+    python -m lab.bench.online_augmented_study [--seeds 1 2 11 12 13 14] [--effect ratio_yaw_slip]
+
+``--effect ratio_yaw_slip``: the truth loses up to 40 % of its yaw rate at a slow/fast wheel
+speed ratio near 0.5 instead (the model edd_asymmetric + ratio_yaw_slip).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+from lab.studies.online import _reference, _scores
+import numpy as np
+
+from skidkin_ros.core.kinematics.augmented import AugmentedModel
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.odometry.integrator import StreamingIntegrator
+from skidkin_ros.core.online import online_odometer
+from skidkin_ros.sim.effects import make_effect
+from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate, Simulation
+
+__all__ = ['ODOMETRIES', 'AugmentedResult', 'run_seed', 'table']
+
+SPEED_SLIP = 0.25
+SLIP, YAW_SLIP = 0.25, 0.15
+# The effect on the truth and the extension that covers it: (strength, the extension's k on the
+# new ground). speed_slip: v = (1 - SLIP) v0 (1 - k |v0|) = v1 (1 - k / (1 - SLIP) |v1|);
+# ratio_yaw_slip (the simulator's peak 0.5 and width 0.15 are the extension's defaults):
+# omega = (1 - YAW_SLIP) omega0 (1 - k bump) = omega1 (1 - k bump), the same k.
+EFFECTS = {'speed_slip': (SPEED_SLIP, SPEED_SLIP / (1.0 - SLIP)),
+           'ratio_yaw_slip': (0.4, 0.4)}
+MODEL = 'edd_asymmetric'
+ODOMETRIES = ('fixed augmented', 'online plain', 'online augmented', 'true')
+
+
+def _flat(model: str, online: bool, effect: str = 'speed_slip') -> dict:
+    values = DEFAULT_TRUE_PARAMS
+    flat = {'model': model, 'robot': 'sim', f'models.{MODEL}.noise.calibrated': True,
+            **{f'models.{MODEL}.{name}': v for name, v in values.items()},
+            'online.enabled': online}
+    if model == 'augmented':
+        flat.update({'augmented.base': MODEL, 'augmented.extensions': effect,
+                     f'augmented.{effect}.k': EFFECTS[effect][0]})
+    return flat
+
+
+def _new_ground(effect: str = 'speed_slip') -> tuple[dict, float]:
+    """Return the new ground's true base values and the extension's k (module docstring)."""
+    base = dict(DEFAULT_TRUE_PARAMS)
+    ratio = (1.0 - SLIP) / (1.0 - YAW_SLIP)
+    values = {'alpha_l': base['alpha_l'] * (1 - SLIP), 'alpha_r': base['alpha_r'] * (1 - SLIP),
+              'x_v': base['x_v'] / (1.0 - YAW_SLIP), 'y_l': base['y_l'] * ratio,
+              'y_r': base['y_r'] * ratio}
+    return values, EFFECTS[effect][1]
+
+
+def _true_poses(sim: Simulation, interval: str, effect: str) -> np.ndarray:
+    geometry = sim.config.geometry
+    structure = AugmentedModel(MODEL, (effect,))
+    new_values, new_k = _new_ground(effect)
+    sources = [structure.bind(get_model(MODEL).bind(values, geometry), {effect: {'k': k}})
+               for values, k in ((DEFAULT_TRUE_PARAMS, EFFECTS[effect][0]),
+                                 (new_values, new_k))]
+    mask = sim.trace.masks.get('terrain_regime')
+    on = np.interp(sim.wheels.t_ns, sim.trace.t_ns, mask.astype(float)) > 0.5
+    integrator = StreamingIntegrator(sources[0], None, interval)
+    poses = np.empty((len(sim.wheels), 3))
+    current = 0
+    for i, (t, left, right) in enumerate(zip(sim.wheels.t_ns.tolist(), sim.wheels.omega_l,
+                                             sim.wheels.omega_r)):
+        if int(on[i]) != current:
+            current = int(on[i])
+            integrator.set_source(sources[current])
+        poses[i] = integrator.step(t, left, right).pose
+    return poses
+
+
+@dataclass
+class AugmentedResult:
+    """One drive: ε_t and ε_θ per odometry, the learned values, the drive's length."""
+
+    seed: int
+    effect: str
+    eps_t: dict
+    eps_th: dict
+    learned: dict
+    length_m: float
+
+
+def run_seed(seed: int, duration_s: float = 200.0, effect: str = 'speed_slip'
+             ) -> AugmentedResult:
+    """Run the four odometries on one drive (module docstring)."""
+    effects = (make_effect(effect, EFFECTS[effect][0]),
+               make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.5, yaw=YAW_SLIP))
+    sim = simulate(SimConfig(duration_s=duration_s, seed=seed, effects=effects))
+    reference = _reference(sim, np.random.default_rng(seed))
+    poses = {}
+    learned = {}
+    for name, model, online in (('fixed augmented', 'augmented', False),
+                                ('online plain', MODEL, True),
+                                ('online augmented', 'augmented', True)):
+        config = OdometryConfig.from_flat(_flat(model, online, effect))
+        odometer = online_odometer(config)
+        poses[name] = odometer.predict(sim.wheels, reference=reference if online else None).poses
+        if online:
+            learned[name] = odometer.learner.values
+    poses['true'] = _true_poses(sim, config['interval'], effect)
+    scores = {name: _scores(sim, p) for name, p in poses.items()}
+    return AugmentedResult(seed, effect, {k: float(v[0].mean()) for k, v in scores.items()},
+                           {k: float(v[1].mean()) for k, v in scores.items()}, learned,
+                           float(sim.truth.path_length()[-1]))
+
+
+def table(results: Sequence[AugmentedResult]) -> str:
+    """Return the study's table: ε_t (mm/m... as metres per 2 m) and ε_θ per odometry."""
+    head = ('| effect | seed | path m | ' + ' | '.join(f'ε_t {n}' for n in ODOMETRIES)
+            + ' | online aug / online plain | online aug / fixed aug | ε_θ online aug / plain |'
+              ' k learned (true new ground) |')
+    lines = [head, '|' + '---|' * (head.count('|') - 1)]
+    for r in results:
+        e = r.eps_t
+        _, new_k = _new_ground(r.effect)
+        lines.append(
+            f'| {r.effect} | {r.seed} | {r.length_m:.0f} | '
+            + ' | '.join(f'{e[n]:.4f}' for n in ODOMETRIES)
+            + f' | {e["online augmented"] / e["online plain"]:.2f}'
+            f' | {e["online augmented"] / e["fixed augmented"]:.2f}'
+            f' | {r.eps_th["online augmented"] / r.eps_th["online plain"]:.2f}'
+            f' | {r.learned["online augmented"][f"{r.effect}.k"]:.3f} ({new_k:.3f}) |')
+    return '\n'.join(lines)
