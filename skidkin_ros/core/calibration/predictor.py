@@ -18,6 +18,8 @@ from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.odometry.integrator import (body_increment, compose, is_stateful,
                                                   rollout_columns)
 from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
+from skidkin_ros.core.odometry.se2_tangent import (body_increment_tangent, compose_tangent,
+                                                   rollout_tangent)
 
 __all__ = ['SegmentPredictor']
 
@@ -174,3 +176,94 @@ class SegmentPredictor:
         with np.errstate(all='ignore'):
             predicted = self.predict_ends(source, keep)
         return segment_frame_error(start, end, predicted)
+
+    def errors_jacobian(self, source: Any, free: Sequence[tuple[int, int]],
+                        offset: int | None = None, keep: np.ndarray | None = None
+                        ) -> np.ndarray:
+        """Return the exact derivatives (S, 3, P) of :meth:`errors` (0 where not finite).
+
+        ``free``: the P parameters as (-1 for the base model or an extension's index, parameter
+        index); ``offset``: the column of a free time offset, if any (it moves each window
+        [t_a - offset, t_b - offset]: the end pose gains the twist held at the window end and
+        loses the one at its start). Forward mode through the mean twists
+        (:meth:`~skidkin_ros.core.kinematics.augmented.BoundAugmented.interval_tangents`), the
+        drives' cumulative poses and the three moves of :meth:`predict_ends`. The error is
+        true - start * T for the predicted move T, and in the start frame its derivative is
+        -dT.
+        """
+        count, width = self.t_ns.shape
+        plan = self.plan(int(getattr(source, 'output_offset_ns', 0)))
+        if keep is not None:
+            plan = {key: value[keep] for key, value in plan.items()}
+        columns = len(free)
+        with np.errstate(all='ignore'):
+            if is_stateful(source):
+                mean, d_mean = source.interval_tangents(self.t_ns, self.omega_l, self.omega_r,
+                                                        self.dt_s, self.restart, free)
+            else:
+                mean = np.asarray(source.twist(self.omega_l, self.omega_r), dtype=float)
+                grad = source.model.twist_gradient(source.k, source.geometry, self.omega_l,
+                                                   self.omega_r)
+                d_mean = np.stack([grad[..., j] for _, j in free], axis=-1)
+            rows, d_rows = mean.reshape(count, width, 3), d_mean.reshape(count, width, 3, -1)
+            if width >= 2:
+                tangents = rollout_tangent(rows[:, :-1, 0], rows[:, :-1, 1], rows[:, :-1, 2],
+                                           self.step_s, d_rows[:, :-1])
+            else:
+                tangents = [np.zeros((count, width, columns))] * 3
+            d_cx, d_cy, d_cyaw = (t.reshape(count * width, columns) for t in tangents)
+            mean, d_mean = mean.reshape(-1, 3), d_mean.reshape(-1, 3, columns)
+            cx, cy, cyaw = self.cumulative_poses(mean)
+            a, b, first = plan['a'], plan['b'], plan['first']
+            dx, dy = cx[b] - cx[a], cy[b] - cy[a]
+            d_dx, d_dy = d_cx[b] - d_cx[a], d_cy[b] - d_cy[a]
+            cos_a, sin_a = np.cos(cyaw[a])[:, None], np.sin(cyaw[a])[:, None]
+            d_yaw_a = d_cyaw[a]
+            mid = (cos_a[:, 0] * dx + sin_a[:, 0] * dy, cos_a[:, 0] * dy - sin_a[:, 0] * dx,
+                   cyaw[b] - cyaw[a])
+            d_mid = (cos_a * d_dx + sin_a * d_dy + (cos_a * dy[:, None] - sin_a * dx[:, None])
+                     * d_yaw_a,
+                     cos_a * d_dy - sin_a * d_dx - (sin_a * dy[:, None] + cos_a * dx[:, None])
+                     * d_yaw_a,
+                     d_cyaw[b] - d_yaw_a)
+            moves = [(body_increment(*mean[first].T, plan['first_s']),
+                      body_increment_tangent(*mean[first].T, plan['first_s'],
+                                             *np.moveaxis(d_mean[first], 1, 0))),
+                     (mid, d_mid),
+                     (body_increment(*mean[b].T, plan['last_s']),
+                      body_increment_tangent(*mean[b].T, plan['last_s'],
+                                             *np.moveaxis(d_mean[b], 1, 0)))]
+            size = len(plan['a'])
+            pose = (np.zeros(size), np.zeros(size), np.zeros(size))
+            d_pose = tuple(np.zeros((size, columns)) for _ in range(3))
+            for move, d_move in moves:
+                d_pose = compose_tangent(pose[2], move[0], move[1], *d_pose, *d_move)
+                pose = compose(*pose, *move)
+            if offset is not None:
+                self._offset_slope(mean, plan, pose, d_pose, offset)
+        jac = -np.stack(d_pose, axis=1)
+        finite = np.isfinite(np.stack(pose, axis=1)).all(axis=1)
+        jac[~(finite[:, None, None] & np.isfinite(jac))] = 0.0
+        return jac
+
+    def _offset_slope(self, mean: np.ndarray, plan: dict[str, np.ndarray], pose: tuple,
+                      d_pose: tuple, column: int) -> None:
+        """Add d T / d offset to ``d_pose`` (in place): the window moves back by the offset.
+
+        The move T over [s_a, s_b] changes by T * twist(s_b) per second of s_b and by
+        -twist(s_a) * T per second of s_a; both edges move by -1 s per second of offset.
+        """
+        inner = plan['last_s'] > 0.0
+        end = mean[np.where(inner, plan['b'], plan['first'])]
+        start = mean[plan['first']]
+        x, y, yaw = pose
+        cos_t, sin_t = np.cos(yaw), np.sin(yaw)
+        # d T / d s_b: the end twist, turned into the start frame
+        end_x = cos_t * end[:, 0] - sin_t * end[:, 1]
+        end_y = sin_t * end[:, 0] + cos_t * end[:, 1]
+        # d T / d s_a: minus the start twist acting on the whole move
+        start_x = -(start[:, 0] - start[:, 2] * y)
+        start_y = -(start[:, 1] + start[:, 2] * x)
+        d_pose[0][:, column] += -(end_x + start_x)
+        d_pose[1][:, column] += -(end_y + start_y)
+        d_pose[2][:, column] += -(end[:, 2] - start[:, 2])

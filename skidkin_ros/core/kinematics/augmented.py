@@ -258,6 +258,82 @@ class BoundAugmented:
                                                                   restart, tau)
         return held, mean
 
+    def interval_tangents(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
+                          dt_s: np.ndarray, restart: np.ndarray,
+                          free: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`intervals`' mean twists (D, L, 3) and their exact derivatives (D, L, 3, P).
+
+        ``free``: the P parameters, each (-1 for the base model or an extension's index, the
+        parameter's index). Forward mode: the base twist's gradient, carried through the rate,
+        each twist-stage extension (:meth:`Extension.partials`) and the lags (linear in their
+        input; a time constant's own slope by complex step, exact to rounding). A time
+        offset moves the segment windows, not the twists: its slope is the predictor's.
+        """
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        t_s = (t_ns - t_ns[:, :1]) * 1e-9
+        omega_l = np.asarray(omega_l, dtype=float)
+        omega_r = np.asarray(omega_r, dtype=float)
+        count = len(free)
+        base = np.asarray(self.base.twist(omega_l, omega_r), dtype=float)
+        d_x = np.zeros(base.shape + (count,))
+        base_cols = [(c, j) for c, (i, j) in enumerate(free) if i < 0]
+        if base_cols:
+            grad = self.base.model.twist_gradient(self.base.k, self.base.geometry, omega_l,
+                                                  omega_r)
+            for c, j in base_cols:
+                d_x[..., c] = grad[..., j]
+        rate = twist_rates(base, dt_s, restart)
+        d_rate = twist_rates(d_x.reshape(base.shape[:-1] + (3 * count,)), dt_s,
+                             restart).reshape(d_x.shape)
+        x = base
+        for index, (name, k) in enumerate(zip(self.extensions, self.values)):
+            ext = get_extension(name)
+            if ext.stage != 'twist':
+                continue
+            d_twist, d_by_rate, d_k = ext.partials(k, x, omega_l, omega_r, t_s, rate)
+            if d_twist is not None:
+                d_x = np.einsum('...ij,...jp->...ip', d_twist, d_x)
+            if d_by_rate is not None:
+                d_x = d_x + np.einsum('...ij,...jp->...ip', d_by_rate, d_rate)
+            for c, (i, j) in enumerate(free):
+                if i == index:
+                    d_x[..., c] += d_k[..., j]
+            x = ext.apply(k, x, omega_l, omega_r, t_s, rate)
+        taus = self.taus
+        if not max(taus) > 0.0 and not self._free_lags(free):
+            return x, d_x
+        mean, d_mean = x.copy(), d_x.copy()
+        dt_s = np.asarray(dt_s, dtype=float)
+        restart = np.asarray(restart, bool)
+        for tau in sorted({t for t in taus if t > 0.0}):
+            columns = [c for c in range(3) if taus[c] == tau]
+            _, mean[..., columns] = lag_response(x[..., columns], dt_s, restart, tau)
+            flat = d_x[..., columns, :].reshape(x.shape[:-1] + (len(columns) * count,))
+            _, lagged = lag_response(flat, dt_s, restart, tau)
+            d_mean[..., columns, :] = lagged.reshape(x.shape[:-1] + (len(columns), count))
+        for c, columns, tau in self._free_lags(free):
+            # complex step: exact slope of the (analytic in tau) response, no cancellation
+            step = 1e-20
+            _, stepped = lag_response(x[..., columns] + 0j, dt_s, restart,
+                                      max(tau, 1e-12) + 1j * step)
+            d_mean[..., columns, c] += stepped.imag / step
+        return mean, d_mean
+
+    def _free_lags(self, free: Sequence[tuple[int, int]]
+                   ) -> list[tuple[int, list[int], float]]:
+        """Return (column in ``free``, lagged twist components, tau) of each free time constant."""
+        out = []
+        for c, (i, j) in enumerate(free):
+            if i < 0:
+                continue
+            ext = get_extension(self.extensions[i])
+            if ext.stage != 'dynamics':
+                continue
+            name = ext.param_names[j]
+            columns = [m for m in range(3) if ext.lags[m] == name]
+            out.append((c, columns, float(self.values[i][j])))
+        return out
+
 
 def _lag_step(x: float, y: float, tau_s: float, dt_s: float) -> tuple[float, float]:
     """Return (y after dt_s, mean of y over dt_s) for one component; (x, x) without a lag."""

@@ -29,6 +29,10 @@ from skidkin_ros.core.kinematics.specs import Geometry
 
 __all__ = ['ModelState', 'layout_of', 'fit_state', 'held_out_loss']
 
+# Fits use the predictor's exact Jacobian (forward mode); False: scipy's finite differences
+# (one rollout per free parameter and iteration), kept for comparisons.
+ANALYTIC_JACOBIAN = True
+
 
 @dataclass(frozen=True)
 class ModelState:
@@ -101,7 +105,15 @@ def fit_state(predictor: SegmentPredictor, base_name: str, geometry: Geometry,
     def errors(source: TwistSource) -> np.ndarray:
         return predictor.errors(source, keep)
 
-    sol = solve(errors, layout, options.whitening, max_nfev=options.max_nfev)
+    offset = [c for c, (i, j) in enumerate(layout.free)
+              if i >= 0 and get_extension(layout.extensions[i]).stage == 'timing']
+
+    def jacobian(source: TwistSource) -> np.ndarray:
+        return predictor.errors_jacobian(source, layout.free, offset[0] if offset else None,
+                                         keep)
+
+    sol = solve(errors, layout, options.whitening, max_nfev=options.max_nfev,
+                jacobian=jacobian if ANALYTIC_JACOBIAN else None)
     if not layout.free:
         return state, sol.cost
     base_values, ext_values = layout.values(sol.x)
