@@ -163,3 +163,28 @@ def test_a_lag_at_zero_takes_its_one_sided_slope(predictor):
                - predictor.errors(layout.source(np.array([0.0])))) / step
     np.testing.assert_allclose(exact[..., 0], numeric, rtol=1e-4,
                                atol=1e-4 * np.abs(numeric).max())
+
+
+def test_fits_with_the_exact_jacobian_land_where_finite_differences_do(predictor, monkeypatch):
+    """The same optimum (to the fits' tolerance) with both Jacobians, base refitted too."""
+    start = diagnosis_state.ModelState(
+        ('time_offset', 'lateral_skid', 'first_order_lag'), {'alpha': 1.0, 'b_hat': 0.6},
+        {'time_offset': {'offset_s': 0.01}, 'lateral_skid': {'k': 0.0},
+         'first_order_lag': {'tau_s': 0.1}},
+        found=('time_offset', 'lateral_skid', 'first_order_lag'))
+    options = DiagnosisOptions()
+    fitted = {}
+    for exact in (True, False):
+        monkeypatch.setattr(diagnosis_state, 'ANALYTIC_JACOBIAN', exact)
+        fitted[exact] = diagnosis_state.fit_state(predictor, 'edd_symmetric', GEOM, start,
+                                                  options)
+    (exact_state, exact_cost), (fd_state, fd_cost) = fitted[True], fitted[False]
+    assert exact_cost == pytest.approx(fd_cost, rel=1e-6)
+    assert exact_cost < 0.5 * diagnosis_state.fit_state(
+        predictor, 'edd_symmetric', GEOM, start, options, refit_base=False,
+        fixed=('time_offset.offset_s', 'lateral_skid.k', 'first_order_lag.tau_s'))[1]
+    for name, value in exact_state.base_values.items():
+        assert value == pytest.approx(fd_state.base_values[name], rel=1e-4, abs=1e-6)
+    for ext, values in exact_state.ext_values.items():
+        for name, value in values.items():
+            assert value == pytest.approx(fd_state.ext_values[ext][name], rel=1e-3, abs=1e-5)

@@ -15,6 +15,7 @@ import numpy as np
 
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.kinematics.augmented import base_tangents
 from skidkin_ros.core.odometry.integrator import (body_increment, compose, is_stateful,
                                                   rollout_columns)
 from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
@@ -71,6 +72,9 @@ class SegmentPredictor:
         self.restart[:, 1:] = dt[:, :-1] > max_dt_s
         dt[dt > max_dt_s] = 0.0
         self.dt_s = dt
+        # fixed from here on (read-only: the lag's row plan is kept for them)
+        for array in (self.dt_s, self.restart, self.t_ns, self.omega_l, self.omega_r):
+            array.setflags(write=False)
         self.step_s = np.diff(self.t_ns, axis=1) * 1e-9  # between stamps, gaps included
         self._plans: dict[int, dict[str, np.ndarray]] = {}
 
@@ -202,46 +206,42 @@ class SegmentPredictor:
                                                         self.dt_s, self.restart, free)
             else:
                 mean = np.asarray(source.twist(self.omega_l, self.omega_r), dtype=float)
-                grad = source.model.twist_gradient(source.k, source.geometry, self.omega_l,
-                                                   self.omega_r)
-                d_mean = np.stack([grad[..., j] for _, j in free], axis=-1)
-            rows, d_rows = mean.reshape(count, width, 3), d_mean.reshape(count, width, 3, -1)
+                d_mean = base_tangents(source, self.omega_l, self.omega_r, free)
             if width >= 2:
-                tangents = rollout_tangent(rows[:, :-1, 0], rows[:, :-1, 1], rows[:, :-1, 2],
-                                           self.step_s, d_rows[:, :-1])
+                poses, sums = rollout_tangent(
+                    *(np.ascontiguousarray(mean[:, :-1, m]) for m in range(3)), self.step_s,
+                    *(d[..., :-1] for d in d_mean))
             else:
-                tangents = [np.zeros((count, width, columns))] * 3
-            d_cx, d_cy, d_cyaw = (t.reshape(count * width, columns) for t in tangents)
-            mean, d_mean = mean.reshape(-1, 3), d_mean.reshape(-1, 3, columns)
-            cx, cy, cyaw = self.cumulative_poses(mean)
+                poses = [np.zeros((count, width))] * 3
+                sums = [np.zeros((columns, count, width))] * 3
+            cx, cy, cyaw = (p.reshape(count * width) for p in poses)
+            u_x, u_y, u_w = (t.reshape(columns, count * width) for t in sums)
+            mean = mean.reshape(-1, 3)
+            d_mean = [d.reshape(columns, count * width) for d in d_mean]
             a, b, first = plan['a'], plan['b'], plan['first']
             dx, dy = cx[b] - cx[a], cy[b] - cy[a]
-            d_dx, d_dy = d_cx[b] - d_cx[a], d_cy[b] - d_cy[a]
-            cos_a, sin_a = np.cos(cyaw[a])[:, None], np.sin(cyaw[a])[:, None]
-            d_yaw_a = d_cyaw[a]
-            mid = (cos_a[:, 0] * dx + sin_a[:, 0] * dy, cos_a[:, 0] * dy - sin_a[:, 0] * dx,
-                   cyaw[b] - cyaw[a])
-            d_mid = (cos_a * d_dx + sin_a * d_dy + (cos_a * dy[:, None] - sin_a * dx[:, None])
-                     * d_yaw_a,
-                     cos_a * d_dy - sin_a * d_dx - (sin_a * dy[:, None] + cos_a * dx[:, None])
-                     * d_yaw_a,
-                     d_cyaw[b] - d_yaw_a)
+            cos_a, sin_a = np.cos(cyaw[a]), np.sin(cyaw[a])
+            turn = u_w[:, b] - u_w[:, a]
+            world_x = u_x[:, b] - u_x[:, a] - cy[b] * turn
+            world_y = u_y[:, b] - u_y[:, a] + cx[b] * turn
+            mid = (cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx, cyaw[b] - cyaw[a])
+            d_mid = (cos_a * world_x + sin_a * world_y, cos_a * world_y - sin_a * world_x, turn)
             moves = [(body_increment(*mean[first].T, plan['first_s']),
                       body_increment_tangent(*mean[first].T, plan['first_s'],
-                                             *np.moveaxis(d_mean[first], 1, 0))),
+                                             *(d[:, first] for d in d_mean))),
                      (mid, d_mid),
                      (body_increment(*mean[b].T, plan['last_s']),
                       body_increment_tangent(*mean[b].T, plan['last_s'],
-                                             *np.moveaxis(d_mean[b], 1, 0)))]
+                                             *(d[:, b] for d in d_mean)))]
             size = len(plan['a'])
             pose = (np.zeros(size), np.zeros(size), np.zeros(size))
-            d_pose = tuple(np.zeros((size, columns)) for _ in range(3))
+            d_pose = tuple(np.zeros((columns, size)) for _ in range(3))
             for move, d_move in moves:
                 d_pose = compose_tangent(pose[2], move[0], move[1], *d_pose, *d_move)
                 pose = compose(*pose, *move)
             if offset is not None:
                 self._offset_slope(mean, plan, pose, d_pose, offset)
-        jac = -np.stack(d_pose, axis=1)
+        jac = -np.stack(d_pose).transpose(2, 0, 1)  # (3, P, S) -> (S, 3, P)
         finite = np.isfinite(np.stack(pose, axis=1)).all(axis=1)
         jac[~(finite[:, None, None] & np.isfinite(jac))] = 0.0
         return jac
@@ -264,6 +264,6 @@ class SegmentPredictor:
         # d T / d s_a: minus the start twist acting on the whole move
         start_x = -(start[:, 0] - start[:, 2] * y)
         start_y = -(start[:, 1] + start[:, 2] * x)
-        d_pose[0][:, column] += -(end_x + start_x)
-        d_pose[1][:, column] += -(end_y + start_y)
-        d_pose[2][:, column] += -(end[:, 2] - start[:, 2])
+        d_pose[0][column] += -(end_x + start_x)
+        d_pose[1][column] += -(end_y + start_y)
+        d_pose[2][column] += -(end[:, 2] - start[:, 2])

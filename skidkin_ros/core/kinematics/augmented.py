@@ -244,7 +244,9 @@ class BoundAugmented:
         t_s = (t_ns - t_ns[:, :1]) * 1e-9
         base = np.asarray(self.base.twist(np.asarray(omega_l, dtype=float),
                                           np.asarray(omega_r, dtype=float)), dtype=float)
-        rate = twist_rates(base, dt_s, restart)
+        # the rate only matters to an extension that reads it
+        rate = (twist_rates(base, dt_s, restart) if any(
+            get_extension(name).uses_rate for name in self.extensions) else None)
         x = np.asarray(self.memoryless(omega_l, omega_r, t_s, rate, base), dtype=float)
         taus = self.taus
         if not max(taus) > 0.0:
@@ -260,14 +262,17 @@ class BoundAugmented:
 
     def interval_tangents(self, t_ns: np.ndarray, omega_l: np.ndarray, omega_r: np.ndarray,
                           dt_s: np.ndarray, restart: np.ndarray,
-                          free: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`intervals`' mean twists (D, L, 3) and their exact derivatives (D, L, 3, P).
+                          free: Sequence[tuple[int, int]]
+                          ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """:meth:`intervals`' mean twists (D, L, 3) and their exact derivatives.
 
-        ``free``: the P parameters, each (-1 for the base model or an extension's index, the
-        parameter's index). Forward mode: the base twist's gradient, carried through the rate,
-        each twist-stage extension (:meth:`Extension.partials`) and the lags (linear in their
-        input; a time constant's own slope by complex step, exact to rounding). A time
-        offset moves the segment windows, not the twists: its slope is the predictor's.
+        The derivatives come per twist component, each (P, D, L): one contiguous array per
+        parameter, so each step is P plain array operations. ``free``: the P parameters, each
+        (-1 for the base model or an extension's index, the parameter's index). Forward mode: the base twist's
+        gradient, carried through the rate, each twist-stage extension
+        (:meth:`Extension.partials`) and the lags (linear in their input; a time constant's own
+        slope by complex step, exact to rounding). A time offset moves the segment windows,
+        not the twists: its slope is the predictor's.
         """
         t_ns = np.asarray(t_ns, dtype=np.int64)
         t_s = (t_ns - t_ns[:, :1]) * 1e-9
@@ -275,49 +280,50 @@ class BoundAugmented:
         omega_r = np.asarray(omega_r, dtype=float)
         count = len(free)
         base = np.asarray(self.base.twist(omega_l, omega_r), dtype=float)
-        d_x = np.zeros(base.shape + (count,))
-        base_cols = [(c, j) for c, (i, j) in enumerate(free) if i < 0]
-        if base_cols:
-            grad = self.base.model.twist_gradient(self.base.k, self.base.geometry, omega_l,
-                                                  omega_r)
-            for c, j in base_cols:
-                d_x[..., c] = grad[..., j]
-        rate = twist_rates(base, dt_s, restart)
-        d_rate = twist_rates(d_x.reshape(base.shape[:-1] + (3 * count,)), dt_s,
-                             restart).reshape(d_x.shape)
+        d_x = base_tangents(self.base, omega_l, omega_r, free)
+        rate = d_rate = None
         x = base
         for index, (name, k) in enumerate(zip(self.extensions, self.values)):
             ext = get_extension(name)
             if ext.stage != 'twist':
                 continue
-            d_twist, d_by_rate, d_k = ext.partials(k, x, omega_l, omega_r, t_s, rate)
-            if d_twist is not None:
-                d_x = np.einsum('...ij,...jp->...ip', d_twist, d_x)
-            if d_by_rate is not None:
-                d_x = d_x + np.einsum('...ij,...jp->...ip', d_by_rate, d_rate)
+            if ext.uses_rate and rate is None:
+                rate = twist_rates(base, dt_s, restart)
+                d_rate = [_rate_tangents(d, dt_s, restart)
+                          for d in base_tangents(self.base, omega_l, omega_r, free)]
+            d_twist, d_by_rate, d_k = ext.partials(k, x, omega_l, omega_r, t_s,
+                                                   np.zeros(base.shape) if rate is None
+                                                   else rate)
+            d_x = _apply_partials(d_twist, d_x, d_by_rate, d_rate)
             for c, (i, j) in enumerate(free):
                 if i == index:
-                    d_x[..., c] += d_k[..., j]
+                    for m in range(3):
+                        d_x[m][c] += d_k[..., m, j]
             x = ext.apply(k, x, omega_l, omega_r, t_s, rate)
         taus = self.taus
-        if not max(taus) > 0.0 and not self._free_lags(free):
+        lags = self._free_lags(free)
+        if not max(taus) > 0.0 and not lags:
             return x, d_x
-        mean, d_mean = x.copy(), d_x.copy()
+        mean = x.copy()
         dt_s = np.asarray(dt_s, dtype=float)
         restart = np.asarray(restart, bool)
         for tau in sorted({t for t in taus if t > 0.0}):
             columns = [c for c in range(3) if taus[c] == tau]
             _, mean[..., columns] = lag_response(x[..., columns], dt_s, restart, tau)
-            flat = d_x[..., columns, :].reshape(x.shape[:-1] + (len(columns) * count,))
+            # the response is linear in its input: each tangent is one more channel
+            flat = np.stack([d_x[c][p] for c in columns for p in range(count)], axis=-1)
             _, lagged = lag_response(flat, dt_s, restart, tau)
-            d_mean[..., columns, :] = lagged.reshape(x.shape[:-1] + (len(columns), count))
-        for c, columns, tau in self._free_lags(free):
+            for n, c in enumerate(columns):
+                d_x[c] = np.ascontiguousarray(
+                    np.moveaxis(lagged[..., n * count:(n + 1) * count], -1, 0))
+        for c, columns, tau in lags:
             # complex step: exact slope of the (analytic in tau) response, no cancellation
             step = 1e-20
             _, stepped = lag_response(x[..., columns] + 0j, dt_s, restart,
                                       max(tau, 1e-12) + 1j * step)
-            d_mean[..., columns, c] += stepped.imag / step
-        return mean, d_mean
+            for n, m in enumerate(columns):
+                d_x[m][c] += stepped[..., n].imag / step
+        return mean, d_x
 
     def _free_lags(self, free: Sequence[tuple[int, int]]
                    ) -> list[tuple[int, list[int], float]]:
@@ -335,6 +341,73 @@ class BoundAugmented:
         return out
 
 
+def base_tangents(base: BoundModel, omega_l: np.ndarray, omega_r: np.ndarray,
+                  free: Sequence[tuple[int, int]]) -> list[np.ndarray]:
+    """Return d (base twist) / d (free parameters) per component, each (P, ...).
+
+    Only the base model's entries of ``free`` (index -1) have a slope here.
+    """
+    shape = (len(free),) + np.shape(omega_l)
+    out = [np.zeros(shape) for _ in range(3)]
+    columns = [(c, j) for c, (i, j) in enumerate(free) if i < 0]
+    if not columns:
+        return out
+    rows = base.model.rows_gradient(base.k, base.geometry)
+    grad = None if rows is not None else base.model.twist_gradient(base.k, base.geometry,
+                                                                   omega_l, omega_r)
+    for c, j in columns:
+        for m in range(3):
+            if rows is not None:
+                out[m][c] = omega_l * rows[j, m, 0] + omega_r * rows[j, m, 1]
+            else:
+                out[m][c] = grad[..., m, j]
+    return out
+
+
+def _rate_tangents(tangent: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.ndarray:
+    """:func:`twist_rates` of tangents (P, D, L): the same backward difference, per direction."""
+    rate = np.zeros(tangent.shape)
+    step = np.asarray(dt_s, dtype=float)[:, :-1]
+    usable = (step > 0.0) & ~np.asarray(restart, bool)[:, 1:]
+    safe = np.where(usable, np.maximum(step, MIN_RATE_STEP_S), 1.0)
+    rate[..., 1:] = np.where(usable, (tangent[..., 1:] - tangent[..., :-1]) / safe, 0.0)
+    return rate
+
+
+def _apply_partials(d_twist: np.ndarray | None, d_x: list[np.ndarray],
+                    d_by_rate: np.ndarray | None, d_rate: list[np.ndarray] | None
+                    ) -> list[np.ndarray]:
+    """Return the tangents after one extension: d_twist @ d_x + d_by_rate @ d_rate, per row.
+
+    Entries equal to the identity (or zero) everywhere are skipped: an extension moves one or
+    two components, and the tangents are P times larger than the twist.
+    """
+    out = []
+    for i in range(3):
+        terms = []
+        for j in range(3):
+            if d_twist is None:
+                if i == j:
+                    terms.append((None, d_x[j]))
+                continue
+            entry = d_twist[..., i, j]
+            if i == j and np.all(entry == 1.0):
+                terms.append((None, d_x[j]))
+            elif np.any(entry != 0.0):
+                terms.append((entry, d_x[j]))
+        if d_by_rate is not None:
+            for j in range(3):
+                entry = d_by_rate[..., i, j]
+                if np.any(entry != 0.0):
+                    terms.append((entry, d_rate[j]))
+        total = None
+        for entry, tangent in terms:
+            part = tangent if entry is None else entry * tangent
+            total = part if total is None else total + part
+        out.append(np.zeros_like(d_x[i]) if total is None else total)
+    return out
+
+
 def _lag_step(x: float, y: float, tau_s: float, dt_s: float) -> tuple[float, float]:
     """Return (y after dt_s, mean of y over dt_s) for one component; (x, x) without a lag."""
     if not tau_s > 0.0:
@@ -344,6 +417,40 @@ def _lag_step(x: float, y: float, tau_s: float, dt_s: float) -> tuple[float, flo
     g = -float(np.expm1(-ratio)) / ratio if dt_s > 0.0 else 1.0
     diff = y - x
     return x + diff * d, x + diff * g
+
+
+# The row plan of the last few (dt_s, restart) pairs: a fit runs the response on the same
+# stamps hundreds of times, with other inputs and time constants.
+_ROW_PLANS: list[tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]] = []
+
+
+def _row_plan(dt_s: np.ndarray, restart: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Return (ends, steady, idle) of :func:`lag_response`'s rows (kept for the same arrays).
+
+    A row is steady up to ``ends[r]``: a constant period, no restart; what follows is padding
+    (repeated last stamps, dt = 0), over which the sample loop holds y as it is. Steady rows of
+    one period go through one lfilter call together. A row that never moves on (every stamp
+    repeated, padding of an empty drive) is idle: it holds y = x_0 (and counts as steady).
+    """
+    for known_dt, known_restart, plan in _ROW_PLANS:
+        if known_dt is dt_s and known_restart is restart:
+            return plan
+    length = dt_s.shape[1]
+    moving = dt_s > 0.0
+    index = np.arange(length)
+    ends = np.where(moving.any(axis=1), length - np.argmax(moving[:, ::-1], axis=1), 0)
+    prefix = index[None, :] < ends[:, None]
+    steady = ((ends > 2) & np.all(np.where(prefix, dt_s == dt_s[:, :1], True), axis=1)
+              & np.all(np.where(prefix, True, dt_s == 0.0), axis=1)
+              & ~np.any(np.asarray(restart, bool) & (index[None, :] <= ends[:, None]), axis=1))
+    idle = (ends == 0) & ~np.any(np.asarray(restart, bool), axis=1)
+    steady |= idle
+    plan = (ends, steady, idle)
+    # only arrays nobody writes to afterwards are worth keeping (a predictor's)
+    if not (dt_s.flags.writeable or np.asarray(restart).flags.writeable):
+        _ROW_PLANS.insert(0, (dt_s, restart, plan))
+        del _ROW_PLANS[4:]
+    return plan
 
 
 def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
@@ -359,20 +466,9 @@ def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
     d, g = lag_factors(dt_s, tau_s)
     held = np.empty_like(x)
     length = x.shape[1]
-    # A row is steady up to ``ends[r]``: a constant period, no restart; what follows is padding
-    # (repeated last stamps, dt = 0), over which the sample loop holds y as it is. Steady rows of
-    # one period go through one lfilter call together.
-    moving = dt_s > 0.0
     index = np.arange(length)
-    ends = np.where(moving.any(axis=1), length - np.argmax(moving[:, ::-1], axis=1), 0)
-    prefix = index[None, :] < ends[:, None]
-    steady = ((ends > 2) & np.all(np.where(prefix, dt_s == dt_s[:, :1], True), axis=1)
-              & np.all(np.where(prefix, True, dt_s == 0.0), axis=1)
-              & ~np.any(np.asarray(restart, bool) & (index[None, :] <= ends[:, None]), axis=1))
-    # A row that never moves on (every stamp repeated, padding of an empty drive) holds y = x_0.
-    idle = (ends == 0) & ~np.any(np.asarray(restart, bool), axis=1)
+    ends, steady, idle = _row_plan(dt_s, restart)
     held[idle] = x[idle, :1]
-    steady |= idle
     for decay in np.unique(d[steady & ~idle, 0]):
         rows = np.nonzero(steady & ~idle & (d[:, 0] == decay))[0]
         held[rows] = lfilter([0.0, 1.0 - decay], [1.0, -decay], x[rows], axis=1,

@@ -197,6 +197,11 @@ class Extension:
                                              np.asarray(twist, dtype=float), omega_l, omega_r,
                                              t_s, np.asarray(rate, dtype=float))
 
+    @property
+    def uses_rate(self) -> bool:
+        """Whether its twist rule reads the base twist's rate of change."""
+        return self.name in _USES_RATE
+
     def time_constants(self, k: Sequence[float]) -> tuple[float, float, float]:
         """Return the lag time constant (s) of each twist component, 0 where not lagged."""
         values = self.mapping(k)
@@ -377,7 +382,7 @@ def _acceleration_slip_partials(k, twist, omega_l, omega_r, t_s, rate):
 def _bounded_partials(twist: np.ndarray, change: np.ndarray, d_change_twist: np.ndarray,
                       d_change_rate: np.ndarray, d_change_k: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Derivatives of :func:`bounded_correction` (twist + change clipped to the bound).
+    """Return the derivatives of :func:`bounded_correction` (twist + change, clipped).
 
     ``d_change_*``: the change's derivatives (..., 3, 3) and (..., 3, n); a clipped component
     follows the bound instead (|v| + L |w| or |w| + |v| / L).
@@ -498,7 +503,8 @@ def _residual_model_partials(k, twist, omega_l, omega_r, t_s, rate):
     coef = k[:_RESIDUAL_COEFS].reshape(len(residual.OUTPUTS), len(residual.TERMS))
     gains = k[_RESIDUAL_GAINS:_RESIDUAL_GAINS + 3]
     phi = residual.features(ranges, twist, rate)  # (..., T)
-    d_phi, d_phi_ranges = residual.feature_gradients(ranges, twist, rate)  # (..., T, 4), (.., T, 8)
+    # (..., T, 4) and (..., T, 8)
+    d_phi, d_phi_ranges = residual.feature_gradients(ranges, twist, rate)
     raw = np.einsum('ot,...t->...o', coef, phi)
     change = raw * gains
     d_inputs = np.einsum('ot,...ti->...oi', coef, d_phi) * gains[:, None]  # (..., 3, 4)
@@ -587,6 +593,9 @@ _TWIST_FUNCTIONS = {
     'sparse_correction': _sparse_correction,
     'residual_model': _residual_model,
 }
+
+# The twist rules that read the rate (the others are given none: it is not computed for them).
+_USES_RATE = frozenset({'acceleration_slip', 'sparse_correction', 'residual_model'})
 
 _PARTIAL_FUNCTIONS = {
     'speed_slip': _speed_slip_partials,

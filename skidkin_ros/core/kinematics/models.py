@@ -103,7 +103,7 @@ class KinematicModel:
         return None
 
     def rows_gradient(self, k: np.ndarray, geometry: Geometry) -> np.ndarray | None:
-        """d J(k) / d k as (p, 3, 2) for a model linear in the wheel speeds, else None."""
+        """Return dJ(k)/dk as (p, 3, 2) for a model linear in the wheel speeds, else None."""
         return None
 
     def twist_gradient(self, k: np.ndarray, geometry: Geometry, omega_l: np.ndarray,

@@ -189,8 +189,11 @@ def _scaled_partials(x: np.ndarray, lo: float, hi: float
 
 def feature_gradients(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarray | None
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Return the terms' derivatives: d phi / d (v, w, dv, dw) (..., T, 4) and d phi / d ranges
-    (..., T, 8), from :data:`TERM_GRADIENTS` and the clamp-and-scale of each input."""
+    """Return the terms' derivatives, d phi / d (v, w, dv, dw) and d phi / d ranges.
+
+    Shapes (..., T, 4) and (..., T, 8), from :data:`TERM_GRADIENTS` and the clamp-and-scale of
+    each input.
+    """
     raw = input_values(twist, rate)
     scaled, slopes = [], []
     for i, x in enumerate(raw):
