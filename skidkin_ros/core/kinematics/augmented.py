@@ -268,8 +268,8 @@ class BoundAugmented:
 
         The derivatives come per twist component, each (P, D, L): one contiguous array per
         parameter, so each step is P plain array operations. ``free``: the P parameters, each
-        (-1 for the base model or an extension's index, the parameter's index). Forward mode: the base twist's
-        gradient, carried through the rate, each twist-stage extension
+        (-1 for the base model or an extension's index, the parameter's index). Forward mode:
+        the base twist's gradient, carried through the rate, each twist-stage extension
         (:meth:`Extension.partials`) and the lags (linear in their input; a time constant's own
         slope by complex step, exact to rounding). A time offset moves the segment windows,
         not the twists: its slope is the predictor's.
