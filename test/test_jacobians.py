@@ -122,9 +122,10 @@ def test_extension_jacobian_equals_central_differences(predictor, name):
     if params is None:  # learned: every coefficient, and the residual model's gains and ranges
         params = tuple(p for p in ext.param_names if p != 'level')
     base = {'alpha': 0.93, 'b_hat': 0.71}
-    layout = ParameterLayout.build('edd_symmetric', GEOM, base, {name: values}, (name,), True,
-                                   {name: params})
-    _check(predictor, layout)
+    for refit_base in (True, False):  # with a tangent carried in, and without
+        layout = ParameterLayout.build('edd_symmetric', GEOM, base, {name: values}, (name,),
+                                       refit_base, {name: params})
+        _check(predictor, layout)
 
 
 @pytest.mark.parametrize('model', [m for m in MODEL_NAMES if m != 'ideal_dd'])

@@ -20,7 +20,7 @@ from skidkin_ros.core.odometry.integrator import (body_increment, compose, is_st
                                                   rollout_columns)
 from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
 from skidkin_ros.core.odometry.se2_tangent import (body_increment_tangent, compose_tangent,
-                                                   rollout_tangent)
+                                                   window_tangents)
 
 __all__ = ['SegmentPredictor']
 
@@ -207,23 +207,17 @@ class SegmentPredictor:
             else:
                 mean = np.asarray(source.twist(self.omega_l, self.omega_r), dtype=float)
                 d_mean = base_tangents(source, self.omega_l, self.omega_r, free)
-            if width >= 2:
-                poses, sums = rollout_tangent(
-                    *(np.ascontiguousarray(mean[:, :-1, m]) for m in range(3)), self.step_s,
-                    *(d[..., :-1] for d in d_mean))
-            else:
-                poses = [np.zeros((count, width))] * 3
-                sums = [np.zeros((columns, count, width))] * 3
-            cx, cy, cyaw = (p.reshape(count * width) for p in poses)
-            u_x, u_y, u_w = (t.reshape(columns, count * width) for t in sums)
-            mean = mean.reshape(-1, 3)
-            d_mean = [d.reshape(columns, count * width) for d in d_mean]
             a, b, first = plan['a'], plan['b'], plan['first']
+            poses, sums = window_tangents(
+                *(np.ascontiguousarray(mean[..., m]) for m in range(3)),
+                np.concatenate([self.step_s, np.zeros((count, 1))], axis=1), *d_mean, a, b)
+            cx, cy, cyaw = poses
+            turn, mean = sums[2], mean.reshape(-1, 3)
+            d_mean = [d.reshape(columns, count * width) for d in d_mean]
             dx, dy = cx[b] - cx[a], cy[b] - cy[a]
             cos_a, sin_a = np.cos(cyaw[a]), np.sin(cyaw[a])
-            turn = u_w[:, b] - u_w[:, a]
-            world_x = u_x[:, b] - u_x[:, a] - cy[b] * turn
-            world_y = u_y[:, b] - u_y[:, a] + cx[b] * turn
+            world_x = sums[0] - cy[b] * turn
+            world_y = sums[1] + cx[b] * turn
             mid = (cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx, cyaw[b] - cyaw[a])
             d_mid = (cos_a * world_x + sin_a * world_y, cos_a * world_y - sin_a * world_x, turn)
             moves = [(body_increment(*mean[first].T, plan['first_s']),

@@ -37,6 +37,7 @@ import numpy as np
 from skidkin_ros.core.kinematics.extensions import get_extension, ordered
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
 from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.se2_tangent import scratch
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import ParameterError
 
@@ -283,6 +284,7 @@ class BoundAugmented:
         d_x = base_tangents(self.base, omega_l, omega_r, free)
         rate = d_rate = None
         x = base
+        live = any(i < 0 for i, _ in free)  # whether a tangent is carried in yet
         for index, (name, k) in enumerate(zip(self.extensions, self.values)):
             ext = get_extension(name)
             if ext.stage != 'twist':
@@ -290,15 +292,17 @@ class BoundAugmented:
             if ext.uses_rate and rate is None:
                 rate = twist_rates(base, dt_s, restart)
                 d_rate = [_rate_tangents(d, dt_s, restart)
-                          for d in base_tangents(self.base, omega_l, omega_r, free)]
-            d_twist, d_by_rate, d_k = ext.partials(k, x, omega_l, omega_r, t_s,
-                                                   np.zeros(base.shape) if rate is None
-                                                   else rate)
-            d_x = _apply_partials(d_twist, d_x, d_by_rate, d_rate)
-            for c, (i, j) in enumerate(free):
-                if i == index:
-                    for m in range(3):
-                        d_x[m][c] += d_k[..., m, j]
+                          for d in base_tangents(self.base, omega_l, omega_r, free, 'rate')]
+            mine = [(c, j) for c, (i, j) in enumerate(free) if i == index]
+            d_twist, d_by_rate, d_k = ext.partials(
+                k, x, omega_l, omega_r, t_s, np.zeros(base.shape) if rate is None else rate,
+                [j for _, j in mine], inputs=live)
+            if live:
+                d_x = _apply_partials(d_twist, d_x, d_by_rate, d_rate)
+            for n, (c, _) in enumerate(mine):
+                for m in range(3):
+                    d_x[m][c] += d_k[..., m, n]
+            live = live or bool(mine)
             x = ext.apply(k, x, omega_l, omega_r, t_s, rate)
         taus = self.taus
         lags = self._free_lags(free)
@@ -342,26 +346,29 @@ class BoundAugmented:
 
 
 def base_tangents(base: BoundModel, omega_l: np.ndarray, omega_r: np.ndarray,
-                  free: Sequence[tuple[int, int]]) -> list[np.ndarray]:
+                  free: Sequence[tuple[int, int]], work: str = 'base') -> list[np.ndarray]:
     """Return d (base twist) / d (free parameters) per component, each (P, ...).
 
-    Only the base model's entries of ``free`` (index -1) have a slope here.
+    Only the base model's entries of ``free`` (index -1) have a slope here. ``work``: the
+    name of the work array they are written in (:func:`scratch`: valid until the next call
+    with that name).
     """
-    shape = (len(free),) + np.shape(omega_l)
-    out = [np.zeros(shape) for _ in range(3)]
+    out = scratch(work, (3, len(free)) + np.shape(omega_l))
+    out[...] = 0.0
     columns = [(c, j) for c, (i, j) in enumerate(free) if i < 0]
     if not columns:
-        return out
+        return list(out)
     rows = base.model.rows_gradient(base.k, base.geometry)
     grad = None if rows is not None else base.model.twist_gradient(base.k, base.geometry,
                                                                    omega_l, omega_r)
     for c, j in columns:
         for m in range(3):
-            if rows is not None:
-                out[m][c] = omega_l * rows[j, m, 0] + omega_r * rows[j, m, 1]
-            else:
-                out[m][c] = grad[..., m, j]
-    return out
+            if grad is not None:
+                out[m, c] = grad[..., m, j]
+            elif rows[j, m, 0] != 0.0 or rows[j, m, 1] != 0.0:
+                np.multiply(omega_l, rows[j, m, 0], out=out[m, c])
+                out[m, c] += omega_r * rows[j, m, 1]
+    return list(out)
 
 
 def _rate_tangents(tangent: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.ndarray:

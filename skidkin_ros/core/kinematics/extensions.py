@@ -182,20 +182,31 @@ class Extension:
         return _TWIST_FUNCTIONS[self.name](k, twist, omega_l, omega_r, t_s, rate)
 
     def partials(self, k: np.ndarray, twist: np.ndarray, omega_l: np.ndarray,
-                 omega_r: np.ndarray, t_s: np.ndarray, rate: np.ndarray
+                 omega_r: np.ndarray, t_s: np.ndarray, rate: np.ndarray,
+                 wanted: Sequence[int] | None = None, inputs: bool = True
                  ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
         """Return :meth:`apply`'s exact derivatives at these inputs (twist stage).
 
         (d out / d twist (..., 3, 3), d out / d rate (..., 3, 3), d out / d k (..., 3, n)):
         None stands for the identity (twist) or zero (rate); every stage but the twist stage
-        returns (None, None, zeros). Where a rule switches branch (a clamp, a bound) the
-        derivative is the branch's at that point, as a one-sided difference would see it.
+        returns (None, None, zeros). ``wanted``: the indices of the parameters whose slopes are
+        returned, in that order (default: all); ``inputs=False``: the caller carries no
+        tangent in, so the slopes by twist and rate are left out (None, None). Where a rule
+        switches branch (a clamp, a bound) the derivative is the branch's at that point, as a
+        one-sided difference would see it.
         """
+        wanted = list(range(len(self.params))) if wanted is None else list(wanted)
         if self.stage != 'twist':
-            return None, None, np.zeros(np.shape(twist) + (len(self.params),))
-        return _PARTIAL_FUNCTIONS[self.name](np.asarray(k, dtype=float),
-                                             np.asarray(twist, dtype=float), omega_l, omega_r,
-                                             t_s, np.asarray(rate, dtype=float))
+            return None, None, np.zeros(np.shape(twist) + (len(wanted),))
+        function = _PARTIAL_FUNCTIONS[self.name]
+        args = (np.asarray(k, dtype=float), np.asarray(twist, dtype=float), omega_l, omega_r,
+                t_s, np.asarray(rate, dtype=float))
+        if self.learned:  # hundreds of coefficients: only the wanted ones are computed
+            d_twist, d_rate, d_k = function(*args, wanted=wanted, inputs=inputs)
+        else:
+            d_twist, d_rate, d_k = function(*args)
+            d_k = d_k[..., wanted]
+        return (d_twist, d_rate, d_k) if inputs else (None, None, d_k)
 
     @property
     def uses_rate(self) -> bool:
@@ -454,19 +465,20 @@ def _sparse_correction(k, twist, omega_l, omega_r, t_s, rate):
     return bounded_correction(twist, features @ coef.T)
 
 
-def _sparse_correction_partials(k, twist, omega_l, omega_r, t_s, rate):
+def _sparse_correction_partials(k, twist, omega_l, omega_r, t_s, rate, wanted, inputs):
     features = sparse_features(twist, rate)
-    grads = sparse_gradients(twist, rate)  # (..., F, 4): d term / d (v, w, dv, dw)
     coef = np.asarray(k, dtype=float).reshape(len(SPARSE_OUTPUTS), len(SPARSE_FEATURES))
-    d_inputs = np.einsum('of,...fi->...oi', coef, grads)  # (..., 3, 4)
     d_change_twist = np.zeros(np.shape(twist) + (3,))
-    d_change_twist[..., 0], d_change_twist[..., 2] = d_inputs[..., 0], d_inputs[..., 1]
     d_change_rate = np.zeros(np.shape(twist) + (3,))
-    d_change_rate[..., 0], d_change_rate[..., 2] = d_inputs[..., 2], d_inputs[..., 3]
+    if inputs:
+        grads = sparse_gradients(twist, rate)  # (..., F, 4): d term / d (v, w, dv, dw)
+        d_inputs = np.einsum('of,...fi->...oi', coef, grads)  # (..., 3, 4)
+        d_change_twist[..., 0], d_change_twist[..., 2] = d_inputs[..., 0], d_inputs[..., 1]
+        d_change_rate[..., 0], d_change_rate[..., 2] = d_inputs[..., 2], d_inputs[..., 3]
     count = len(SPARSE_FEATURES)
-    d_change_k = np.zeros(np.shape(twist) + (k.size,))
-    for o in range(len(SPARSE_OUTPUTS)):
-        d_change_k[..., o, o * count:(o + 1) * count] = features
+    d_change_k = np.zeros(np.shape(twist) + (len(wanted),))
+    for c, j in enumerate(wanted):
+        d_change_k[..., j // count, c] = features[..., j % count]
     return _bounded_partials(twist, features @ coef.T, d_change_twist, d_change_rate,
                              d_change_k)
 
@@ -498,28 +510,35 @@ def _residual_model(k, twist, omega_l, omega_r, t_s, rate):
     return bounded_correction(twist, change)
 
 
-def _residual_model_partials(k, twist, omega_l, omega_r, t_s, rate):
+def _residual_model_partials(k, twist, omega_l, omega_r, t_s, rate, wanted, inputs):
     ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES].tolist()
     coef = k[:_RESIDUAL_COEFS].reshape(len(residual.OUTPUTS), len(residual.TERMS))
     gains = k[_RESIDUAL_GAINS:_RESIDUAL_GAINS + 3]
     phi = residual.features(ranges, twist, rate)  # (..., T)
-    # (..., T, 4) and (..., T, 8)
-    d_phi, d_phi_ranges = residual.feature_gradients(ranges, twist, rate)
     raw = np.einsum('ot,...t->...o', coef, phi)
     change = raw * gains
-    d_inputs = np.einsum('ot,...ti->...oi', coef, d_phi) * gains[:, None]  # (..., 3, 4)
     d_change_twist = np.zeros(np.shape(twist) + (3,))
-    d_change_twist[..., 0], d_change_twist[..., 2] = d_inputs[..., 0], d_inputs[..., 1]
     d_change_rate = np.zeros(np.shape(twist) + (3,))
-    d_change_rate[..., 0], d_change_rate[..., 2] = d_inputs[..., 2], d_inputs[..., 3]
+    by_range = [j for j in wanted if _RESIDUAL_COEFS <= j < _RESIDUAL_COEFS + _RESIDUAL_RANGES]
+    if inputs or by_range:
+        # (..., T, 4) and (..., T, 8)
+        d_phi, d_phi_ranges = residual.feature_gradients(ranges, twist, rate)
+    if inputs:
+        d_inputs = np.einsum('ot,...ti->...oi', coef, d_phi) * gains[:, None]  # (..., 3, 4)
+        d_change_twist[..., 0], d_change_twist[..., 2] = d_inputs[..., 0], d_inputs[..., 1]
+        d_change_rate[..., 0], d_change_rate[..., 2] = d_inputs[..., 2], d_inputs[..., 3]
     count = len(residual.TERMS)
-    d_change_k = np.zeros(np.shape(twist) + (k.size,))
-    for o in range(len(residual.OUTPUTS)):
-        d_change_k[..., o, o * count:(o + 1) * count] = phi * gains[o]
-        d_change_k[..., o, _RESIDUAL_GAINS + o] = raw[..., o]
-    d_change_k[..., _RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES] = (
-        np.einsum('ot,...tr->...or', coef, d_phi_ranges) * gains[:, None])
-    # the level only says which coefficients are zero: no slope of its own
+    d_change_k = np.zeros(np.shape(twist) + (len(wanted),))
+    for c, j in enumerate(wanted):
+        if j < _RESIDUAL_COEFS:
+            d_change_k[..., j // count, c] = phi[..., j % count] * gains[j // count]
+        elif j < _RESIDUAL_COEFS + _RESIDUAL_RANGES:
+            d_change_k[..., c] = (np.einsum('ot,...t->...o', coef,
+                                            d_phi_ranges[..., j - _RESIDUAL_COEFS])
+                                  * gains)
+        elif j >= _RESIDUAL_GAINS:
+            d_change_k[..., j - _RESIDUAL_GAINS, c] = raw[..., j - _RESIDUAL_GAINS]
+        # the level only says which coefficients are zero: no slope of its own
     return _bounded_partials(twist, change, d_change_twist, d_change_rate, d_change_k)
 
 

@@ -11,9 +11,26 @@ from __future__ import annotations
 
 import numpy as np
 
-from skidkin_ros.core.odometry.se2 import _sinc_terms, body_increment
+from skidkin_ros.core.odometry.se2 import _sinc_terms
 
-__all__ = ['sinc_slopes', 'body_increment_tangent', 'compose_tangent', 'rollout_tangent']
+__all__ = ['scratch', 'sinc_slopes', 'body_increment_tangent', 'compose_tangent',
+           'window_tangents']
+
+# Work arrays kept between calls, by (name, shape): the tangents are P times the size of the
+# twist, and a fresh array that large costs more to map than the arithmetic done in it.
+_SCRATCH: dict[tuple, np.ndarray] = {}
+
+
+def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """Return the work array ``name`` of ``shape`` (uninitialised; reused by the next call)."""
+    key = (name, tuple(shape))
+    array = _SCRATCH.get(key)
+    if array is None:
+        if len(_SCRATCH) > 16:
+            _SCRATCH.clear()
+        array = _SCRATCH[key] = np.empty(shape)
+    return array
+
 
 # Below this rotation per step the slopes of sin(a)/a and (1 - cos a)/a come from their series.
 _SLOPE_SERIES_RAD = 1e-2
@@ -62,44 +79,75 @@ def compose_tangent(theta, dx, dy, d_x, d_y, d_theta, d_dx, d_dy, d_dtheta
             d_theta + d_dtheta)
 
 
-def rollout_tangent(v_x, v_y, omega, dt_s, d_v_x, d_v_y, d_omega
-                    ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
-    """Roll out from the origin; return the poses and what any window's derivative is made of.
+def _sinc_values_and_slopes(dtheta: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Return sin(a)/a, (1 - cos a)/a and their slopes, from one sin and one cos of a."""
+    a = np.asarray(dtheta, dtype=float)
+    small = np.abs(a) < _SLOPE_SERIES_RAD
+    safe = np.where(small, 1.0, a)
+    sin_t, cos_t = np.sin(safe), np.cos(safe)
+    a2 = a * a
+    sinc = np.where(small, 1.0 - a2 / 6.0 + a2 * a2 / 120.0, sin_t / safe)
+    cosc = np.where(small, a / 2.0 - a * a2 / 24.0 + a * a2 * a2 / 720.0, (1.0 - cos_t) / safe)
+    d_sin = np.where(small, -a / 3.0 + a * a2 / 30.0, (cos_t - sinc) / safe)
+    d_cos = np.where(small, 0.5 - a2 / 8.0 + a2 * a2 / 144.0, (sin_t - cosc) / safe)
+    return sinc, cosc, d_sin, d_cos
 
-    The poses are :func:`~skidkin_ros.core.odometry.se2.rollout_columns`' (to rounding).
 
-    ``v_x``, ``v_y``, ``omega``, ``dt_s``: (N, L); their tangents (P, N, L). Returns the poses
-    (x, y, yaw), each (N, L + 1), and three running sums (P, N, L + 1), 0 at the start:
-    ``u_x``, ``u_y`` and ``w``. The move from pose a to pose b (b >= a) then has the tangents
-    R(yaw_a)^T (u[b] - u[a] + J p_b (w[b] - w[a])) (position, J p = (-p_y, p_x)) and
-    w[b] - w[a] (heading): each step's own change, turned into the world frame, plus the turn
-    of the rest of the window about the step's end (p_b - p_i+1), split into a part summed
-    here and one taken at the window's end. Steps before a turn the whole window and drop out.
+def window_tangents(v_x, v_y, omega, dt_s, d_v_x, d_v_y, d_omega, a: np.ndarray,
+                    b: np.ndarray) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """Roll out from the origin; return the poses and what each window's derivative is made of.
+
+    ``v_x``, ``v_y``, ``omega``, ``dt_s``: (N, L), one step between stamps i and i + 1 (the
+    last of each row unused); their tangents (P, N, L). ``a``, ``b``: flat stamp indices of
+    each window (b >= a, same row). Returns the poses (x, y, yaw) at every stamp, each flat
+    (N * L,) (:func:`~skidkin_ros.core.odometry.se2.rollout_columns`' to rounding), and three
+    sums over each window's steps, each (P, S): ``u_x``, ``u_y`` and ``w``. The move from
+    stamp a to stamp b then has the tangents R(yaw_a)^T (u + J p_b w) (position, J p =
+    (-p_y, p_x)) and w (heading): each step's own change, turned into the world frame, plus
+    the turn of the rest of the window about the step's end (p_b - p_i+1), split into a part
+    summed here and one taken at the window's end. Steps before a turn the whole window and
+    drop out.
     """
-    dx, dy, dtheta = body_increment(v_x, v_y, omega, dt_s)
-    dt = np.asarray(dt_s, dtype=float)
+    dt = np.array(dt_s, dtype=float)
+    dt[:, -1] = 0.0  # no step after the last stamp
+    dtheta = np.asarray(omega, dtype=float) * dt
+    sinc, cosc, d_sin, d_cos = _sinc_values_and_slopes(dtheta)
+    s, c = sinc * dt, cosc * dt
+    dx, dy = v_x * s - v_y * c, v_x * c + v_y * s
     count, length = np.shape(dtheta)
-    poses = [np.zeros((count, length + 1)) for _ in range(3)]
-    np.cumsum(dtheta, axis=1, out=poses[2][:, 1:])
-    theta = poses[2][:, :-1]  # heading at the start of each step
-    cos_t, sin_t = np.cos(theta), np.sin(theta)
-    np.cumsum(cos_t * dx - sin_t * dy, axis=1, out=poses[0][:, 1:])
-    np.cumsum(sin_t * dx + cos_t * dy, axis=1, out=poses[1][:, 1:])
+    poses = [np.zeros((count, length)) for _ in range(3)]
+    np.cumsum(dtheta[:, :-1], axis=1, out=poses[2][:, 1:])
+    cos_t, sin_t = np.cos(poses[2]), np.sin(poses[2])  # heading at the start of each step
+    np.cumsum((cos_t * dx - sin_t * dy)[:, :-1], axis=1, out=poses[0][:, 1:])
+    np.cumsum((sin_t * dx + cos_t * dy)[:, :-1], axis=1, out=poses[1][:, 1:])
     # d (dx, dy) / d (v_x, v_y, omega) of each step, turned into the world frame: values only
-    sin_a, cos_a = _sinc_terms(dtheta)
-    d_sin, d_cos = sinc_slopes(dtheta)
-    s, c = sin_a * dt, cos_a * dt
     dt2 = dt * dt
     slope_x = (v_x * d_sin - v_y * d_cos) * dt2
     slope_y = (v_x * d_cos + v_y * d_sin) * dt2
     m_xv, m_xy = cos_t * s - sin_t * c, -cos_t * c - sin_t * s
     m_yv, m_yy = sin_t * s + cos_t * c, cos_t * s - sin_t * c
     # the turn of the rest of the window about the step's end: -J p_i+1 dt d omega
-    m_xw = cos_t * slope_x - sin_t * slope_y + poses[1][:, 1:] * dt
-    m_yw = sin_t * slope_x + cos_t * slope_y - poses[0][:, 1:] * dt
+    after_x = np.empty_like(dt)
+    after_y = np.empty_like(dt)
+    after_x[:, :-1], after_y[:, :-1] = poses[0][:, 1:], poses[1][:, 1:]
+    after_x[:, -1] = after_y[:, -1] = 0.0
+    m_xw = cos_t * slope_x - sin_t * slope_y + after_y * dt
+    m_yw = sin_t * slope_x + cos_t * slope_y - after_x * dt
     columns = np.shape(d_v_x)[0]
-    sums = [np.zeros((columns, count, length + 1)) for _ in range(3)]
-    np.cumsum(m_xv * d_v_x + m_xy * d_v_y + m_xw * d_omega, axis=-1, out=sums[0][..., 1:])
-    np.cumsum(m_yv * d_v_x + m_yy * d_v_y + m_yw * d_omega, axis=-1, out=sums[1][..., 1:])
-    np.cumsum(dt * d_omega, axis=-1, out=sums[2][..., 1:])
-    return tuple(poses), tuple(sums)
+    # window sums: one reduction over [a, b) each (the odd entries span the gaps: unused)
+    bounds = np.empty(2 * len(a), dtype=np.int64)
+    bounds[0::2], bounds[1::2] = a, b
+    empty = (b <= a)
+    step, term = scratch('step', np.shape(d_v_x)), scratch('term', np.shape(d_v_x))
+    sums = []
+    for row in ((m_xv, m_xy, m_xw), (m_yv, m_yy, m_yw), (None, None, dt)):
+        np.multiply(row[2], d_omega, out=step)
+        for factor, tangent in zip(row[:2], (d_v_x, d_v_y)):
+            if factor is not None:
+                step += np.multiply(factor, tangent, out=term)
+        flat = step.reshape(columns, count * length)
+        total = (np.add.reduceat(flat, bounds, axis=1)[:, 0::2] if len(a)
+                 else np.zeros((columns, 0)))
+        total[:, empty] = 0.0
+        sums.append(total)
+    return tuple(p.reshape(count * length) for p in poses), tuple(sums)
