@@ -272,7 +272,7 @@ class BoundAugmented:
         (-1 for the base model or an extension's index, the parameter's index). Forward mode:
         the base twist's gradient, carried through the rate, each twist-stage extension
         (:meth:`Extension.partials`) and the lags (linear in their input; a time constant's own
-        slope by complex step, exact to rounding). A time offset moves the segment windows,
+        slope from the derivative of its recursion). A time offset moves the segment windows,
         not the twists: its slope is the predictor's.
         """
         t_ns = np.asarray(t_ns, dtype=np.int64)
@@ -311,23 +311,37 @@ class BoundAugmented:
         mean = x.copy()
         dt_s = np.asarray(dt_s, dtype=float)
         restart = np.asarray(restart, bool)
+        held = {}
+        d_mean = list(d_x)
         for tau in sorted({t for t in taus if t > 0.0}):
             columns = [c for c in range(3) if taus[c] == tau]
-            _, mean[..., columns] = lag_response(x[..., columns], dt_s, restart, tau)
-            # the response is linear in its input: each tangent is one more channel
-            flat = np.stack([d_x[c][p] for c in columns for p in range(count)], axis=-1)
-            _, lagged = lag_response(flat, dt_s, restart, tau)
+            lagged, mean[..., columns] = lag_response(x[..., columns], dt_s, restart, tau)
+            d, g = lag_factors(dt_s, tau)
             for n, c in enumerate(columns):
-                d_x[c] = np.ascontiguousarray(
-                    np.moveaxis(lagged[..., n * count:(n + 1) * count], -1, 0))
+                held[c] = lagged[..., n]
+                # the response is linear in its input: the tangents follow the same recursion
+                d_held = _first_order(d_x[c] * (1.0 - d), d, dt_s, restart, d_x[c][..., 0],
+                                      d_x[c])
+                d_mean[c] = d_x[c] + (d_held - d_x[c]) * g
         for c, columns, tau in lags:
-            # complex step: exact slope of the (analytic in tau) response, no cancellation
-            step = 1e-20
-            _, stepped = lag_response(x[..., columns] + 0j, dt_s, restart,
-                                      max(tau, 1e-12) + 1j * step)
-            for n, m in enumerate(columns):
-                d_x[m][c] += stepped[..., n].imag / step
-        return mean, d_x
+            # the slope by the time constant itself; at tau = 0 the one-sided one (tau -> 0+)
+            tau = max(tau, 1e-12)
+            d, g = lag_factors(dt_s, tau)
+            ratio = dt_s / tau
+            d_by_tau = d * ratio / tau
+            with np.errstate(over='ignore', invalid='ignore'):
+                g_by_tau = np.where(ratio > 1e-4, -((ratio + 1.0) * d - 1.0) / (ratio * tau),
+                                    (0.5 - ratio / 3.0) * ratio / tau)
+            g_by_tau = np.where(dt_s > 0.0, g_by_tau, 0.0)
+            for m in columns:
+                y = held.get(m) if taus[m] == tau else None
+                if y is None:
+                    y = lag_response(x[..., m:m + 1], dt_s, restart, tau)[0][..., 0]
+                gap = y - x[..., m]
+                z = _first_order((gap * d_by_tau)[None], d, dt_s, restart,
+                                 np.zeros((1,) + gap.shape[:1]), None)[0]
+                d_mean[m][c] += z * g + gap * g_by_tau
+        return mean, d_mean
 
     def _free_lags(self, free: Sequence[tuple[int, int]]
                    ) -> list[tuple[int, list[int], float]]:
@@ -458,6 +472,41 @@ def _row_plan(dt_s: np.ndarray, restart: np.ndarray) -> tuple[np.ndarray, ...]:
         _ROW_PLANS.insert(0, (dt_s, restart, plan))
         del _ROW_PLANS[4:]
     return plan
+
+
+def _first_order(force: np.ndarray, d: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
+                 first: np.ndarray, reset: np.ndarray | None) -> np.ndarray:
+    """Run h_i+1 = d_i h_i + force_i over (K, D, L) tangents, as :func:`lag_response` runs.
+
+    ``d``: (D, L) decays; ``first``: h_0 (K, D); after a restart h takes ``reset``'s value
+    there (None: 0). A repeated stamp (d = 1, no force) holds h; rows of one period go
+    through lfilter, the others through the sample loop.
+    """
+    from scipy.signal import lfilter
+
+    count, drives, length = force.shape
+    out = np.empty_like(force)
+    ends, steady, idle = _row_plan(dt_s, restart)
+    index = np.arange(length)
+    out[:, idle] = first[:, idle, None]
+    for decay in np.unique(d[steady & ~idle, 0]):
+        rows = np.nonzero(steady & ~idle & (d[:, 0] == decay))[0]
+        out[:, rows] = lfilter([0.0, 1.0], [1.0, -decay], force[:, rows], axis=-1,
+                               zi=first[:, rows, None])[0]
+        last = np.minimum(ends[rows], length - 1)
+        tail = index[None, :] > last[:, None]
+        edge = np.take_along_axis(out[:, rows], last[None, :, None].repeat(count, 0), -1)
+        out[:, rows] = np.where(tail, edge, out[:, rows])
+    rows = np.nonzero(~steady)[0]
+    if rows.size:
+        h = first[:, rows].copy()
+        for i in range(length):
+            out[:, rows, i] = h
+            if i + 1 < length:
+                h = d[rows, i] * h + force[:, rows, i]
+                again = restart[rows, i + 1]
+                h[:, again] = 0.0 if reset is None else reset[:, rows[again], i + 1]
+    return out
 
 
 def lag_response(x: np.ndarray, dt_s: np.ndarray, restart: np.ndarray,
