@@ -37,7 +37,7 @@ import numpy as np
 from skidkin_ros.core.kinematics.extensions import get_extension, ordered
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
 from skidkin_ros.core.kinematics.specs import Geometry
-from skidkin_ros.core.odometry.se2_tangent import scratch
+from skidkin_ros.core.scratch import scratch
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import ParameterError
 

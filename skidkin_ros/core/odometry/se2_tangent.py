@@ -12,25 +12,10 @@ from __future__ import annotations
 import numpy as np
 
 from skidkin_ros.core.odometry.se2 import _sinc_terms
+from skidkin_ros.core.scratch import scratch
 
-__all__ = ['scratch', 'sinc_slopes', 'body_increment_tangent', 'compose_tangent',
+__all__ = ['sinc_slopes', 'body_increment_tangent', 'compose_tangent',
            'window_tangents']
-
-# Work arrays kept between calls, by (name, shape): the tangents are P times the size of the
-# twist, and a fresh array that large costs more to map than the arithmetic done in it.
-_SCRATCH: dict[tuple, np.ndarray] = {}
-
-
-def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
-    """Return the work array ``name`` of ``shape`` (uninitialised; reused by the next call)."""
-    key = (name, tuple(shape))
-    array = _SCRATCH.get(key)
-    if array is None:
-        if len(_SCRATCH) > 16:
-            _SCRATCH.clear()
-        array = _SCRATCH[key] = np.empty(shape)
-    return array
-
 
 # Below this rotation per step the slopes of sin(a)/a and (1 - cos a)/a come from their series.
 _SLOPE_SERIES_RAD = 1e-2
