@@ -279,7 +279,6 @@ class BoundAugmented:
         t_s = (t_ns - t_ns[:, :1]) * 1e-9
         omega_l = np.asarray(omega_l, dtype=float)
         omega_r = np.asarray(omega_r, dtype=float)
-        count = len(free)
         base = np.asarray(self.base.twist(omega_l, omega_r), dtype=float)
         d_x = base_tangents(self.base, omega_l, omega_r, free)
         rate = d_rate = None
