@@ -29,10 +29,12 @@ twist terms is a registry too (``LIBRARY``, in :mod:`~skidkin_ros.core.kinematic
 with the bound on a data-driven correction; re-exported here): a new term is one
 :class:`LibraryTerm`.
 
-This module stays whole (under 600 lines): it is the registry and the formulas its entries
-name, and each formula sits beside its scalar twin, which must do the same operations in the
-same order so that the node and the batch prediction agree; moving the families elsewhere would
-spread one entry over several modules.
+This module stays whole: it is the registry and the formulas its entries name, and each formula
+sits beside its scalar twin, which must do the same operations in the same order so that the
+node and the batch prediction agree, and beside its exact derivatives (``_<name>_partials``,
+:meth:`Extension.partials`: what the fits' analytic Jacobians are made of; a change of a rule is
+a change of its derivatives, which ``test_jacobians.py`` checks against finite differences);
+moving the families elsewhere would spread one entry over several modules.
 """
 
 from __future__ import annotations
