@@ -521,12 +521,11 @@ def _residual_model_partials(k, twist, omega_l, omega_r, t_s, rate, wanted, inpu
     change = raw * gains
     d_change_twist = np.zeros(np.shape(twist) + (3,))
     d_change_rate = np.zeros(np.shape(twist) + (3,))
-    by_range = [j for j in wanted if _RESIDUAL_COEFS <= j < _RESIDUAL_COEFS + _RESIDUAL_RANGES]
-    if inputs or by_range:
-        # (..., T, 4) and (..., T, 8)
-        d_phi, d_phi_ranges = residual.feature_gradients(ranges, twist, rate)
+    if any(_RESIDUAL_COEFS <= j < _RESIDUAL_COEFS + _RESIDUAL_RANGES for j in wanted):
+        _, d_phi_ranges = residual.feature_gradients(ranges, twist, rate)  # (..., T, 8)
     if inputs:
-        d_inputs = np.einsum('ot,...ti->...oi', coef, d_phi) * gains[:, None]  # (..., 3, 4)
+        d_inputs = (residual.correction_gradient(coef, ranges, twist, rate)
+                    * gains[:, None])  # (..., 3, 4)
         d_change_twist[..., 0], d_change_twist[..., 2] = d_inputs[..., 0], d_inputs[..., 1]
         d_change_rate[..., 0], d_change_rate[..., 2] = d_inputs[..., 2], d_inputs[..., 3]
     count = len(residual.TERMS)

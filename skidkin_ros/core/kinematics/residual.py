@@ -37,7 +37,8 @@ import numpy as np
 __all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS', 'SIGN_WIDTH',
            'term_names', 'features',
            'scalar_features', 'correction', 'scalar_correction', 'coefficient_names',
-           'range_names', 'input_values', 'TERM_GRADIENTS', 'feature_gradients']
+           'range_names', 'input_values', 'TERM_GRADIENTS', 'feature_gradients',
+           'correction_gradient']
 
 # The state the correction is a function of: (name, unit, what it is).
 INPUTS: tuple[tuple[str, str, str], ...] = (
@@ -211,6 +212,35 @@ def feature_gradients(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarr
         d_ranges[..., 2 * i] = d_scaled[..., i] * d_lo[..., None]
         d_ranges[..., 2 * i + 1] = d_scaled[..., i] * d_hi[..., None]
     return d_inputs, d_ranges
+
+
+def correction_gradient(coef: np.ndarray, ranges: Sequence[float], twist: np.ndarray,
+                        rate: np.ndarray | None) -> np.ndarray:
+    """Return d (C phi) / d (v, w, dv, dw) (..., O, 4) for coefficients ``coef`` (O, T).
+
+    :func:`feature_gradients` contracted with the coefficients term by term, skipping the terms
+    no output uses (above the chosen level every coefficient is 0): the fits need only this.
+    """
+    raw = input_values(twist, rate)
+    scaled, slopes = [], []
+    for i, x in enumerate(raw):
+        x = np.asarray(x, dtype=float)
+        lo, hi = ranges[2 * i], ranges[2 * i + 1]
+        scaled.append(_scaled(x, lo, hi))
+        slopes.append(_scaled_partials(x, lo, hi)[0])
+    shape = np.shape(scaled[0])
+    out = np.zeros(shape + (len(coef), len(INPUTS)))
+    for t, (name, _, _, _) in enumerate(TERMS):
+        used = [o for o in range(len(coef)) if coef[o][t] != 0.0]
+        if not used:
+            continue
+        for i, slope in enumerate(TERM_GRADIENTS[name](*scaled)):
+            if np.ndim(slope) == 0 and slope == 0.0:
+                continue
+            part = slope * slopes[i]
+            for o in used:
+                out[..., o, i] += coef[o][t] * part
+    return out
 
 
 def scalar_features(ranges: Sequence[float], v: float, w: float, dv: float, dw: float
