@@ -3,8 +3,9 @@
 ``python lab/bench/diag_same.py husky`` (the Husky windows, even calib_step train, odd
 evaluate, the residual model as candidate) or
 ``python lab/bench/diag_same.py acceleration_slip+lateral_skid`` (a case of the effects study:
-two simulated training drives with those effects, three for evaluation, every candidate). Run it with this checkout and with an older one
-(``PYTHONPATH=OLDER python lab/bench/diag_same.py ...``) and compare: the extensions found, the
+two simulated training drives with those effects, three for evaluation, every candidate). Run
+it with this checkout and with an older one (``PYTHONPATH=OLDER python
+lab/bench/diag_same.py ...``) and compare: the extensions found, the
 base and extension values, eps_t and eps_theta of every step; ``se`` gives the standard errors
 of the final model's fitted parameters on the training segments (from the exact Jacobian, when
 the code has one), to judge a difference of values. ``FD=1`` in the environment makes this
