@@ -38,8 +38,9 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -ra -m 'not heavy' $(PYTEST_ARGS)
 
+# `make bench DIAG_OLD=4a5fc0e` also times the diagnosis of an older commit (or checkout folder).
 bench: $(STAMP)
-	$(PY) lab/bench/run.py --out lab/bench/results
+	$(PY) lab/bench/run.py --out lab/bench/results $(if $(DIAG_OLD),--diag-old $(DIAG_OLD))
 
 bench-smoke: $(STAMP)
 	$(PY) lab/bench/run.py --smoke --out lab/bench/results-smoke

@@ -235,8 +235,31 @@ def _gt_section(gt: Mapping[str, Any]) -> list[str]:
     return lines + icp_settings.markdown(gt['settings'])
 
 
+def _diag_speed_lines(speed: Mapping[str, Any] | None) -> list[str]:
+    """Old and new diagnosis speed of one run (diag_speed.compare), as a table."""
+    if not speed:
+        return []
+    new = speed['new']
+    lines = [f'Diagnosis speed, one run, {new["km"]:.2f} km, the same drives and processes '
+             f'(load average {speed["loadavg"]}): wall and process CPU time (workers included) '
+             'per km; ratios old / new.', '',
+             '| code | s/km | CPU s/km | wall ratio | CPU ratio | extensions found | eps_t |',
+             '|---|---|---|---|---|---|---|',
+             f'| this checkout (exact Jacobians) | {new["s_per_km"]:.1f} | '
+             f'{new["cpu_s_per_km"]:.1f} | 1 | 1 | {", ".join(new["found"]) or "none"} | '
+             f'{new["eps_t"]:.5f} |']
+    for name, row in speed['old'].items():
+        label = ('this checkout, finite-difference Jacobians' if name == 'finite_differences'
+                 else name)
+        lines.append(f'| {label} | {row["s_per_km"]:.1f} | {row["cpu_s_per_km"]:.1f} | '
+                     f'{row["speedup_wall"]:.2f} | {row["speedup_cpu"]:.2f} | '
+                     f'{", ".join(row["found"]) or "none"} | {row["eps_t"]:.5f} |')
+    return lines + ['']
+
+
 def _diag_section(diag: Mapping[str, Any]) -> list[str]:
     lines = ['## Diagnosis against the distance driven', '']
+    lines += _diag_speed_lines(diag.get('speed'))
     if not diag['available']:
         return lines + [f'diagnosis: {diag["reason"]}', '']
     lines += ['| km | drives | 1 process s | s/km | processes | s | s/km | speed-up | '

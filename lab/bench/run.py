@@ -37,6 +37,7 @@ from typing import Any, Mapping, Sequence
 
 import calib_bench
 import diag_bench
+import diag_speed
 import gt_bench
 import heading_bench
 import icp_settings
@@ -70,6 +71,7 @@ class Sizes:
     lidar_horizon_m: float
     diag_km: tuple[float, ...]
     diag_drive_s: float
+    diag_speed_km: float
     gt_outdoor_s: float
     gt_drive_s: float
     gt_why_frames: int
@@ -83,14 +85,14 @@ FULL = Sizes(
     calib_km=(0.5, 1.0, 2.0, 4.0), calib_drive_s=600.0, holdout_block_s=60.0,
     calib_n_starts=None,
     lidar_durations_s=(20.0, 40.0, 80.0), lidar_azimuth_deg=0.5, lidar_horizon_m=2.0,
-    diag_km=(0.05, 0.1, 0.2), diag_drive_s=60.0,
+    diag_km=(0.05, 0.1, 0.2), diag_drive_s=60.0, diag_speed_km=0.5,
     gt_outdoor_s=300.0, gt_drive_s=600.0, gt_why_frames=300, icp_settings_s=60.0)
 SMOKE = Sizes(
     node_plan=((100.0, 0.5), (1000.0, 0.5)), node_ladder_hz=(), node_ladder_s=0.3, node_rounds=1,
     node_models=('full_linear',), node_augmented=False,
     calib_km=(0.02, 0.04), calib_drive_s=40.0, holdout_block_s=10.0, calib_n_starts=1,
     lidar_durations_s=(3.0, 5.0), lidar_azimuth_deg=4.0, lidar_horizon_m=0.5,
-    diag_km=(0.03,), diag_drive_s=40.0,
+    diag_km=(0.03,), diag_drive_s=40.0, diag_speed_km=0.03,
     gt_outdoor_s=12.0, gt_drive_s=80.0, gt_why_frames=20, icp_settings_s=4.0)
 
 
@@ -211,7 +213,8 @@ def _empty(part: str) -> dict[str, Any]:
 
 
 def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
-            command: str, overrides: Mapping[str, float] | None = None) -> dict[str, Any]:
+            command: str, overrides: Mapping[str, float] | None = None,
+            diag_old: Sequence[str] = ()) -> dict[str, Any]:
     """Run the requested parts and write results.json, results.md and cost_vs_size.png."""
     sizes = dataclasses.replace(SMOKE if smoke else FULL, **dict(overrides or {}))
     tic = time.perf_counter()
@@ -245,6 +248,12 @@ def run_all(out: Path, smoke: bool, parts: Sequence[str], domain_id: int,
         else:
             results['diagnosis'] = {'available': False, 'rows': [],
                                     'reason': 'not run in the smoke run (too slow for CI)'}
+        print('diagnosis speed: exact against finite-difference Jacobians'
+              + (f' and {", ".join(diag_old)}' if diag_old else ''), flush=True)
+        olds = [Path(old) for old in diag_old if Path(old).is_dir()]
+        commits = [old for old in diag_old if not Path(old).is_dir()]
+        results['diagnosis']['speed'] = diag_speed.compare(
+            sizes.diag_speed_km, min(2, usable_cpus()), olds, True, commits)
     if 'heading' in parts:
         print('heading benchmark (Husky, plain window-end reference)', flush=True)
         results['heading'] = heading_bench.run()
@@ -285,6 +294,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         'run: 600)')
     parser.add_argument('--settings-s', type=float, metavar='S',
                         help='seconds per scene of the kiss-icp settings table (full run: 60)')
+    parser.add_argument('--diag-old', action='append', default=[], metavar='OLD',
+                        help='diagnosis speed: also time an older checkout (a folder) or a '
+                        'commit of this repository, e.g. the one an issue measured (repeatable)')
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     domain_id = args.domain_id if args.domain_id is not None else 40 + os.getpid() % 60
@@ -294,7 +306,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                  ('icp_settings_s', args.settings_s))
                  if value is not None}
     with one_blas_thread():  # as the CLI runs (core.parallel); calib_bench compares both
-        results = run_all(args.out, args.smoke, args.only, domain_id, command.strip(), overrides)
+        results = run_all(args.out, args.smoke, args.only, domain_id, command.strip(), overrides,
+                          args.diag_old)
     print(f'wrote {args.out / "results.md"} in {results["elapsed_s"]:.0f} s')
     return 0
 

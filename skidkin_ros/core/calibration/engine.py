@@ -190,17 +190,29 @@ class ParameterLayout:
 
 def solve(errors: ErrorFunction, layout: ParameterLayout, weight: np.ndarray,
           x0: np.ndarray | None = None, max_nfev: int = 60, loss: str = 'linear',
-          f_scale: float = 1.0) -> optimize.OptimizeResult:
+          f_scale: float = 1.0, jacobian: Callable[[TwistSource], np.ndarray] | None = None
+          ) -> optimize.OptimizeResult:
     """Minimise the whitened errors over the layout's free entries (module docstring).
 
     ``x0``: the start (default: the layout's current values), clipped into the bounds.
-    ``max_nfev``: evaluations per free parameter (plus one). The result is scipy's; without a
+    ``max_nfev``: evaluations per free parameter (plus one). ``jacobian``: the errors' exact
+    derivatives (N, 3, P) with respect to the free entries, for a source (default: scipy's
+    finite differences, one evaluation per free entry). The result is scipy's; without a
     free parameter it holds the evaluation only (``x`` empty, ``fun`` and ``cost``).
     """
     x0 = layout.vector() if x0 is None else np.asarray(x0, dtype=float)
 
     def residuals(vector: np.ndarray) -> np.ndarray:
         return whitened_residuals(errors(layout.source(vector)), weight)
+
+    def whitened_jacobian(vector: np.ndarray) -> np.ndarray:
+        jac = jacobian(layout.source(vector))
+        white = np.asarray(weight, dtype=float)
+        if white.ndim == 3:
+            jac = np.einsum('nij,njp->nip', white, jac)
+        else:
+            jac = jac * white[None, :, None]
+        return np.nan_to_num(jac, nan=0.0, posinf=0.0, neginf=0.0).reshape(-1, x0.size)
 
     if x0.size == 0:
         fun = residuals(x0)
@@ -209,7 +221,9 @@ def solve(errors: ErrorFunction, layout: ParameterLayout, weight: np.ndarray,
                                        message='no free parameter: evaluated only')
     lo, hi = layout.bounds()
     x0 = np.clip(x0, lo, hi)
-    return optimize.least_squares(residuals, x0, bounds=(lo, hi), loss=loss, f_scale=f_scale,
+    return optimize.least_squares(residuals, x0,
+                                  jac='2-point' if jacobian is None else whitened_jacobian,
+                                  bounds=(lo, hi), loss=loss, f_scale=f_scale,
                                   x_scale='jac', max_nfev=max_nfev * (x0.size + 1),
                                   method='trf')
 

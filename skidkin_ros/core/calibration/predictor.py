@@ -15,9 +15,12 @@ import numpy as np
 
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.drive import Drive
+from skidkin_ros.core.kinematics.augmented import base_tangents
 from skidkin_ros.core.odometry.integrator import (body_increment, compose, is_stateful,
                                                   rollout_columns)
 from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
+from skidkin_ros.core.odometry.se2_tangent import (body_increment_tangent, compose_tangent,
+                                                   window_tangents)
 
 __all__ = ['SegmentPredictor']
 
@@ -69,6 +72,9 @@ class SegmentPredictor:
         self.restart[:, 1:] = dt[:, :-1] > max_dt_s
         dt[dt > max_dt_s] = 0.0
         self.dt_s = dt
+        # fixed from here on (read-only: the lag's row plan is kept for them)
+        for array in (self.dt_s, self.restart, self.t_ns, self.omega_l, self.omega_r):
+            array.setflags(write=False)
         self.step_s = np.diff(self.t_ns, axis=1) * 1e-9  # between stamps, gaps included
         self._plans: dict[int, dict[str, np.ndarray]] = {}
 
@@ -174,3 +180,84 @@ class SegmentPredictor:
         with np.errstate(all='ignore'):
             predicted = self.predict_ends(source, keep)
         return segment_frame_error(start, end, predicted)
+
+    def errors_jacobian(self, source: Any, free: Sequence[tuple[int, int]],
+                        offset: int | None = None, keep: np.ndarray | None = None
+                        ) -> np.ndarray:
+        """Return the exact derivatives (S, 3, P) of :meth:`errors` (0 where not finite).
+
+        ``free``: the P parameters as (-1 for the base model or an extension's index, parameter
+        index); ``offset``: the column of a free time offset, if any (it moves each window
+        [t_a - offset, t_b - offset]: the end pose gains the twist held at the window end and
+        loses the one at its start). Forward mode through the mean twists
+        (:meth:`~skidkin_ros.core.kinematics.augmented.BoundAugmented.interval_tangents`), the
+        drives' cumulative poses and the three moves of :meth:`predict_ends`. The error is
+        true - start * T for the predicted move T, and in the start frame its derivative is
+        -dT.
+        """
+        count, width = self.t_ns.shape
+        plan = self.plan(int(getattr(source, 'output_offset_ns', 0)))
+        if keep is not None:
+            plan = {key: value[keep] for key, value in plan.items()}
+        columns = len(free)
+        with np.errstate(all='ignore'):
+            if is_stateful(source):
+                mean, d_mean = source.interval_tangents(self.t_ns, self.omega_l, self.omega_r,
+                                                        self.dt_s, self.restart, free)
+            else:
+                mean = np.asarray(source.twist(self.omega_l, self.omega_r), dtype=float)
+                d_mean = base_tangents(source, self.omega_l, self.omega_r, free)
+            a, b, first = plan['a'], plan['b'], plan['first']
+            poses, sums = window_tangents(
+                *(np.ascontiguousarray(mean[..., m]) for m in range(3)),
+                np.concatenate([self.step_s, np.zeros((count, 1))], axis=1), *d_mean, a, b)
+            cx, cy, cyaw = poses
+            turn, mean = sums[2], mean.reshape(-1, 3)
+            d_mean = [d.reshape(columns, count * width) for d in d_mean]
+            dx, dy = cx[b] - cx[a], cy[b] - cy[a]
+            cos_a, sin_a = np.cos(cyaw[a]), np.sin(cyaw[a])
+            world_x = sums[0] - cy[b] * turn
+            world_y = sums[1] + cx[b] * turn
+            mid = (cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx, cyaw[b] - cyaw[a])
+            d_mid = (cos_a * world_x + sin_a * world_y, cos_a * world_y - sin_a * world_x, turn)
+            moves = [(body_increment(*mean[first].T, plan['first_s']),
+                      body_increment_tangent(*mean[first].T, plan['first_s'],
+                                             *(d[:, first] for d in d_mean))),
+                     (mid, d_mid),
+                     (body_increment(*mean[b].T, plan['last_s']),
+                      body_increment_tangent(*mean[b].T, plan['last_s'],
+                                             *(d[:, b] for d in d_mean)))]
+            size = len(plan['a'])
+            pose = (np.zeros(size), np.zeros(size), np.zeros(size))
+            d_pose = tuple(np.zeros((columns, size)) for _ in range(3))
+            for move, d_move in moves:
+                d_pose = compose_tangent(pose[2], move[0], move[1], *d_pose, *d_move)
+                pose = compose(*pose, *move)
+            if offset is not None:
+                self._offset_slope(mean, plan, pose, d_pose, offset)
+        jac = -np.stack(d_pose).transpose(2, 0, 1)  # (3, P, S) -> (S, 3, P)
+        finite = np.isfinite(np.stack(pose, axis=1)).all(axis=1)
+        jac[~(finite[:, None, None] & np.isfinite(jac))] = 0.0
+        return jac
+
+    def _offset_slope(self, mean: np.ndarray, plan: dict[str, np.ndarray], pose: tuple,
+                      d_pose: tuple, column: int) -> None:
+        """Add d T / d offset to ``d_pose`` (in place): the window moves back by the offset.
+
+        The move T over [s_a, s_b] changes by T * twist(s_b) per second of s_b and by
+        -twist(s_a) * T per second of s_a; both edges move by -1 s per second of offset.
+        """
+        inner = plan['last_s'] > 0.0
+        end = mean[np.where(inner, plan['b'], plan['first'])]
+        start = mean[plan['first']]
+        x, y, yaw = pose
+        cos_t, sin_t = np.cos(yaw), np.sin(yaw)
+        # d T / d s_b: the end twist, turned into the start frame
+        end_x = cos_t * end[:, 0] - sin_t * end[:, 1]
+        end_y = sin_t * end[:, 0] + cos_t * end[:, 1]
+        # d T / d s_a: minus the start twist acting on the whole move
+        start_x = -(start[:, 0] - start[:, 2] * y)
+        start_y = -(start[:, 1] + start[:, 2] * x)
+        d_pose[0][column] += -(end_x + start_x)
+        d_pose[1][column] += -(end_y + start_y)
+        d_pose[2][column] += -(end[:, 2] - start[:, 2])

@@ -29,10 +29,12 @@ twist terms is a registry too (``LIBRARY``, in :mod:`~skidkin_ros.core.kinematic
 with the bound on a data-driven correction; re-exported here): a new term is one
 :class:`LibraryTerm`.
 
-This module stays whole (under 600 lines): it is the registry and the formulas its entries
-name, and each formula sits beside its scalar twin, which must do the same operations in the
-same order so that the node and the batch prediction agree; moving the families elsewhere would
-spread one entry over several modules.
+This module stays whole: it is the registry and the formulas its entries name, and each formula
+sits beside its scalar twin, which must do the same operations in the same order so that the
+node and the batch prediction agree, and beside its exact derivatives (``_<name>_partials``,
+:meth:`Extension.partials`: what the fits' analytic Jacobians are made of; a change of a rule is
+a change of its derivatives, which ``test_jacobians.py`` checks against finite differences);
+moving the families elsewhere would spread one entry over several modules.
 """
 
 from __future__ import annotations
@@ -46,8 +48,8 @@ import numpy as np
 from skidkin_ros.core.kinematics import residual
 from skidkin_ros.core.kinematics.sparse_library import (bounded_correction, LIBRARY,
                                                         LibraryTerm, SLIP_LEVER_M, SPARSE_FEATURES,
-                                                        sparse_features, SPARSE_OUTPUTS,
-                                                        speeding_up)
+                                                        sparse_features, sparse_gradients,
+                                                        SPARSE_OUTPUTS, speeding_up)
 from skidkin_ros.core.kinematics.specs import check_value, ParamSpec
 from skidkin_ros.errors import ParameterError
 
@@ -181,6 +183,38 @@ class Extension:
             rate = np.zeros(np.shape(twist))
         return _TWIST_FUNCTIONS[self.name](k, twist, omega_l, omega_r, t_s, rate)
 
+    def partials(self, k: np.ndarray, twist: np.ndarray, omega_l: np.ndarray,
+                 omega_r: np.ndarray, t_s: np.ndarray, rate: np.ndarray,
+                 wanted: Sequence[int] | None = None, inputs: bool = True
+                 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
+        """Return :meth:`apply`'s exact derivatives at these inputs (twist stage).
+
+        (d out / d twist (..., 3, 3), d out / d rate (..., 3, 3), d out / d k (..., 3, n)):
+        None stands for the identity (twist) or zero (rate); every stage but the twist stage
+        returns (None, None, zeros). ``wanted``: the indices of the parameters whose slopes are
+        returned, in that order (default: all); ``inputs=False``: the caller carries no
+        tangent in, so the slopes by twist and rate are left out (None, None). Where a rule
+        switches branch (a clamp, a bound) the derivative is the branch's at that point, as a
+        one-sided difference would see it.
+        """
+        wanted = list(range(len(self.params))) if wanted is None else list(wanted)
+        if self.stage != 'twist':
+            return None, None, np.zeros(np.shape(twist) + (len(wanted),))
+        function = _PARTIAL_FUNCTIONS[self.name]
+        args = (np.asarray(k, dtype=float), np.asarray(twist, dtype=float), omega_l, omega_r,
+                t_s, np.asarray(rate, dtype=float))
+        if self.learned:  # hundreds of coefficients: only the wanted ones are computed
+            d_twist, d_rate, d_k = function(*args, wanted=wanted, inputs=inputs)
+        else:
+            d_twist, d_rate, d_k = function(*args)
+            d_k = d_k[..., wanted]
+        return (d_twist, d_rate, d_k) if inputs else (None, None, d_k)
+
+    @property
+    def uses_rate(self) -> bool:
+        """Whether its twist rule reads the base twist's rate of change."""
+        return self.name in _USES_RATE
+
     def time_constants(self, k: Sequence[float]) -> tuple[float, float, float]:
         """Return the lag time constant (s) of each twist component, 0 where not lagged."""
         values = self.mapping(k)
@@ -265,6 +299,125 @@ def _acceleration_slip(k, twist, omega_l, omega_r, t_s, rate):
     return out
 
 
+# Their exact derivatives (Extension.partials): (d out/d twist, d out/d rate, d out/d k), next to
+# each rule so that a change of a rule and of its derivative is one edit. test_extensions checks
+# every entry against finite differences.
+def _eye(twist: np.ndarray) -> np.ndarray:
+    return np.broadcast_to(np.eye(3), np.shape(twist) + (3,)).copy()
+
+
+def _speed_slip_partials(k, twist, omega_l, omega_r, t_s, rate):
+    v_x = twist[..., 0]
+    inside = k[0] * np.abs(v_x) < MAX_SPEED_SLIP
+    d_twist = _eye(twist)
+    d_twist[..., 0, 0] = np.where(inside, 1.0 - 2.0 * k[0] * np.abs(v_x), 1.0 - MAX_SPEED_SLIP)
+    d_k = np.zeros(np.shape(twist) + (1,))
+    d_k[..., 0, 0] = np.where(inside, -v_x * np.abs(v_x), 0.0)
+    return d_twist, None, d_k
+
+
+def _direction_asymmetry_partials(k, twist, omega_l, omega_r, t_s, rate):
+    v_x = twist[..., 0]
+    ratio = -v_x / k[1]
+    reverse = np.clip(ratio, 0.0, 1.0)
+    inside = (ratio > 0.0) & (ratio < 1.0)
+    d_twist = _eye(twist)
+    d_twist[..., 0, 0] = 1.0 - k[0] * reverse + np.where(inside, v_x * k[0] / k[1], 0.0)
+    d_k = np.zeros(np.shape(twist) + (2,))
+    d_k[..., 0, 0] = -v_x * reverse
+    d_k[..., 0, 1] = np.where(inside, -v_x * k[0] * v_x / k[1] ** 2, 0.0)
+    return d_twist, None, d_k
+
+
+def _lateral_skid_partials(k, twist, omega_l, omega_r, t_s, rate):
+    d_twist = _eye(twist)
+    d_twist[..., 1, 0] = k[0] * twist[..., 2]
+    d_twist[..., 1, 2] = k[0] * twist[..., 0]
+    d_k = np.zeros(np.shape(twist) + (1,))
+    d_k[..., 1, 0] = twist[..., 0] * twist[..., 2]
+    return d_twist, None, d_k
+
+
+def _icr_offset_partials(k, twist, omega_l, omega_r, t_s, rate):
+    d_twist = _eye(twist)
+    d_twist[..., 1, 2] = k[0]
+    d_k = np.zeros(np.shape(twist) + (1,))
+    d_k[..., 1, 0] = twist[..., 2]
+    return d_twist, None, d_k
+
+
+def _ratio_yaw_slip_partials(k, twist, omega_l, omega_r, t_s, rate):
+    omega_l = np.asarray(omega_l, float)
+    omega_r = np.asarray(omega_r, float)
+    bump = np.broadcast_to(ratio_bump(omega_l, omega_r, k[1], k[2]), twist.shape[:-1])
+    big = np.maximum(np.abs(omega_l), np.abs(omega_r))
+    small = np.minimum(np.abs(omega_l), np.abs(omega_r))
+    ratio = np.where(((omega_l * omega_r) > 0.0) & (big > 0.0),
+                     small / np.where(big > 0.0, big, 1.0), -1.0)
+    q = (ratio - k[1]) / k[2]
+    w = twist[..., 2]
+    d_twist = _eye(twist)
+    d_twist[..., 2, 2] = 1.0 - k[0] * bump
+    d_k = np.zeros(np.shape(twist) + (3,))
+    d_k[..., 2, 0] = -w * bump
+    d_k[..., 2, 1] = -w * k[0] * bump * 2.0 * q / k[2]
+    d_k[..., 2, 2] = -w * k[0] * bump * 2.0 * q * q / k[2]
+    return d_twist, None, d_k
+
+
+def _terrain_regime_partials(k, twist, omega_l, omega_r, t_s, rate):
+    after = np.broadcast_to(np.asarray(t_s) >= k[1], twist.shape[:-1])
+    scale = np.where(after, 1.0 - k[0], 1.0)
+    d_twist = _eye(twist)
+    d_twist[..., 0, 0] = scale
+    d_twist[..., 2, 2] = scale
+    d_k = np.zeros(np.shape(twist) + (2,))  # the switch is a step: no slope (grid-searched)
+    d_k[..., 0, 0] = np.where(after, -twist[..., 0], 0.0)
+    d_k[..., 2, 0] = np.where(after, -twist[..., 2], 0.0)
+    return d_twist, None, d_k
+
+
+def _acceleration_slip_partials(k, twist, omega_l, omega_r, t_s, rate):
+    v_x = twist[..., 0]
+    up = speeding_up(v_x, rate[..., 0])
+    slipping = k[0] * np.abs(up) < np.abs(v_x)
+    sign = np.copysign(1.0, v_x)
+    d_twist = _eye(twist)
+    d_twist[..., 0, 0] = np.where(slipping, 1.0, 0.0)
+    d_rate = np.zeros(np.shape(twist) + (3,))
+    # speeding up: sign(dv) = sign(v_x), so v_x - sign(v_x) k |dv| = v_x - k dv
+    d_rate[..., 0, 0] = np.where(slipping & (up != 0.0), -k[0], 0.0)
+    d_k = np.zeros(np.shape(twist) + (1,))
+    d_k[..., 0, 0] = np.where(slipping, -sign * np.abs(up), 0.0)
+    return d_twist, d_rate, d_k
+
+
+def _bounded_partials(twist: np.ndarray, change: np.ndarray, d_change_twist: np.ndarray,
+                      d_change_rate: np.ndarray, d_change_k: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the derivatives of :func:`bounded_correction` (twist + change, clipped).
+
+    ``d_change_*``: the change's derivatives (..., 3, 3) and (..., 3, n); a clipped component
+    follows the bound instead (|v| + L |w| or |w| + |v| / L).
+    """
+    v, w = twist[..., 0], twist[..., 2]
+    linear = np.abs(v) + np.abs(w) * SLIP_LEVER_M
+    angular = np.abs(w) + np.abs(v) / SLIP_LEVER_M
+    bound = np.stack([linear, linear, angular], axis=-1)
+    side = np.where(change > bound, 1.0, np.where(change < -bound, -1.0, 0.0))
+    free = (side == 0.0)[..., None]
+    d_bound = np.zeros(np.shape(twist) + (3,))
+    sv, sw = np.sign(v), np.sign(w)
+    d_bound[..., 0, 0] = d_bound[..., 1, 0] = sv
+    d_bound[..., 0, 2] = d_bound[..., 1, 2] = sw * SLIP_LEVER_M
+    d_bound[..., 2, 0] = sv / SLIP_LEVER_M
+    d_bound[..., 2, 2] = sw
+    d_twist = _eye(twist) + np.where(free, d_change_twist, side[..., None] * d_bound)
+    d_rate = np.where(free, d_change_rate, 0.0)
+    d_k = np.where(free, d_change_k, 0.0)
+    return d_twist, d_rate, d_k
+
+
 # The same functions on plain floats (one sample): the node runs these once per wheel sample.
 # numpy's exp (not math's) where the array forms use it: libm may differ by an ulp.
 def _scalar_identity(k, vx, vy, w, omega_l, omega_r, t_s, rate):
@@ -314,6 +467,24 @@ def _sparse_correction(k, twist, omega_l, omega_r, t_s, rate):
     return bounded_correction(twist, features @ coef.T)
 
 
+def _sparse_correction_partials(k, twist, omega_l, omega_r, t_s, rate, wanted, inputs):
+    features = sparse_features(twist, rate)
+    coef = np.asarray(k, dtype=float).reshape(len(SPARSE_OUTPUTS), len(SPARSE_FEATURES))
+    d_change_twist = np.zeros(np.shape(twist) + (3,))
+    d_change_rate = np.zeros(np.shape(twist) + (3,))
+    if inputs:
+        grads = sparse_gradients(twist, rate)  # (..., F, 4): d term / d (v, w, dv, dw)
+        d_inputs = np.einsum('of,...fi->...oi', coef, grads)  # (..., 3, 4)
+        d_change_twist[..., 0], d_change_twist[..., 2] = d_inputs[..., 0], d_inputs[..., 1]
+        d_change_rate[..., 0], d_change_rate[..., 2] = d_inputs[..., 2], d_inputs[..., 3]
+    count = len(SPARSE_FEATURES)
+    d_change_k = np.zeros(np.shape(twist) + (len(wanted),))
+    for c, j in enumerate(wanted):
+        d_change_k[..., j // count, c] = features[..., j % count]
+    return _bounded_partials(twist, features @ coef.T, d_change_twist, d_change_rate,
+                             d_change_k)
+
+
 def _sparse_specs() -> tuple[ParamSpec, ...]:
     specs = []
     for out_name, out_unit in SPARSE_OUTPUTS:
@@ -339,6 +510,37 @@ def _residual_model(k, twist, omega_l, omega_r, t_s, rate):
     change = np.stack([change[..., 0] * gains[0], change[..., 1] * gains[1],
                        change[..., 2] * gains[2]], axis=-1)
     return bounded_correction(twist, change)
+
+
+def _residual_model_partials(k, twist, omega_l, omega_r, t_s, rate, wanted, inputs):
+    ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES].tolist()
+    coef = k[:_RESIDUAL_COEFS].reshape(len(residual.OUTPUTS), len(residual.TERMS))
+    gains = k[_RESIDUAL_GAINS:_RESIDUAL_GAINS + 3]
+    phi = residual.features(ranges, twist, rate)  # (..., T)
+    raw = np.einsum('ot,...t->...o', coef, phi)
+    change = raw * gains
+    d_change_twist = np.zeros(np.shape(twist) + (3,))
+    d_change_rate = np.zeros(np.shape(twist) + (3,))
+    if any(_RESIDUAL_COEFS <= j < _RESIDUAL_COEFS + _RESIDUAL_RANGES for j in wanted):
+        _, d_phi_ranges = residual.feature_gradients(ranges, twist, rate)  # (..., T, 8)
+    if inputs:
+        d_inputs = (residual.correction_gradient(coef, ranges, twist, rate)
+                    * gains[:, None])  # (..., 3, 4)
+        d_change_twist[..., 0], d_change_twist[..., 2] = d_inputs[..., 0], d_inputs[..., 1]
+        d_change_rate[..., 0], d_change_rate[..., 2] = d_inputs[..., 2], d_inputs[..., 3]
+    count = len(residual.TERMS)
+    d_change_k = np.zeros(np.shape(twist) + (len(wanted),))
+    for c, j in enumerate(wanted):
+        if j < _RESIDUAL_COEFS:
+            d_change_k[..., j // count, c] = phi[..., j % count] * gains[j // count]
+        elif j < _RESIDUAL_COEFS + _RESIDUAL_RANGES:
+            d_change_k[..., c] = (np.einsum('ot,...t->...o', coef,
+                                            d_phi_ranges[..., j - _RESIDUAL_COEFS])
+                                  * gains)
+        elif j >= _RESIDUAL_GAINS:
+            d_change_k[..., j - _RESIDUAL_GAINS, c] = raw[..., j - _RESIDUAL_GAINS]
+        # the level only says which coefficients are zero: no slope of its own
+    return _bounded_partials(twist, change, d_change_twist, d_change_rate, d_change_k)
 
 
 def _scalar_residual_model(k, vx, vy, w, omega_l, omega_r, t_s, rate):
@@ -410,6 +612,21 @@ _TWIST_FUNCTIONS = {
     'acceleration_slip': _acceleration_slip,
     'sparse_correction': _sparse_correction,
     'residual_model': _residual_model,
+}
+
+# The twist rules that read the rate (the others are given none: it is not computed for them).
+_USES_RATE = frozenset({'acceleration_slip', 'sparse_correction', 'residual_model'})
+
+_PARTIAL_FUNCTIONS = {
+    'speed_slip': _speed_slip_partials,
+    'direction_asymmetry': _direction_asymmetry_partials,
+    'lateral_skid': _lateral_skid_partials,
+    'icr_offset': _icr_offset_partials,
+    'ratio_yaw_slip': _ratio_yaw_slip_partials,
+    'terrain_regime': _terrain_regime_partials,
+    'acceleration_slip': _acceleration_slip_partials,
+    'sparse_correction': _sparse_correction_partials,
+    'residual_model': _residual_model_partials,
 }
 
 _SCALAR_FUNCTIONS = {

@@ -102,6 +102,21 @@ class KinematicModel:
         """
         return None
 
+    def rows_gradient(self, k: np.ndarray, geometry: Geometry) -> np.ndarray | None:
+        """Return dJ(k)/dk as (p, 3, 2) for a model linear in the wheel speeds, else None."""
+        return None
+
+    def twist_gradient(self, k: np.ndarray, geometry: Geometry, omega_l: np.ndarray,
+                       omega_r: np.ndarray) -> np.ndarray:
+        """Return d twist / d k (..., 3, p), exact (the fits' analytic Jacobian)."""
+        omega_l = np.asarray(omega_l, dtype=float)
+        omega_r = np.asarray(omega_r, dtype=float)
+        grad = self.rows_gradient(k, geometry)
+        if grad is None:
+            raise NotImplementedError
+        return (omega_l[..., None, None] * np.moveaxis(grad[..., 0], 0, -1)
+                + omega_r[..., None, None] * np.moveaxis(grad[..., 1], 0, -1))
+
     def twist(self, k: np.ndarray, geometry: Geometry,
               omega_l: np.ndarray, omega_r: np.ndarray) -> np.ndarray:
         """Apply J(k) to the wheel speeds, giving (v_x, v_y, omega) with shape (..., 3)."""
@@ -145,6 +160,9 @@ class IdealDD(KinematicModel):
         r, b = geometry.wheel_radius, geometry.track_width
         return np.array([[r / 2, r / 2], [0.0, 0.0], [-r / b, r / b]])
 
+    def rows_gradient(self, k, geometry):
+        return np.zeros((0, 3, 2))
+
 
 class EddSymmetric(KinematicModel):
     """Extended differential drive, symmetric (Mandow 2007).
@@ -168,6 +186,13 @@ class EddSymmetric(KinematicModel):
         alpha, b_hat = k
         r = geometry.wheel_radius
         return r * alpha * np.array([[0.5, 0.5], [0.0, 0.0], [-1.0 / b_hat, 1.0 / b_hat]])
+
+    def rows_gradient(self, k, geometry):
+        alpha, b_hat = k
+        r = geometry.wheel_radius
+        return np.array([r * np.array([[0.5, 0.5], [0.0, 0.0], [-1.0 / b_hat, 1.0 / b_hat]]),
+                         r * alpha * np.array([[0.0, 0.0], [0.0, 0.0],
+                                               [1.0 / b_hat ** 2, -1.0 / b_hat ** 2]])])
 
 
 class EddAsymmetric(KinematicModel):
@@ -209,6 +234,19 @@ class EddAsymmetric(KinematicModel):
             [-y_r * alpha_l, y_l * alpha_r],
             [x_v * alpha_l, -x_v * alpha_r],
             [-alpha_l, alpha_r],
+        ])
+
+    def rows_gradient(self, k, geometry):
+        alpha_l, alpha_r, x_v, y_l, y_r = k
+        width = y_l - y_r
+        scale = geometry.wheel_radius / width
+        rows = self.rows(k, geometry)
+        return np.array([
+            scale * np.array([[-y_r, 0.0], [x_v, 0.0], [-1.0, 0.0]]),
+            scale * np.array([[0.0, y_l], [0.0, -x_v], [0.0, 1.0]]),
+            scale * np.array([[0.0, 0.0], [alpha_l, -alpha_r], [0.0, 0.0]]),
+            -rows / width + scale * np.array([[0.0, alpha_r], [0.0, 0.0], [0.0, 0.0]]),
+            rows / width + scale * np.array([[-alpha_l, 0.0], [0.0, 0.0], [0.0, 0.0]]),
         ])
 
 
@@ -306,6 +344,29 @@ class RocModel(KinematicModel):
         jac[..., 2, 1] = r * alpha / (2 * y0)
         return jac
 
+    def twist_gradient(self, k, geometry, omega_l, omega_r):
+        alpha, beta_1, beta_2 = k
+        r, b = geometry.wheel_radius, geometry.track_width
+        omega_l = np.asarray(omega_l, dtype=float)
+        omega_r = np.asarray(omega_r, dtype=float)
+        y0 = self.icr_distance(k, geometry, omega_l, omega_r)
+        root_d = np.sqrt(np.abs(omega_r - omega_l))
+        root_s = np.sqrt(np.abs(omega_r + omega_l))
+        den = root_d + beta_2 * root_s
+        plain = (den == 0.0) & ((beta_2 == 0.0) | (root_s == 0.0))
+        safe_den = np.where(den == 0.0, 1.0, den)
+        # y0 = b/2 (1 + gain): its slope, 0 where clamped or undefined
+        moving = (y0 > b * Y0_MIN_FACTOR) & (y0 < b * Y0_MAX_FACTOR)
+        d_gain_1 = np.where(den == 0.0, np.where(plain, 1.0, 0.0), root_d / safe_den)
+        d_gain_2 = np.where(den == 0.0, 0.0, -beta_1 * root_d * root_s / safe_den ** 2)
+        d_w_d_y0 = -r * alpha * (omega_r - omega_l) / (2 * y0 ** 2)
+        grad = np.zeros(np.shape(y0) + (3, 3))
+        grad[..., 0, 0] = r / 2 * (omega_l + omega_r)
+        grad[..., 2, 0] = r * (omega_r - omega_l) / (2 * y0)
+        grad[..., 2, 1] = np.where(moving, d_w_d_y0 * b / 2 * d_gain_1, 0.0)
+        grad[..., 2, 2] = np.where(moving, d_w_d_y0 * b / 2 * d_gain_2, 0.0)
+        return grad
+
 
 class FullLinear(KinematicModel):
     """Full linear model (Anousaki 2004): J = [[g11, g12], [g21, g22], [g31, g32]]."""
@@ -332,6 +393,9 @@ class FullLinear(KinematicModel):
 
     def rows(self, k, geometry):
         return np.asarray(k, dtype=float).reshape(3, 2)
+
+    def rows_gradient(self, k, geometry):
+        return np.eye(6).reshape(6, 3, 2)
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,8 @@ import numpy as np
 __all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS', 'SIGN_WIDTH',
            'term_names', 'features',
            'scalar_features', 'correction', 'scalar_correction', 'coefficient_names',
-           'range_names', 'input_values']
+           'range_names', 'input_values', 'TERM_GRADIENTS', 'feature_gradients',
+           'correction_gradient']
 
 # The state the correction is a function of: (name, unit, what it is).
 INPUTS: tuple[tuple[str, str, str], ...] = (
@@ -86,6 +87,31 @@ TERMS: tuple[tuple[str, int, TermFn, str], ...] = (
     ('v2_w', 4, lambda p, q, a, b: p * p * q, 'v_omega'),
     ('v_w2', 4, lambda p, q, a, b: p * q * q, 'v_omega'),
 )
+# d term / d (p, q, a, b) of each term, by name, next to the terms: a change of a term is a
+# change of its row here too (Extension.partials of the residual model; test_extensions checks
+# every term against finite differences).
+TERM_GRADIENTS: dict[str, TermFn] = {
+    'v': lambda p, q, a, b: (1.0, 0.0, 0.0, 0.0),
+    'w': lambda p, q, a, b: (0.0, 1.0, 0.0, 0.0),
+    'abs_v': lambda p, q, a, b: (np.sign(p), 0.0, 0.0, 0.0),
+    'abs_w': lambda p, q, a, b: (0.0, np.sign(q), 0.0, 0.0),
+    'v_abs_v': lambda p, q, a, b: (2.0 * abs(p), 0.0, 0.0, 0.0),
+    'w_abs_w': lambda p, q, a, b: (0.0, 2.0 * abs(q), 0.0, 0.0),
+    'v_w': lambda p, q, a, b: (q, p, 0.0, 0.0),
+    'v_abs_w': lambda p, q, a, b: (abs(q), p * np.sign(q), 0.0, 0.0),
+    'w_abs_v': lambda p, q, a, b: (q * np.sign(p), abs(p), 0.0, 0.0),
+    'abs_v_abs_w': lambda p, q, a, b: (np.sign(p) * abs(q), abs(p) * np.sign(q), 0.0, 0.0),
+    'sign_v': lambda p, q, a, b: (SIGN_WIDTH / (abs(p) + SIGN_WIDTH) ** 2, 0.0, 0.0, 0.0),
+    'sign_w': lambda p, q, a, b: (0.0, SIGN_WIDTH / (abs(q) + SIGN_WIDTH) ** 2, 0.0, 0.0),
+    'dv': lambda p, q, a, b: (0.0, 0.0, 1.0, 0.0),
+    'dw': lambda p, q, a, b: (0.0, 0.0, 0.0, 1.0),
+    'dv_up': lambda p, q, a, b: (0.0, 0.0, np.where(p * a > 0.0, 1.0, 0.0), 0.0),
+    'dw_up': lambda p, q, a, b: (0.0, 0.0, 0.0, np.where(q * b > 0.0, 1.0, 0.0)),
+    'v3': lambda p, q, a, b: (3.0 * p * p, 0.0, 0.0, 0.0),
+    'w3': lambda p, q, a, b: (0.0, 3.0 * q * q, 0.0, 0.0),
+    'v2_w': lambda p, q, a, b: (2.0 * p * q, p * p, 0.0, 0.0),
+    'v_w2': lambda p, q, a, b: (q * q, 2.0 * p * q, 0.0, 0.0),
+}
 LEVELS: tuple[int, ...] = tuple(sorted({level for _, level, _, _ in TERMS}))
 # Which inputs each term is a function of (for the interpretation: what the correction follows).
 TERM_INPUTS: dict[str, str] = {
@@ -143,6 +169,78 @@ def features(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarray | None
     shape = np.shape(scaled[0])
     return np.stack([np.broadcast_to(np.asarray(fn(*scaled), dtype=float), shape)
                      for fn in _FUNCTIONS], axis=-1)
+
+
+def _scaled_partials(x: np.ndarray, lo: float, hi: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return d _scaled / d (x, lo, hi): the slope inside the range, the edges' outside it."""
+    scale = max(abs(lo), abs(hi))
+    if not scale > 0.0:
+        zero = np.zeros(np.shape(x))
+        return zero, zero, zero
+    clamped = np.minimum(np.maximum(x, lo), hi)
+    d_x = np.where((x > lo) & (x < hi), 1.0 / scale, 0.0)
+    # the scale follows the larger magnitude of the two edges
+    d_scale_lo = np.sign(lo) if abs(lo) >= abs(hi) else 0.0
+    d_scale_hi = np.sign(hi) if abs(hi) > abs(lo) else 0.0
+    d_lo = np.where(x <= lo, 1.0 / scale, 0.0) - clamped / scale ** 2 * d_scale_lo
+    d_hi = np.where(x >= hi, 1.0 / scale, 0.0) - clamped / scale ** 2 * d_scale_hi
+    return d_x, d_lo, d_hi
+
+
+def feature_gradients(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarray | None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Return the terms' derivatives, d phi / d (v, w, dv, dw) and d phi / d ranges.
+
+    Shapes (..., T, 4) and (..., T, 8), from :data:`TERM_GRADIENTS` and the clamp-and-scale of
+    each input.
+    """
+    raw = input_values(twist, rate)
+    scaled, slopes = [], []
+    for i, x in enumerate(raw):
+        x = np.asarray(x, dtype=float)
+        lo, hi = ranges[2 * i], ranges[2 * i + 1]
+        scaled.append(_scaled(x, lo, hi))
+        slopes.append(_scaled_partials(x, lo, hi))
+    shape = np.shape(scaled[0])
+    d_scaled = np.stack([np.stack([np.broadcast_to(np.asarray(g, dtype=float), shape)
+                                   for g in TERM_GRADIENTS[name](*scaled)], axis=-1)
+                         for name, _, _, _ in TERMS], axis=-2)  # (..., T, 4)
+    d_inputs = d_scaled * np.stack([s[0] for s in slopes], axis=-1)[..., None, :]
+    d_ranges = np.zeros(shape + (len(TERMS), 2 * len(INPUTS)))
+    for i, (_, d_lo, d_hi) in enumerate(slopes):
+        d_ranges[..., 2 * i] = d_scaled[..., i] * d_lo[..., None]
+        d_ranges[..., 2 * i + 1] = d_scaled[..., i] * d_hi[..., None]
+    return d_inputs, d_ranges
+
+
+def correction_gradient(coef: np.ndarray, ranges: Sequence[float], twist: np.ndarray,
+                        rate: np.ndarray | None) -> np.ndarray:
+    """Return d (C phi) / d (v, w, dv, dw) (..., O, 4) for coefficients ``coef`` (O, T).
+
+    :func:`feature_gradients` contracted with the coefficients term by term, skipping the terms
+    no output uses (above the chosen level every coefficient is 0): the fits need only this.
+    """
+    raw = input_values(twist, rate)
+    scaled, slopes = [], []
+    for i, x in enumerate(raw):
+        x = np.asarray(x, dtype=float)
+        lo, hi = ranges[2 * i], ranges[2 * i + 1]
+        scaled.append(_scaled(x, lo, hi))
+        slopes.append(_scaled_partials(x, lo, hi)[0])
+    shape = np.shape(scaled[0])
+    out = np.zeros(shape + (len(coef), len(INPUTS)))
+    for t, (name, _, _, _) in enumerate(TERMS):
+        used = [o for o in range(len(coef)) if coef[o][t] != 0.0]
+        if not used:
+            continue
+        for i, slope in enumerate(TERM_GRADIENTS[name](*scaled)):
+            if np.ndim(slope) == 0 and slope == 0.0:
+                continue
+            part = slope * slopes[i]
+            for o in used:
+                out[..., o, i] += coef[o][t] * part
+    return out
 
 
 def scalar_features(ranges: Sequence[float], v: float, w: float, dv: float, dw: float

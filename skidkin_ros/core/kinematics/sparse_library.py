@@ -22,6 +22,8 @@ __all__ = [
     'SPARSE_OUTPUTS',
     'bounded_correction',
     'sparse_features',
+    'sparse_gradients',
+    'LIBRARY_GRADIENTS',
     'speeding_up',
 ]
 
@@ -76,6 +78,33 @@ def sparse_features(twist: np.ndarray, rate: np.ndarray | None = None) -> np.nda
     rate = np.zeros(np.shape(twist)) if rate is None else np.asarray(rate, dtype=float)
     dv, dw = rate[..., 0], rate[..., 2]
     return np.stack([term.of(v, w, dv, dw) for term in LIBRARY], axis=-1)
+
+
+# d term / d (v, w, dv, dw) of each LIBRARY term, by name (Extension.partials of the sparse
+# correction; test_extensions checks them against finite differences).
+LIBRARY_GRADIENTS: dict[str, Callable[..., tuple]] = {
+    'v': lambda v, w, dv, dw: (1.0, 0.0, 0.0, 0.0),
+    'w': lambda v, w, dv, dw: (0.0, 1.0, 0.0, 0.0),
+    'v_abs_v': lambda v, w, dv, dw: (2.0 * np.abs(v), 0.0, 0.0, 0.0),
+    'w_abs_w': lambda v, w, dv, dw: (0.0, 2.0 * np.abs(w), 0.0, 0.0),
+    'v_w': lambda v, w, dv, dw: (w, v, 0.0, 0.0),
+    'abs_v': lambda v, w, dv, dw: (np.sign(v), 0.0, 0.0, 0.0),
+    'abs_w': lambda v, w, dv, dw: (0.0, np.sign(w), 0.0, 0.0),
+    'dv': lambda v, w, dv, dw: (0.0, 0.0, 1.0, 0.0),
+    'dw': lambda v, w, dv, dw: (0.0, 0.0, 0.0, 1.0),
+    'dv_up': lambda v, w, dv, dw: (0.0, 0.0, np.where(v * dv > 0.0, 1.0, 0.0), 0.0),
+}
+
+
+def sparse_gradients(twist: np.ndarray, rate: np.ndarray | None = None) -> np.ndarray:
+    """Return d term / d (v, w, dv, dw) of every library term (..., F, 4), in LIBRARY order."""
+    v = np.asarray(twist, dtype=float)[..., 0]
+    w = np.asarray(twist, dtype=float)[..., 2]
+    rate = np.zeros(np.shape(twist)) if rate is None else np.asarray(rate, dtype=float)
+    dv, dw = rate[..., 0], rate[..., 2]
+    return np.stack([np.stack([np.broadcast_to(np.asarray(g, dtype=float), v.shape)
+                               for g in LIBRARY_GRADIENTS[term.name](v, w, dv, dw)], axis=-1)
+                     for term in LIBRARY], axis=-2)
 
 
 def bounded_correction(twist: np.ndarray, correction: np.ndarray) -> np.ndarray:

@@ -29,6 +29,11 @@ from skidkin_ros.core.kinematics.specs import Geometry
 
 __all__ = ['ModelState', 'layout_of', 'fit_state', 'held_out_loss']
 
+# Fits of two or more parameters use the predictor's exact Jacobian (forward mode, about two
+# evaluations' cost); False: scipy's finite differences (one rollout per free parameter and
+# iteration), kept for comparisons.
+ANALYTIC_JACOBIAN = True
+
 
 @dataclass(frozen=True)
 class ModelState:
@@ -101,7 +106,17 @@ def fit_state(predictor: SegmentPredictor, base_name: str, geometry: Geometry,
     def errors(source: TwistSource) -> np.ndarray:
         return predictor.errors(source, keep)
 
-    sol = solve(errors, layout, options.whitening, max_nfev=options.max_nfev)
+    offset = [c for c, (i, j) in enumerate(layout.free)
+              if i >= 0 and get_extension(layout.extensions[i]).stage == 'timing']
+
+    def jacobian(source: TwistSource) -> np.ndarray:
+        return predictor.errors_jacobian(source, layout.free, offset[0] if offset else None,
+                                         keep)
+
+    # one free parameter: a finite difference costs one evaluation, less than the exact slope
+    exact = ANALYTIC_JACOBIAN and len(layout.free) >= 2
+    sol = solve(errors, layout, options.whitening, max_nfev=options.max_nfev,
+                jacobian=jacobian if exact else None)
     if not layout.free:
         return state, sol.cost
     base_values, ext_values = layout.values(sol.x)
