@@ -289,7 +289,7 @@ def test_the_spline_level_fits_a_saturating_yaw_slip_the_polynomials_miss():
 
 
 def test_the_turn_fraction_terms_fit_a_forward_loss_in_tight_turns():
-    """v *= 1 - k tanh((w L)^2 / (v^2 + c)): a function of the curvature, not of v and w alone."""
+    """A forward loss v k tanh((w L)^2 / (v^2 + c)): a function of the curvature."""
     rng = np.random.default_rng(4)
     ranges = [RANGES[name] for name in residual.range_names()]
     twist = np.zeros((3000, 3))
@@ -298,7 +298,8 @@ def test_the_turn_fraction_terms_fit_a_forward_loss_in_tight_turns():
     v, w = twist[:, 0], twist[:, 2]
     target = -0.25 * v * np.tanh((0.25 * w) ** 2 / (v * v + 0.03))
     phi = residual.features(ranges, twist, np.zeros((3000, 3)))
-    turn = [j for j, (name, _, _, _) in enumerate(residual.TERMS) if name.endswith(('_s2', '_abs_s'))]
+    turn = [j for j, (name, _, _, _) in enumerate(residual.TERMS)
+            if name.endswith(('_s2', '_abs_s'))]
     rest = [j for j, (_, lvl, _, _) in enumerate(residual.TERMS) if lvl <= 3]
 
     def rms_error(cols):
