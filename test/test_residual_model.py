@@ -307,3 +307,24 @@ def test_the_turn_fraction_terms_fit_a_forward_loss_in_tight_turns():
         return float(np.sqrt(np.mean((phi[:, cols] @ coef - target) ** 2)))
 
     assert rms_error(rest + turn) < 0.6 * rms_error(rest)
+
+
+def test_the_field_backlash_loses_its_play_at_each_reversal_and_nothing_else():
+    """The study's backlash: the wheel follows its motor with a play; the travel lost is r x play."""
+    from lab.studies.unnamed_effects import SmoothEffect
+    from skidkin_ros.sim.effects import EffectInput
+    t_s = np.arange(0.0, 12.0, 0.001)
+    v = np.where(t_s < 6.0, 0.5, -0.5)  # forward 3 m, then back 3 m: one reversal
+    twist = np.stack([v, np.zeros_like(v), np.zeros_like(v)], axis=-1)
+    play_rad = 0.3
+    effect = SmoothEffect('field_backlash', play_rad, {}, 'backlash', ())
+    out = effect.apply_twist(EffectInput(t_s, np.zeros_like(v), np.zeros_like(v), twist, None,
+                                         12.0))
+    dt = np.diff(t_s, prepend=t_s[0])
+    forward = float(np.sum((out[:, 0] * dt)[t_s < 6.0]))
+    backward = float(np.sum((out[:, 0] * dt)[t_s >= 6.0]))
+    lost = GEOMETRY.wheel_radius * play_rad
+    # half the play is taken up at the start (the wheel starts centred), all of it at the reversal
+    assert forward == pytest.approx(3.0 - 0.5 * lost, abs=1e-3)
+    assert backward == pytest.approx(-3.0 + lost, abs=1e-3)
+    assert np.all(np.isfinite(out)) and not np.any(out[:, 2])

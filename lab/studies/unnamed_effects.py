@@ -435,8 +435,12 @@ def summary(results: Sequence[UnnamedCase]) -> list[str]:
         lines.append(_group_line('drawn effects too weak for 0.5x (true model > 0.5x best '
                                  'plain)', weak) + '; true / best plain '
                      + ', '.join(f'{r.truth / r.best_plain:.2f}' for r in weak))
-    if field:
-        lines.append(_group_line('effects of the field (one per drive)', field))
+    for label, group in (('reachable', [r for r in field if r.truth <= REACHABLE * r.best_plain]),
+                         ('too weak for 0.5x', [r for r in field
+                                                if r.truth > REACHABLE * r.best_plain]),
+                         ('with no true model', [r for r in field if not r.truth > 0])):
+        if group:
+            lines.append(_group_line(f'effects of the field, {label}', group))
     if free:
         added = [r for r in free if r.found]
         costs = [r.augmented / r.refitted - 1.0 for r in added if r.refitted > 0]
