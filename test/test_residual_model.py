@@ -310,7 +310,7 @@ def test_the_turn_fraction_terms_fit_a_forward_loss_in_tight_turns():
 
 
 def test_the_field_backlash_loses_its_play_at_each_reversal_and_nothing_else():
-    """The study's backlash: the wheel follows its motor with a play; the travel lost is r x play."""
+    """The study's backlash: the wheel follows its motor with a play; r x play is lost."""
     from lab.studies.unnamed_effects import SmoothEffect
     from skidkin_ros.sim.effects import EffectInput
     t_s = np.arange(0.0, 12.0, 0.001)
