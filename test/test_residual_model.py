@@ -251,3 +251,80 @@ def test_the_residual_model_helps_on_the_real_husky_without_a_heading_loss():
     assert result.extensions == ('residual_model',)
     assert last.stats_t.median < 0.9 * given.stats_t.median
     assert last.stats_theta.median < 1.05 * given.stats_theta.median
+
+
+def test_every_library_term_lies_in_unit_range_and_all_but_the_rates_vanish_at_rest():
+    rng = np.random.default_rng(5)
+    ranges = [RANGES[name] for name in residual.range_names()]
+    twist = rng.normal(0.0, 3.0, (2000, 3))
+    rate = rng.normal(0.0, 10.0, (2000, 3))
+    phi = residual.features(ranges, twist, rate)
+    assert np.all(np.isfinite(phi)) and np.abs(phi).max() <= 1.0 + 1e-12
+    rest = residual.features(ranges, np.zeros((1, 3)), np.zeros((1, 3)))[0]
+    assert not np.any(rest)
+    # at rest with a rate, only the terms of the rates alone are non-zero
+    moving_rate = residual.features(ranges, np.zeros((1, 3)), np.ones((1, 3)))[0]
+    nonzero = {name for name, x in zip(residual.term_names(), moving_rate) if x != 0.0}
+    assert nonzero <= {'dv', 'dw'}
+
+
+def test_the_spline_level_fits_a_saturating_yaw_slip_the_polynomials_miss():
+    """A yaw slip that sets in at a turn rate (w0 = 0.7 rad/s) and saturates: turn slip."""
+    rng = np.random.default_rng(2)
+    ranges = [RANGES[name] for name in residual.range_names()]
+    twist = np.zeros((3000, 3))
+    twist[:, 0] = rng.uniform(-1.0, 1.2, 3000)
+    twist[:, 2] = rng.uniform(-2.0, 2.0, 3000)
+    w = twist[:, 2]
+    target = -0.4 * w * (1.0 - np.exp(-(w / 0.7) ** 2))
+    phi = residual.features(ranges, twist, np.zeros((3000, 3)))
+
+    def rms_error(level):
+        cols = [j for j, (_, lvl, _, _) in enumerate(residual.TERMS) if lvl <= level]
+        coef = np.linalg.lstsq(phi[:, cols], target, rcond=None)[0]
+        return float(np.sqrt(np.mean((phi[:, cols] @ coef - target) ** 2)))
+
+    polynomial, spline = rms_error(max(residual.LEVELS) - 1), rms_error(max(residual.LEVELS))
+    assert spline < 0.3 * polynomial
+
+
+def test_the_turn_fraction_terms_fit_a_forward_loss_in_tight_turns():
+    """A forward loss v k tanh((w L)^2 / (v^2 + c)): a function of the curvature."""
+    rng = np.random.default_rng(4)
+    ranges = [RANGES[name] for name in residual.range_names()]
+    twist = np.zeros((3000, 3))
+    twist[:, 0] = rng.uniform(-1.0, 1.2, 3000)
+    twist[:, 2] = rng.uniform(-2.0, 2.0, 3000)
+    v, w = twist[:, 0], twist[:, 2]
+    target = -0.25 * v * np.tanh((0.25 * w) ** 2 / (v * v + 0.03))
+    phi = residual.features(ranges, twist, np.zeros((3000, 3)))
+    turn = [j for j, (name, _, _, _) in enumerate(residual.TERMS)
+            if name.endswith(('_s2', '_abs_s'))]
+    rest = [j for j, (_, lvl, _, _) in enumerate(residual.TERMS) if lvl <= 3]
+
+    def rms_error(cols):
+        coef = np.linalg.lstsq(phi[:, cols], target, rcond=None)[0]
+        return float(np.sqrt(np.mean((phi[:, cols] @ coef - target) ** 2)))
+
+    assert rms_error(rest + turn) < 0.6 * rms_error(rest)
+
+
+def test_the_field_backlash_loses_its_play_at_each_reversal_and_nothing_else():
+    """The study's backlash: the wheel follows its motor with a play; r x play is lost."""
+    from lab.studies.unnamed_effects import SmoothEffect
+    from skidkin_ros.sim.effects import EffectInput
+    t_s = np.arange(0.0, 12.0, 0.001)
+    v = np.where(t_s < 6.0, 0.5, -0.5)  # forward 3 m, then back 3 m: one reversal
+    twist = np.stack([v, np.zeros_like(v), np.zeros_like(v)], axis=-1)
+    play_rad = 0.3
+    effect = SmoothEffect('field_backlash', play_rad, {}, 'backlash', ())
+    out = effect.apply_twist(EffectInput(t_s, np.zeros_like(v), np.zeros_like(v), twist, None,
+                                         12.0))
+    dt = np.diff(t_s, prepend=t_s[0])
+    forward = float(np.sum((out[:, 0] * dt)[t_s < 6.0]))
+    backward = float(np.sum((out[:, 0] * dt)[t_s >= 6.0]))
+    lost = GEOMETRY.wheel_radius * play_rad
+    # half the play is taken up at the start (the wheel starts centred), all of it at the reversal
+    assert forward == pytest.approx(3.0 - 0.5 * lost, abs=1e-3)
+    assert backward == pytest.approx(-3.0 + lost, abs=1e-3)
+    assert np.all(np.isfinite(out)) and not np.any(out[:, 2])

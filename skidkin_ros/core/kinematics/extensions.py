@@ -757,8 +757,9 @@ _ALL: tuple[Extension, ...] = (
     Extension(
         'residual_model', 'Data-driven residual of the body twist', 'twist',
         'twist += C phi(v, w, dv, dw): a library of smooth terms in levels (signals and '
-        'magnitudes; products of a signal and a magnitude, smooth signs; rates and their '
-        'speeding-up parts; cubics) of the base twist and its rate, inputs clamped to the '
+        'magnitudes; products of a signal and a magnitude, smooth signs; rates, their '
+        'speeding-up parts and v dv, v |dv|; the turn fraction times v and w; cubics; spline '
+        'hinges on |v| and |w|) of the base twist and its rate, inputs clamped to the '
         'fitted range and scaled to [-1, 1]; C by Bayesian linear regression, the level on '
         'held-out likelihood, a gain per component on whole segments; each change at most '
         '|v| + 2 m |w| (m/s) or |w| + |v| / 2 m (rad/s)',

@@ -9,8 +9,17 @@ richer family of smooth functions:
 1. the signals and their magnitudes: v, w, |v|, |w|;
 2. every product of a signal and a signal's magnitude (v|v|, w|w|, v|w|, w|v|), v w, |v||w|,
    and smooth signs of v and w (x / (|x| + 0.1), a direction-dependent offset);
-3. the rates: dv, dw and their speeding-up parts (the rate while the magnitude grows);
-4. the cubic terms v^3, w^3, v^2 w, v w^2.
+3. the rates: dv, dw, their speeding-up parts (the rate while the magnitude grows), and the
+   speed times the forward rate and its magnitude, v dv and v |dv| (a slip proportional to the
+   acceleration, or to its size: load transfer);
+4. the turn fraction s = w / (|v| + |w| + TURN_WIDTH) of the scaled inputs (how much of the motion
+   is turning: a bounded function of the curvature, the wheel speed ratio's role) times the
+   signals: v s^2, w s^2, v |s|, w |s| (a slip that depends on how tight the turn is, whatever
+   the speed);
+5. the cubic terms v^3, w^3, v^2 w, v w^2;
+6. spline terms: each signal times a hinge max(|x| - knot, 0) of its own or the other signal's
+   magnitude, knots at a third and two thirds of the range (a piecewise-linear slope: a slip
+   that starts, or saturates, at some speed or turn rate, which polynomials fit poorly).
 
 Every input is first clamped to the range the model was fitted on (``<input>_lo``,
 ``<input>_hi``, stored with the coefficients) and scaled by that range's largest magnitude, so
@@ -35,6 +44,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 __all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS', 'SIGN_WIDTH',
+           'TURN_WIDTH', 'KNOTS',
            'term_names', 'features',
            'scalar_features', 'correction', 'scalar_correction', 'coefficient_names',
            'range_names', 'input_values', 'TERM_GRADIENTS', 'feature_gradients',
@@ -50,10 +60,26 @@ INPUTS: tuple[tuple[str, str, str], ...] = (
 OUTPUTS: tuple[tuple[str, str], ...] = (('vx', 'm/s'), ('vy', 'm/s'), ('wz', 'rad/s'))
 # Width of the smooth sign x / (|x| + SIGN_WIDTH), in scaled units (a tenth of the range).
 SIGN_WIDTH = 0.1
+# Knots of the spline terms on the magnitudes (scaled units: thirds of the range).
+KNOTS = (1.0 / 6.0, 1.0 / 3.0, 0.5, 2.0 / 3.0, 5.0 / 6.0)
+# Added to |v| + |w| (scaled units) in the turn fraction, so that it is defined at rest.
+TURN_WIDTH = 0.05
 
 
 def _sign(x):
     return x / (abs(x) + SIGN_WIDTH)
+
+
+def _turn(p, q):
+    """Return the turn fraction q / (|p| + |q| + TURN_WIDTH), in [-1, 1]."""
+    return q / (abs(p) + abs(q) + TURN_WIDTH)
+
+
+def _hinge(x, knot: float):
+    """Return max(|x| - knot, 0) (on floats or arrays alike): a spline knot on a magnitude."""
+    if isinstance(x, np.ndarray):
+        return np.maximum(np.abs(x) - knot, 0.0)
+    return max(abs(x) - knot, 0.0)
 
 
 def _up(x, dx):
@@ -61,6 +87,41 @@ def _up(x, dx):
     if isinstance(x, np.ndarray) or isinstance(dx, np.ndarray):
         return np.where(x * dx > 0.0, dx, 0.0)
     return dx if x * dx > 0.0 else 0.0
+
+
+def _hinge_term(x: str, knot: float) -> Callable[..., object]:
+    """Return the term x * max(|x| - knot, 0) of the scaled forward speed or yaw rate."""
+    if x == 'v':
+        return lambda p, q, a, b: p * _hinge(p, knot)
+    return lambda p, q, a, b: q * _hinge(q, knot)
+
+
+def _hinge_slope(x, knot: float):
+    """Return d max(|x| - knot, 0) / dx: sign(x) beyond the knot, 0 inside (floats or arrays)."""
+    return np.where(np.abs(x) > knot, np.sign(x), 0.0)
+
+
+def _turn_product_gradient(p, q, x: str, power: int):
+    """Return d (x s^2) or d (x |s|) / d (p, q, a, b), s the turn fraction, x = p or q."""
+    d = np.abs(p) + np.abs(q) + TURN_WIDTH
+    s = q / d
+    ds_dp = -q * np.sign(p) / (d * d)
+    ds_dq = (np.abs(p) + TURN_WIDTH) / (d * d)
+    if power == 2:
+        f, df = s * s, 2.0 * s
+    else:
+        f, df = np.abs(s), np.sign(s)
+    x_value = p if x == 'v' else q
+    grad_p = x_value * df * ds_dp + (f if x == 'v' else 0.0)
+    grad_q = x_value * df * ds_dq + (f if x == 'w' else 0.0)
+    return (grad_p, grad_q, 0.0, 0.0)
+
+
+def _hinge_term_gradient(x: str, knot: float) -> Callable[..., object]:
+    """Return the gradient of x * max(|x| - knot, 0) (see _hinge_term)."""
+    if x == 'v':
+        return lambda p, q, a, b: (_hinge(p, knot) + p * _hinge_slope(p, knot), 0.0, 0.0, 0.0)
+    return lambda p, q, a, b: (0.0, _hinge(q, knot) + q * _hinge_slope(q, knot), 0.0, 0.0)
 
 
 # (name, level, function of the scaled inputs (p, q, a, b) = (v, w, dv, dw), signal it follows)
@@ -82,11 +143,23 @@ TERMS: tuple[tuple[str, int, TermFn, str], ...] = (
     ('dw', 3, lambda p, q, a, b: b, 'd_yaw_rate'),
     ('dv_up', 3, lambda p, q, a, b: _up(p, a), 'speeding_up'),
     ('dw_up', 3, lambda p, q, a, b: _up(q, b), 'd_yaw_rate'),
-    ('v3', 4, lambda p, q, a, b: p * p * p, 'body_speed'),
-    ('w3', 4, lambda p, q, a, b: q * q * q, 'yaw_rate'),
-    ('v2_w', 4, lambda p, q, a, b: p * p * q, 'v_omega'),
-    ('v_w2', 4, lambda p, q, a, b: p * q * q, 'v_omega'),
-)
+    ('v_dv', 3, lambda p, q, a, b: p * a, 'd_body_speed'),
+    ('v_abs_dv', 3, lambda p, q, a, b: p * abs(a), 'd_body_speed'),
+    ('v_s2', 4, lambda p, q, a, b: p * _turn(p, q) * _turn(p, q), 'curvature'),
+    ('w_s2', 4, lambda p, q, a, b: q * _turn(p, q) * _turn(p, q), 'curvature'),
+    ('v_abs_s', 4, lambda p, q, a, b: p * abs(_turn(p, q)), 'curvature'),
+    ('w_abs_s', 4, lambda p, q, a, b: q * abs(_turn(p, q)), 'curvature'),
+    ('v3', 5, lambda p, q, a, b: p * p * p, 'body_speed'),
+    ('w3', 5, lambda p, q, a, b: q * q * q, 'yaw_rate'),
+    ('v2_w', 5, lambda p, q, a, b: p * p * q, 'v_omega'),
+    ('v_w2', 5, lambda p, q, a, b: p * q * q, 'v_omega'),
+    ('v_w_hinge1', 6, lambda p, q, a, b: p * _hinge(q, KNOTS[1]), 'v_omega'),
+    ('v_w_hinge2', 6, lambda p, q, a, b: p * _hinge(q, KNOTS[3]), 'v_omega'),
+    ('w_v_hinge1', 6, lambda p, q, a, b: q * _hinge(p, KNOTS[1]), 'v_omega'),
+    ('w_v_hinge2', 6, lambda p, q, a, b: q * _hinge(p, KNOTS[3]), 'v_omega'),
+) + tuple((f'{x}_hinge{i + 1}', 6, _hinge_term(x, knot), signal)
+          for x, signal in (('v', 'body_speed'), ('w', 'yaw_rate'))
+          for i, knot in enumerate(KNOTS))
 # d term / d (p, q, a, b) of each term, by name, next to the terms: a change of a term is a
 # change of its row here too (Extension.partials of the residual model; test_extensions checks
 # every term against finite differences).
@@ -107,21 +180,36 @@ TERM_GRADIENTS: dict[str, TermFn] = {
     'dw': lambda p, q, a, b: (0.0, 0.0, 0.0, 1.0),
     'dv_up': lambda p, q, a, b: (0.0, 0.0, np.where(p * a > 0.0, 1.0, 0.0), 0.0),
     'dw_up': lambda p, q, a, b: (0.0, 0.0, 0.0, np.where(q * b > 0.0, 1.0, 0.0)),
+    'v_dv': lambda p, q, a, b: (a, 0.0, p, 0.0),
+    'v_abs_dv': lambda p, q, a, b: (abs(a), 0.0, p * np.sign(a), 0.0),
+    'v_s2': lambda p, q, a, b: _turn_product_gradient(p, q, 'v', 2),
+    'w_s2': lambda p, q, a, b: _turn_product_gradient(p, q, 'w', 2),
+    'v_abs_s': lambda p, q, a, b: _turn_product_gradient(p, q, 'v', 1),
+    'w_abs_s': lambda p, q, a, b: _turn_product_gradient(p, q, 'w', 1),
+    'v_w_hinge1': lambda p, q, a, b: (_hinge(q, KNOTS[1]), p * _hinge_slope(q, KNOTS[1]), 0.0, 0.0),
+    'v_w_hinge2': lambda p, q, a, b: (_hinge(q, KNOTS[3]), p * _hinge_slope(q, KNOTS[3]), 0.0, 0.0),
+    'w_v_hinge1': lambda p, q, a, b: (q * _hinge_slope(p, KNOTS[1]), _hinge(p, KNOTS[1]), 0.0, 0.0),
+    'w_v_hinge2': lambda p, q, a, b: (q * _hinge_slope(p, KNOTS[3]), _hinge(p, KNOTS[3]), 0.0, 0.0),
     'v3': lambda p, q, a, b: (3.0 * p * p, 0.0, 0.0, 0.0),
     'w3': lambda p, q, a, b: (0.0, 3.0 * q * q, 0.0, 0.0),
     'v2_w': lambda p, q, a, b: (2.0 * p * q, p * p, 0.0, 0.0),
     'v_w2': lambda p, q, a, b: (q * q, 2.0 * p * q, 0.0, 0.0),
 }
+TERM_GRADIENTS.update({f'{x}_hinge{i + 1}': _hinge_term_gradient(x, knot)
+                       for x in ('v', 'w') for i, knot in enumerate(KNOTS)})
 LEVELS: tuple[int, ...] = tuple(sorted({level for _, level, _, _ in TERMS}))
 # Which inputs each term is a function of (for the interpretation: what the correction follows).
 TERM_INPUTS: dict[str, str] = {
     'v': 'v', 'w': 'w', 'abs_v': 'v', 'abs_w': 'w', 'v_abs_v': 'v', 'w_abs_w': 'w',
     'v_w': 'v*w', 'v_abs_w': 'v*w', 'w_abs_v': 'v*w', 'abs_v_abs_w': 'v*w', 'sign_v': 'v',
-    'sign_w': 'w', 'dv': 'dv', 'dw': 'dw', 'dv_up': 'dv', 'dw_up': 'dw', 'v3': 'v', 'w3': 'w',
-    'v2_w': 'v*w', 'v_w2': 'v*w'}
+    'sign_w': 'w', 'dv': 'dv', 'dw': 'dw', 'dv_up': 'dv', 'dw_up': 'dw', 'v_dv': 'dv',
+    'v_abs_dv': 'dv', 'v_s2': 'turn', 'w_s2': 'turn', 'v_abs_s': 'turn', 'w_abs_s': 'turn',
+    'v3': 'v', 'w3': 'w', 'v2_w': 'v*w', 'v_w2': 'v*w', 'v_w_hinge1': 'v*w', 'v_w_hinge2': 'v*w',
+    'w_v_hinge1': 'v*w', 'w_v_hinge2': 'v*w',
+    **{f'{x}_hinge{i + 1}': x for x in ('v', 'w') for i in range(len(KNOTS))}}
 # The diagnosis trace signal that shows each input group.
 INPUT_SIGNALS: dict[str, str] = {'v': 'body_speed', 'w': 'yaw_rate', 'v*w': 'v_omega',
-                                 'dv': 'd_body_speed', 'dw': 'd_yaw_rate'}
+                                 'dv': 'd_body_speed', 'dw': 'd_yaw_rate', 'turn': 'curvature'}
 _FUNCTIONS = tuple(fn for _, _, fn, _ in TERMS)
 
 

@@ -14,11 +14,12 @@
    wheel-vs-ground-truth lag is found by running the model over a range of time offsets.
 3. **Candidates** (:mod:`.base`, :mod:`.candidates`, :mod:`.state`, :mod:`.regression`,
    :mod:`.sparse`). The base model is questioned first (the other models, cross-validated; one
-   replaces it when it explains more than the best extension). Every named extension (and, when
-   none explains the rest, the data-driven residual model: Bayesian linear regression of the
-   per-pose residuals on a library of smooth terms of the wheel-speed state, its level chosen on
-   held-out likelihood; by name, the older sparse fallback, STLSQ) is fitted on segments by the
-   one least-squares engine
+   that passes replaces it unless the given one with its extensions ends more than
+   ``min_relative_gain`` lower in held-out loss than it with its own). Every named extension
+   (and, when none explains the rest, the data-driven residual model: Bayesian linear
+   regression of the per-pose residuals on a library of smooth terms of the wheel-speed state,
+   its level chosen on held-out likelihood; by name, the older sparse fallback, STLSQ) is
+   fitted on segments by the one least-squares engine
    (:mod:`skidkin_ros.core.calibration.engine`, as calibration fits), with the base model's
    parameters refitted jointly (``refit_base``; the file then holds the joint values for the
    base model). Each extension's registry entry gives its start values, grid-searched

@@ -12,8 +12,9 @@ for the asymmetry. Before the extensions, as a recipe:
 3. **Parsimony.** A model replaces the given one when it lowers the summed held-out loss by more
    than ``min_relative_gain`` with a one-sided Wilcoxon p < ``significance`` (the extensions'
    rule); among passing models, the one with the best gain, unless one with fewer parameters is
-   not significantly worse. The recipe then keeps it only if it explains more than the best
-   extension of the first round on the given model (:func:`.recipe.diagnose`).
+   not significantly worse. The recipe then keeps it only if, with the extensions found on it,
+   it ends with a lower held-out loss than the given model with its own
+   (:func:`.recipe.diagnose`).
 
 The fits run on ``jobs`` processes. The result lists every model's gain and p-value.
 """

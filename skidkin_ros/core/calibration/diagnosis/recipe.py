@@ -70,6 +70,15 @@ def _evaluate(predictor: SegmentPredictor, label: str, state: ModelState, base_n
     return ModelStep(label, state, eps_t, eps_th, ErrorStats.of(eps_t), ErrorStats.of(eps_th))
 
 
+def _path_ratio(candidates: Sequence) -> float:
+    """Return the held-out loss after the accepted extensions relative to before them."""
+    ratio = 1.0
+    for score in candidates:
+        if score.accepted:
+            ratio *= 1.0 - score.relative_gain
+    return ratio
+
+
 def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry: Geometry,
              base_values_by_model: Mapping[str, Mapping[str, float]], base_model_name: str,
              options: DiagnosisOptions | None = None, jobs: int = 1,
@@ -145,22 +154,26 @@ def _diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
         fitter = CandidateFitter(train, train_seg, name, geometry, chosen, samples, hints)
         return (null, samples, residual, valid, trace) + select(fitter, null, jobs, progress)
 
-    # With a base model that passes, the given one's first round is enough to compare them.
-    explored = explore(base_model_name, refit, None if switched is None else 1)
+    explored = explore(base_model_name, refit)
     if switched is not None:
-        # The base model is questioned as an extension is: it replaces the given one only when
-        # it explains more than the best extension of the first round does on the given one.
+        # The base model is questioned as an extension is, and against what the extensions make
+        # of the given one: each path's held-out loss relative to the given model alone is the
+        # product of its steps' ratios (the base model's, then each accepted extension's); the
+        # other base replaces the given one unless the given one's path ends lower by more than
+        # min_relative_gain (the base that passed its own test is the simpler explanation: an
+        # extension path has to explain clearly more). Comparing whole paths, not the first
+        # round, matters when the residual model can stand in for the base: it mimics an
+        # asymmetry, and does better still on the right base.
         gain_base = max(score.gain for score in base_scores if score.accepted)
-        gain_ext = max((c.relative_gain for c in explored[6] if c.round_no == 1 and c.accepted),
-                       default=0.0)
-        if gain_base > gain_ext:
-            base_model_name, refit = other, switched
-            explored = explore(base_model_name, refit)
+        other_explored = explore(other, switched)
+        ratio_given = _path_ratio(explored[6])
+        ratio_other = (1.0 - gain_base) * _path_ratio(other_explored[6])
+        if ratio_given >= (1.0 - options.min_relative_gain) * ratio_other:
+            base_model_name, refit, explored = other, switched, other_explored
         else:
-            if options.max_extensions > 1:
-                explored = explore(base_model_name, refit)
             base_scores = tuple(replace(score, accepted=False, note=(
-                f'passes, but {gain_ext:+.1%} from an extension explains more'))
+                f'passes, but the given model with its extensions explains more: held-out '
+                f'loss x{ratio_given:.2f} against x{ratio_other:.2f} on {other} with its own'))
                 if score.accepted else score for score in base_scores)
     null, samples, residual, valid, trace, final, scores, accepted = explored
     eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s,
