@@ -70,6 +70,25 @@ def _evaluate(predictor: SegmentPredictor, label: str, state: ModelState, base_n
     return ModelStep(label, state, eps_t, eps_th, ErrorStats.of(eps_t), ErrorStats.of(eps_th))
 
 
+def _parameter_count(state: ModelState) -> int:
+    """Return how many values a path's final state fits (base values and every extension's)."""
+    return len(state.base_values) + sum(len(values) for values in state.ext_values.values())
+
+
+def _other_path_wins(ratio_given: float, ratio_other: float, count_given: int, count_other: int,
+                     margin: float) -> bool:
+    """Return whether the other base's path replaces the given one's (see the recipe).
+
+    Lower held-out loss by more than ``margin`` wins; within it, fewer parameters; on a tie of
+    both, the given model stays.
+    """
+    if ratio_other < (1.0 - margin) * ratio_given:
+        return True
+    if ratio_given < (1.0 - margin) * ratio_other:
+        return False
+    return count_other < count_given
+
+
 def _path_ratio(candidates: Sequence) -> float:
     """Return the held-out loss after the accepted extensions relative to before them."""
     ratio = 1.0
@@ -158,21 +177,23 @@ def _diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
     if switched is not None:
         # The base model is questioned as an extension is, and against what the extensions make
         # of the given one: each path's held-out loss relative to the given model alone is the
-        # product of its steps' ratios (the base model's, then each accepted extension's); the
-        # other base replaces the given one unless the given one's path ends lower by more than
-        # min_relative_gain (the base that passed its own test is the simpler explanation: an
-        # extension path has to explain clearly more). Comparing whole paths, not the first
-        # round, matters when the residual model can stand in for the base: it mimics an
-        # asymmetry, and does better still on the right base.
+        # product of its steps' ratios (the base model's, then each accepted extension's). A path
+        # that ends lower by more than min_relative_gain wins; within that margin the path with
+        # fewer parameters wins (the simpler explanation), the given one on a tie. Comparing
+        # whole paths, not the first round, matters when the residual model can stand in for
+        # the base: it mimics an asymmetry with many coefficients, where the right base needs
+        # a few; and a base that passes only because it mimics an extension (roc's ICR for a
+        # lateral skid) ends level with the given one plus that extension, and is not taken.
         gain_base = max(score.gain for score in base_scores if score.accepted)
         other_explored = explore(other, switched)
         ratio_given = _path_ratio(explored[6])
         ratio_other = (1.0 - gain_base) * _path_ratio(other_explored[6])
-        if ratio_given >= (1.0 - options.min_relative_gain) * ratio_other:
+        if _other_path_wins(ratio_given, ratio_other, _parameter_count(explored[5]),
+                            _parameter_count(other_explored[5]), options.min_relative_gain):
             base_model_name, refit, explored = other, switched, other_explored
         else:
             base_scores = tuple(replace(score, accepted=False, note=(
-                f'passes, but the given model with its extensions explains more: held-out '
+                f'passes, but the given model with its extensions explains as much or more: held-out '
                 f'loss x{ratio_given:.2f} against x{ratio_other:.2f} on {other} with its own'))
                 if score.accepted else score for score in base_scores)
     null, samples, residual, valid, trace, final, scores, accepted = explored
