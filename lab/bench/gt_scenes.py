@@ -11,23 +11,30 @@ same state (the machine is shared: only ratios measured in one run are reported)
 * ``kiss``: plain ``kiss_icp_pipeline --topic /points BAG`` (kiss-icp's own pipeline, its
   defaults, its own threads on every core);
 * ``before``: ``skidkin groundtruth --no-icp-check`` (the fast settings on every scene: the
-  behaviour before the self-check), ``--jobs 2``;
-* ``after``: ``skidkin groundtruth`` with the defaults, ``--jobs 2`` and ``--jobs 1``.
+  behaviour before the self-check), ``--jobs`` the first of ``--jobs-list``;
+* ``after_jN``: ``skidkin groundtruth`` with the defaults and ``--jobs N`` for every N of
+  ``--jobs-list`` (default 2 1; ``1 2 4 8 16`` on a machine with the cores).
 
 Every skidkin run uses chunks of ``--chunk-s`` (default 20 s: the recordings are sized down
 from a few minutes to about one, so the chunks are too, to keep several seams per scene).
+``--repeat R`` runs every contender R times in turn and keeps the median wall and CPU time.
 
 Scores against the simulator's truth: poses kept by the guard, seams tested and cut (from the
 notes), the path length at 1 s steps (the per-frame path adds each frame's jitter) against the
 true path at the same stamps, the median error of the 1 s increments of the kept poses (all
 poses for kiss), and whether kiss-icp's own track is consistent (path within 10 % and 95 % of
 its 1 s increments within 50 cm: no gross failure). Speed: kiss wall time / skidkin wall time,
-and, for kiss and ``--jobs 1``, the same for the CPU time (user + system, getrusage of the
-children; the workers of a process pool are the forkserver's children and are not counted,
-so ``--jobs 2`` has none): on a machine others load, CPU time is the steadier measure of work.
+and the same for the CPU time (user + system of the command and its processes: the pool's
+workers are children of multiprocessing's forkserver, which outlives its parent; this process
+becomes their reaper, Linux's PR_SET_CHILD_SUBREAPER, so their CPU time is counted too); on a
+machine others load, CPU time is the steadier measure of work. Scaling: wall of ``--jobs 1``
+over ``--jobs N`` and the parallel efficiency (that over N), and whether every N gave the CSV
+of the first of ``--jobs-list`` byte for byte (``identical_jN`` in the JSON).
 
     python lab/bench/gt_scenes.py    # 4 scenes of 60 s, ~5 min on a quiet 2-core machine
     python lab/bench/gt_scenes.py --duration 120 --scenes forest snowfield
+    # on a 16-core machine: 16 chunks per scene, 1 to 16 processes, median of 3 runs
+    python lab/bench/gt_scenes.py --jobs-list 1 2 4 8 16 --repeat 3 --no-before --duration 320
 """
 
 from __future__ import annotations
