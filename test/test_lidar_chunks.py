@@ -223,3 +223,38 @@ def test_pool_workers_do_not_rerun_the_parents_main_module(tmp_path):
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
                           env=env, timeout=120, check=True)
     assert done.stdout.split() == ['True', 'False', 'True']
+
+
+_PRELOAD_PROBE = """
+from concurrent.futures import ProcessPoolExecutor
+
+from skidkin_ros.adapters import lidar_pool
+
+if __name__ == '__main__':
+    probe = "[m in __import__('sys').modules for m in %r]" % (lidar_pool._WORKER_MODULES,)
+    with lidar_pool._bare_main():
+        with ProcessPoolExecutor(2, mp_context=lidar_pool._pool_context()) as executor:
+            first = executor.submit(eval, probe)
+    print(all(first.result()))
+"""
+
+
+def test_pool_workers_start_with_what_a_chunk_imports(tmp_path):
+    # The forkserver imports the chunk's modules (kiss-icp, the bag reader: about 0.5 s of CPU)
+    # once; a worker forked from it has them before its first task instead of importing them.
+    import multiprocessing
+    import os
+    from pathlib import Path
+    import subprocess
+    import sys
+
+    if 'forkserver' not in multiprocessing.get_all_start_methods():
+        pytest.skip('no forkserver on this platform')
+    script = tmp_path / 'preload_script.py'
+    script.write_text(_PRELOAD_PROBE)
+    root = str(Path(__file__).resolve().parents[1])
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [root, *filter(None, [os.environ.get('PYTHONPATH')])]))
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          env=env, timeout=120, check=True)
+    assert done.stdout.split() == ['True']
