@@ -25,6 +25,7 @@ for a stateful one, an augmented model, the sensitivity is not carried).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -119,6 +120,23 @@ class ParameterUncertainty:
             lambda kk: model.twist(kk, geometry, omega_l, omega_r), np.asarray(k, dtype=float),
             rel_step)
         return [tuple(float(v) for v in d.reshape(3)) for d in d_twist]
+
+    @functools.cached_property
+    def eigen(self) -> tuple[tuple[float, ...], np.ndarray, tuple[tuple[float, ...], ...]]:
+        """Return Sigma_k's eigen-decomposition and the sensitivity in its basis (linear model).
+
+        (weights, basis, rotated): Sigma_k = V diag(weights) V^T with V = ``basis`` (p, p,
+        orthogonal), and ``rotated`` the matrices M'_l = sum_j V_jl M_j (9 floats each, as
+        :attr:`sensitivity`). A sensitivity T = S V carried with M' instead of M gives
+        S Sigma_k S^T = sum_l weights_l t_l t_l^T: p outer products of 3-vectors instead of two
+        matrix products when the covariance is read. V is orthogonal, so moving T from one
+        parameter covariance's basis to the next (T V_old^T V_new) only rounds.
+        """
+        weights, basis = np.linalg.eigh(0.5 * (self.covariance + self.covariance.T))
+        rows = np.asarray(self.sensitivity, dtype=float).reshape(-1, 9)
+        rotated = basis.T @ rows
+        return (tuple(weights.tolist()), basis,
+                tuple(tuple(row) for row in rotated.tolist()))
 
     def pose_covariance(self, sens: Sequence[Sequence[float]]) -> tuple[float, ...]:
         """Upper triangle of S Sigma_k S^T for S given as p columns (d x, d y, d yaw)/dk_j."""
