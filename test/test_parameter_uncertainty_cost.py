@@ -26,7 +26,7 @@ K = np.array([DEFAULT_TRUE_PARAMS[spec.name] for spec in MODEL.params])
 
 
 def _covariance(rng, size, condition, rank=None):
-    """A random symmetric PSD covariance of given condition number (rank < size: singular)."""
+    """Return a random symmetric PSD covariance of given condition (rank < size: singular)."""
     basis, _ = np.linalg.qr(rng.normal(size=(size, size)))
     weights = 1e-4 * np.logspace(0.0, -np.log10(condition), size)
     if rank is not None:
@@ -56,12 +56,8 @@ def _plain_read(sens, covariance):
     return s @ covariance @ s.T
 
 
-def _upper(c):
-    return np.array([c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2]])
-
-
 def _relative(a, b):
-    """|a - b| over the scale of b: its largest standard deviation squared."""
+    """Return max |a - b| over the scale of b (its largest entry, a variance)."""
     return float(np.abs(np.asarray(a) - np.asarray(b)).max() / max(np.abs(b).max(), 1e-300))
 
 
@@ -131,9 +127,11 @@ def test_a_new_covariance_of_another_size_restarts_the_sensitivity():
 
 
 def test_online_odometer_publishes_the_plain_numbers(monkeypatch):
-    """A learning odometer over a drive with a ground change: poses bit for bit, covariances
-    to 1e-12 of their size, against the same odometer with S carried in the parameters'
-    coordinates and read by numpy (the arithmetic before the eigenbasis)."""
+    """A learning odometer publishes the plain numbers over a drive with a ground change.
+
+    Poses bit for bit, covariances to 1e-12 of their size, against the same odometer with S
+    carried in the parameters' coordinates and read by numpy (the arithmetic before).
+    """
     effect = make_effect('terrain_regime', 0.25, mode='time', switch_frac=0.5, yaw=0.15)
     sim = simulate(SimConfig(duration_s=25.0, seed=11, wheel_rate_hz=1000.0,
                              effects=(effect,)))
