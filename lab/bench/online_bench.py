@@ -10,8 +10,9 @@ measured in one run on one machine as process CPU time, never asserted). Run::
     python -m lab.bench.online_bench --seconds 60 --repeats 3
 
 ``--old CHECKOUT`` also times, in the same turns, the odometers with the covariance propagator
-of another checkout (its ``skidkin_ros/core/odometry/propagation.py``, loaded beside this one:
-the parameter uncertainty's cost before and after a change), for the file with a parameter
+of another checkout (its ``skidkin_ros/core/odometry/propagation.py``, loaded beside this one
+and given this checkout's ``ParameterUncertainty``: the parameter uncertainty's cost before and
+after a change), for the file with a parameter
 covariance and for the same file without one (the node's default), and prints the medians of
 the paired ratios.
 """
