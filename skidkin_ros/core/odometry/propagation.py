@@ -136,6 +136,13 @@ def propagate_scalar(x: float, y: float, yaw: float, vx: float, vy: float, w: fl
     multiplications; numpy's 3 x 3 products would cost more in overhead than in arithmetic,
     and this step runs once per wheel sample in the node.
     """
+    return _propagate_with_increment(x, y, yaw, vx, vy, w, dt_s, upper, noise, extra)[:4]
+
+
+def _propagate_with_increment(x: float, y: float, yaw: float, vx: float, vy: float, w: float,
+                              dt_s: float, upper: Sequence[float], noise: NoiseModel | None,
+                              extra: Sequence[float] | None = None) -> tuple:
+    """:func:`propagate_scalar`, also returning the step's body-frame increment (dx, dy)."""
     new_x, new_y, new_yaw, dx, dy = step_scalar(x, y, yaw, vx, vy, w, dt_s)
     q00 = q01 = q02 = q11 = q12 = q22 = 0.0
     if noise is not None:
@@ -167,7 +174,7 @@ def propagate_scalar(x: float, y: float, yaw: float, vx: float, vy: float, w: fl
     n02 = cos_t * q02 - sin_t * q12
     n12 = sin_t * q02 + cos_t * q12
     return new_x, new_y, new_yaw, (m00 + n00, m01 + n01, r02 + n02, m11 + n11, r12 + n12,
-                                   p22 + q22)
+                                   p22 + q22), dx, dy
 
 
 def predict(pose: Sequence[float], cov: np.ndarray, t_ns: Sequence[int],
@@ -310,6 +317,13 @@ class PoseCovariancePropagator:
         self._upper = _INITIAL_UPPER
         self._yaw = 0.0
         self._sens: list[tuple[float, float, float]] = []
+        # Sigma_k's eigenbasis V when S is carried as T = S V (parameters set by a learner),
+        # else None (S in the parameters' own coordinates); _rows: the M (or M') a linear model
+        # steps S (or T) with, () where d(twist)/dk comes from twist_jacobian or the caller.
+        self._basis: np.ndarray | None = None
+        self._weights: tuple[float, ...] = ()
+        self._rows: tuple[tuple[float, ...], ...] = ()
+        self._use(self.parameters, eigen=False)
         self.reset()
 
     @property
@@ -328,7 +342,8 @@ class PoseCovariancePropagator:
     @property
     def sensitivity(self) -> np.ndarray:
         """Return S = d pose / d k, (3, p) (empty without parameter uncertainty)."""
-        return np.asarray(self._sens, dtype=float).reshape(-1, 3).T
+        carried = np.asarray(self._sens, dtype=float).reshape(-1, 3).T
+        return carried if self._basis is None else carried @ self._basis.T
 
     def set_parameters(self, parameters: ParameterUncertainty | None) -> None:
         """Use a new parameter covariance (online calibration); the sensitivity S is kept.
@@ -336,10 +351,32 @@ class PoseCovariancePropagator:
         S (d pose / d k, carried since the last reset) keeps its columns when the parameters
         keep their number; otherwise it restarts from zero.
         """
+        kept = self.sensitivity if self._sens else None
         self.parameters = parameters if self.noise is not None else None
+        self._use(self.parameters, eigen=True)
         size = 0 if self.parameters is None else self.parameters.size
-        if len(self._sens) != size:
+        if kept is None or kept.shape[1] != size:
             self._sens = [(0.0, 0.0, 0.0)] * size
+        elif self._basis is None:
+            self._sens = [tuple(column) for column in kept.T.tolist()]
+        else:
+            self._sens = [tuple(column) for column in (kept @ self._basis).T.tolist()]
+
+    def _use(self, parameters: ParameterUncertainty | None, eigen: bool) -> None:
+        """Choose how S is stepped and read for ``parameters`` (see __init__'s attributes).
+
+        A linear model's S is stepped with its matrices M on floats (one fused loop); with
+        ``eigen`` (parameters that change while the odometry runs: a learner's), in Sigma_k's
+        eigenbasis, so the read is p outer products of 3-vectors on floats. The file's fixed
+        covariance keeps S in the parameters' coordinates and its read as it was (bit for bit).
+        """
+        self._basis, self._weights, self._rows = None, (), ()
+        if type(parameters) is not ParameterUncertainty or parameters.nonlinear is not None:
+            return
+        if eigen:
+            self._weights, self._basis, self._rows = parameters.eigen
+        else:
+            self._rows = parameters.sensitivity
 
     def reset(self, yaw_rad: float = 0.0) -> None:
         """Restart from an exact pose with heading ``yaw_rad``."""
@@ -363,9 +400,14 @@ class PoseCovariancePropagator:
             return  # the fallback diagonals are published: nothing to propagate
         x, y, yaw = (float(v) for v in pose_before)
         vx, vy, w = (float(v) for v in twist)
-        *_, new_yaw, self._upper = propagate_scalar(x, y, yaw, vx, vy, w, dt_s, self._upper,
-                                                    self.noise, extra)
+        _, _, new_yaw, self._upper, dx, dy = _propagate_with_increment(
+            x, y, yaw, vx, vy, w, dt_s, self._upper, self.noise, extra)
         if self._sens:
+            if jacobian is None and self._rows:
+                self._sens = _propagate_linear(self._sens, self._rows, yaw, w, dt_s, vx, vy,
+                                               dx, dy)
+                self._yaw = new_yaw
+                return
             if jacobian is None:
                 jacobian = self.parameters.twist_jacobian(vx, vy, w, wheels)
             if jacobian is not None:
@@ -376,8 +418,11 @@ class PoseCovariancePropagator:
         """Return the upper triangle of the published 3 x 3: P + S Sigma_k S^T + R C R^T."""
         upper = self._upper
         if self._sens:
-            upper = tuple(a + b for a, b in zip(upper, self.parameters.pose_covariance(
-                self._sens)))
+            if self._basis is not None:
+                upper = _add_weighted_outer(upper, self._sens, self._weights)
+            else:
+                upper = tuple(a + b for a, b in zip(upper, self.parameters.pose_covariance(
+                    self._sens)))
         if self.noise is not None and self.noise.has_constant:
             upper = tuple(a + b for a, b in zip(upper, self.noise.constant_upper(self._yaw)))
         return upper
@@ -433,3 +478,50 @@ def _propagate_sensitivity(sens: Sequence[tuple[float, float, float]],
                     sy + b * syaw + dt_s * (sin_m * dvx + cos_m * dvy) + half * dw * b,
                     syaw + dt_s * dw))
     return out
+
+
+def _propagate_linear(sens: Sequence[tuple[float, float, float]],
+                      rows: Sequence[Sequence[float]], yaw: float, w: float, dt_s: float,
+                      vx: float, vy: float, dx: float, dy: float
+                      ) -> list[tuple[float, float, float]]:
+    """:func:`_propagate_sensitivity` with d(twist)/dk_j = M_j twist (a linear model), fused.
+
+    The same operations in the same order as :meth:`ParameterUncertainty.twist_jacobian`
+    followed by :func:`_propagate_sensitivity` (bit for bit), without the intermediate list;
+    (dx, dy) is the step's body-frame increment, which the pose step computed already.
+    """
+    cos_t = math.cos(yaw)
+    sin_t = math.sin(yaw)
+    mid = yaw + 0.5 * w * dt_s
+    cos_m = math.cos(mid)
+    sin_m = math.sin(mid)
+    a = -sin_t * dx - cos_t * dy  # F[0, 2]
+    b = cos_t * dx - sin_t * dy   # F[1, 2]
+    half = 0.5 * dt_s
+    out = []
+    append = out.append
+    for (sx, sy, syaw), (m0, m1, m2, m3, m4, m5, m6, m7, m8) in zip(sens, rows):
+        dvx = m0 * vx + m1 * vy + m2 * w
+        dvy = m3 * vx + m4 * vy + m5 * w
+        dw = m6 * vx + m7 * vy + m8 * w
+        append((sx + a * syaw + dt_s * (cos_m * dvx - sin_m * dvy) + half * dw * a,
+                sy + b * syaw + dt_s * (sin_m * dvx + cos_m * dvy) + half * dw * b,
+                syaw + dt_s * dw))
+    return out
+
+
+def _add_weighted_outer(upper: Sequence[float], sens: Sequence[tuple[float, float, float]],
+                        weights: Sequence[float]) -> tuple[float, ...]:
+    """Return ``upper`` + the upper triangle of sum_l weights_l t_l t_l^T (T = S V, on floats)."""
+    c00 = c01 = c02 = c11 = c12 = c22 = 0.0
+    for (tx, ty, tyaw), lam in zip(sens, weights):
+        ux = lam * tx
+        uy = lam * ty
+        c00 += ux * tx
+        c01 += ux * ty
+        c02 += ux * tyaw
+        c11 += uy * ty
+        c12 += uy * tyaw
+        c22 += lam * tyaw * tyaw
+    p00, p01, p02, p11, p12, p22 = upper
+    return p00 + c00, p01 + c01, p02 + c02, p11 + c11, p12 + c12, p22 + c22

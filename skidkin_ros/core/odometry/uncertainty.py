@@ -21,11 +21,20 @@ holds over the step. A model not linear in the wheel speeds (ROC) needs the spee
 the step: d(twist)/dk is then a central difference of the model's twist at them, two twist
 evaluations per parameter and step (the integrator reports the speeds for stateless sources;
 for a stateful one, an augmented model, the sensitivity is not carried).
+
+Per wheel sample, for a linear model, the step of S is one loop over its p columns on floats
+(:class:`~skidkin_ros.core.odometry.propagation.PoseCovariancePropagator`). The file's fixed
+Sigma_k is read as S Sigma_k S^T, as it always was; a learner's Sigma_k, which changes while
+the robot drives, is carried in its eigenbasis, T = S V with Sigma_k = V diag(lambda) V^T (the
+matrices M_j rotated once per parameter set, :attr:`ParameterUncertainty.eigen`), so the read is
+sum_l lambda_l t_l t_l^T, p outer products of 3-vectors, and a new Sigma_k only rotates T (V
+is orthogonal: the numbers stay those of S Sigma_k S^T to rounding).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+import functools
 from typing import Any, Sequence
 
 import numpy as np
@@ -120,9 +129,25 @@ class ParameterUncertainty:
             rel_step)
         return [tuple(float(v) for v in d.reshape(3)) for d in d_twist]
 
+    @functools.cached_property
+    def eigen(self) -> tuple[tuple[float, ...], np.ndarray, tuple[tuple[float, ...], ...]]:
+        """Return Sigma_k's eigen-decomposition and the sensitivity in its basis (linear model).
+
+        (weights, basis, rotated): Sigma_k = V diag(weights) V^T with V = ``basis`` (p, p,
+        orthogonal), and ``rotated`` the matrices M'_l = sum_j V_jl M_j (9 floats each, as
+        :attr:`sensitivity`). A sensitivity T = S V carried with M' instead of M gives
+        S Sigma_k S^T = sum_l weights_l t_l t_l^T: p outer products of 3-vectors instead of two
+        matrix products when the covariance is read. V is orthogonal, so moving T from one
+        parameter covariance's basis to the next (T V_old^T V_new) only rounds.
+        """
+        weights, basis = np.linalg.eigh(0.5 * (self.covariance + self.covariance.T))
+        rows = np.asarray(self.sensitivity, dtype=float).reshape(-1, 9)
+        rotated = basis.T @ rows
+        return (tuple(weights.tolist()), basis,
+                tuple(tuple(row) for row in rotated.tolist()))
+
     def pose_covariance(self, sens: Sequence[Sequence[float]]) -> tuple[float, ...]:
         """Upper triangle of S Sigma_k S^T for S given as p columns (d x, d y, d yaw)/dk_j."""
         s = np.asarray(sens, dtype=float).T  # (3, p)
-        c = s @ self.covariance @ s.T
-        return (float(c[0, 0]), float(c[0, 1]), float(c[0, 2]), float(c[1, 1]), float(c[1, 2]),
-                float(c[2, 2]))
+        (c00, c01, c02), (_, c11, c12), (_, _, c22) = (s @ self.covariance @ s.T).tolist()
+        return c00, c01, c02, c11, c12, c22
