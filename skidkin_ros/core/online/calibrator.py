@@ -64,6 +64,7 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.reference import OnlineParams
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
+from skidkin_ros.core.online.adapt import ChangeLearner
 from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
@@ -82,7 +83,7 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
+class OnlineCalibrator(ChangeLearner, ReferenceGates, GroundBank, WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by
@@ -302,9 +303,13 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
         if self.cusum > params.cusum_threshold:
             self._note_error(seg, e)
             self._change(seg, motion_cov)
-            if self.active is not ground:   # a new ground starts from ground.k: same rows
-                errors, sens = ((errors[-1:], sens[-1:]) if not self.active.window
-                                else (None, None))
+            if self.active is not ground:   # learn from the located change on (adapt.py)
+                seg = self._after_change(a, b, ground)
+                if seg is None:
+                    return
+                path = float(seg.path_m[0])
+                motion_cov = self._motion_cov(seg)
+                errors = sens = None
         self._update(seg, motion_cov + self._reference_cov(), path, errors, sens)
 
 
