@@ -4,11 +4,13 @@ Three rules that make the first metres on a new ground cheaper (the recipe is in
 :mod:`skidkin_ros.core.online.calibrator`; the methods are those of its ``OnlineCalibrator``, a
 mixin):
 
-* **Early detection** (:meth:`ChangeLearner._probe`): every ``PROBE_M`` of reference path (or ``PROBE_RAD`` of turning), the
-  segment in progress is scored under the active ground (its NEES against the predictive
-  covariance, parameter uncertainty included). When that alone would pass the CUSUM threshold,
+* **Early detection** (:meth:`ChangeLearner._probe`): every ``PROBE_M`` of reference path
+  (or ``PROBE_RAD`` of turning), the segment in progress is scored under the active ground
+  (its NEES against the predictive covariance, parameter uncertainty included). When that alone would pass the CUSUM threshold,
   the segment is cut there and learned at once (the change is declared on it), instead of
-  waiting for the calibrator's 2 m or 1 rad.
+  waiting for the calibrator's 2 m or 1 rad. Only a part of at least ``PROBE_M`` of path or
+  ``CUT_MIN_RAD`` of turning is cut: a slip on a short turn in place is a transient, which
+  the whole segment's CUSUM weighs.
 * **The change point** (:meth:`ChangeLearner._after_change`): the segment that revealed the
   change is mostly the old ground. The change is located on the stored reference poses as the
   last pose up to which the old ground still explains the segment (NEES below the 99 % chi2);
@@ -43,6 +45,8 @@ __all__ = ['ChangeLearner', 'PROBE_M', 'PROBE_RAD']
 # Reference path (m) or turning (rad) between two probes of the segment in progress.
 PROBE_M = 0.25
 PROBE_RAD = 0.125
+# A part of a segment turning less than this (and shorter than PROBE_M) is never cut early.
+CUT_MIN_RAD = 0.5
 
 
 class ChangeLearner:
@@ -51,7 +55,12 @@ class ChangeLearner:
     _probed = (-math.inf, 0.0)    # reference path and heading at the last probe
 
     def _accept(self, ref: _Ref) -> None:
+        start = self._seg_start
         super()._accept(ref)
+        if self._seg_start is ref:   # a segment ended here (learned or not), or one began
+            if start is not None and start is not ref:
+                self._segment_ended(start, ref)
+            self._segment_began()
         self._probe(ref)
 
     def _probe(self, ref: _Ref) -> None:
@@ -73,11 +82,15 @@ class ChangeLearner:
         cov = self._motion_cov(seg) + self._reference_cov()
         e, sens, nees = self._score(ground, seg, cov - self._reference_cov(), True)
         params = self.params
-        if nees > params.cusum_threshold + params.cusum_drift - self.cusum:
+        if (nees > params.cusum_threshold + params.cusum_drift - self.cusum
+                and (ref.path_m - start.path_m >= PROBE_M
+                     or abs(ref.yaw - start.yaw) >= CUT_MIN_RAD)):
             self.counters['online_early_cut'] += 1
             self._learn(start, ref)
+            self._segment_ended(start, ref)
             self._seg_start = ref
             self._seg_version = self.version
+            self._segment_began()
             return
         if self.travel_m < self._adapt_until_m and ground.window:
             self._provisional(seg, cov)
@@ -113,7 +126,7 @@ class ChangeLearner:
         return self._segment(c, b)
 
     def _rate_cov(self, path: float, rot: float) -> np.ndarray:
-        """A diagonal covariance from the noise rates and the reference noise (as _recognise)."""
+        """Return a diagonal covariance from the noise rates and the reference noise."""
         var_x, var_y, var_yaw = self.noise.step_variances(path, rot)
         return (np.diag([var_x + self.noise.var_x_const, var_y + self.noise.var_y_const,
                          var_yaw + self.noise.var_yaw_const]) + self._reference_cov()

@@ -33,7 +33,9 @@ bit. The recipe, for one reference pose:
    ``adapting``: for ``adapt_distance`` m the memory is ``adapt_memory`` instead of ``memory``).
    On every accepted reference pose, the last ``switch_window`` m are scored under every
    remembered ground: one that is better by ``switch_margin`` becomes the active one (two grounds
-   that alternate every few metres are recognised, not averaged).
+   that alternate every few metres are recognised, not averaged). The segment in progress is
+   scored every 0.25 m (a change is declared on it), the ground taken learns from the located
+   change on, and from its growing segment while adapting (``adapt.py``).
 6. **Update only what the segment observes** (information-form recursive least squares with
    forgetting toward the prior): the information Lambda fades by exp(-path / memory) toward the
    prior's; the segment's information H = S^T Sigma^-1 S is split into eigen-directions (in
@@ -41,6 +43,9 @@ bit. The recipe, for one reference pose:
    ``min_information`` are updated (driving straight says nothing about the ICR: its direction
    keeps its value and its uncertainty grows back toward the prior). One Gauss-Newton step in that
    subspace; values kept inside their ranges and the model's constraints.
+
+7. **The published noise** is the file's times the calibrator's coverage factor on the
+   odometry's own errors over the last segments (``noise.py``).
 
 Memory and CPU are bounded: the wheel steps since the oldest pose still needed (a segment's
 start, the window's start) and at most ``MAX_STEPS`` of them; a segment costs 2p + 2 rollouts of
@@ -68,6 +73,7 @@ from skidkin_ros.core.online.adapt import ChangeLearner
 from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
+from skidkin_ros.core.online.noise import NoiseLearner
 from skidkin_ros.core.online.window import WindowSolver
 from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import ParameterError
@@ -83,7 +89,8 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(ChangeLearner, ReferenceGates, GroundBank, WindowSolver):
+class OnlineCalibrator(ChangeLearner, NoiseLearner, ReferenceGates, GroundBank,
+                       WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by

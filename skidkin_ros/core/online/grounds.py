@@ -62,6 +62,7 @@ class GroundBank:
     """The grounds of :class:`OnlineCalibrator`: scored, changed, recognised (a mixin)."""
 
     _switched_m = -math.inf    # reference travel at the last change or switch of ground
+    _changed_m = -math.inf     # reference travel at the last new ground
 
     def _reference_cov(self) -> np.ndarray:
         sx, syaw = self.params.sigma_xy, self.params.sigma_yaw
@@ -103,6 +104,7 @@ class GroundBank:
                 self.grounds.remove(self.active)
         self.grounds.append(ground)
         self._adapt_until_m = self.travel_m + self.params.adapt_distance
+        self._changed_m = self.travel_m
         self._activate(ground, 'online_change')
         self._warn('online_change', f'change of ground detected: learning ground {ground.ident} '
                    f'from the current parameters ({len(self.grounds)} grounds known)')
@@ -156,10 +158,12 @@ class GroundBank:
             if item.path_m > ref.path_m - window:
                 break
             start = item
+        path = ref.path_m - start.path_m
+        if path > self.travel_m - self._changed_m:
+            return   # the window starts before a new ground began: it would judge a blend
         seg = self._segment(start, ref)
         if seg is None:
             return
-        path = ref.path_m - start.path_m
         rot = abs(ref.yaw - start.yaw)
         # a diagonal weight from the noise rates (the grounds are compared on the same one)
         var_x, var_y, var_yaw = self.noise.step_variances(path, rot)

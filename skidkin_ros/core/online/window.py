@@ -86,8 +86,11 @@ class WindowSolver:
         self._solve(ground, items, e, sens)
 
     def _solve(self, ground: Ground, items: list, e: np.ndarray, sens: np.ndarray) -> None:
-        """The Gauss-Newton step of ``items`` (residuals e, sensitivities sens) in the
-        observable directions; the ground's prior holds the others."""
+        """Take the Gauss-Newton step of ``items`` in the observable directions.
+
+        ``e``, ``sens``: the items' residuals and sensitivities at the ground's parameters; the
+        ground's prior holds the directions the items do not observe.
+        """
         params = self.params
         weights = np.array([item[2] for item in items])
         inverse = np.stack([item[1] for item in items]) * weights[:, None, None]
