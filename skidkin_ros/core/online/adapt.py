@@ -8,9 +8,9 @@ mixin):
   (or ``PROBE_RAD`` of turning), the segment in progress is scored under the active ground
   (its NEES against the predictive covariance, parameter uncertainty included). When that
   alone would pass the CUSUM threshold, the segment is cut there and learned at once (the
-  change is declared on it), instead of waiting for the calibrator's 2 m or 1 rad. Only a part of at least ``PROBE_M`` of path or
-  ``CUT_MIN_RAD`` of turning is cut: a slip on a short turn in place is a transient, which
-  the whole segment's CUSUM weighs.
+  change is declared on it), instead of waiting for the calibrator's 2 m or 1 rad. Only a
+  part of at least ``PROBE_M`` of path or ``CUT_MIN_RAD`` of turning is cut: a slip on a short
+  turn in place is a transient, which the whole segment's CUSUM weighs.
 * **The change point** (:meth:`ChangeLearner._after_change`): the segment that revealed the
   change is mostly the old ground. The change is located on the stored reference poses as the
   last pose up to which the old ground still explains the segment (NEES below the 99 % chi2);
