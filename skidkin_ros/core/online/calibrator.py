@@ -196,7 +196,8 @@ class OnlineCalibrator(ChangeLearner, NoiseLearner, ReferenceGates, GroundBank,
                                        'grounds': float(len(self.grounds)),
                                        'learned_m': self.active.learned_m,
                                        'travel_m': self.travel_m, 'cusum': self.cusum,
-                                       'last_nees': self.last_nees}
+                                       'last_nees': self.last_nees,
+                                       'noise_scale': self.noise_scale}
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
         for name, value, sd in zip(self.model.param_names, self.active.k, sigma):
             out[f'{name}'] = float(value)
