@@ -6,7 +6,7 @@ mixin):
 
 * **Early detection** (:meth:`ChangeLearner._probe`): every ``PROBE_M`` of reference path
   (or ``PROBE_RAD`` of turning), the segment in progress is scored under the active ground
-  (its NEES against the predictive covariance, parameter uncertainty included). When that
+  (its NEES against the noise rates' diagonal covariance, parameter uncertainty included). When that
   alone would pass the CUSUM threshold, the segment is cut there and learned at once (the
   change is declared on it), instead of waiting for the calibrator's 2 m or 1 rad. Only a
   part of at least ``PROBE_M`` of path or ``CUT_MIN_RAD`` of turning is cut: a slip on a short
@@ -43,8 +43,10 @@ if TYPE_CHECKING:
 __all__ = ['ChangeLearner', 'PROBE_M', 'PROBE_RAD']
 
 # Reference path (m) or turning (rad) between two probes of the segment in progress.
-PROBE_M = 0.25
-PROBE_RAD = 0.125
+PROBE_M = 0.5
+PROBE_RAD = 0.25
+# Provisional steps stop once the ground taken has this many segments of its own.
+PROVISIONAL_SEGMENTS = 4
 # A part of a segment turning less than this (and shorter than PROBE_M) is never cut early.
 CUT_MIN_RAD = 0.5
 
@@ -79,12 +81,14 @@ class ChangeLearner:
         if seg is None:
             return
         ground = self.active
-        cov = self._motion_cov(seg) + self._reference_cov()
-        e, sens, nees = self._score(ground, seg, cov - self._reference_cov(), True)
+        # the noise rates' diagonal covariance (as the recognition's): no rollout of the steps
+        motion = self._rate_cov(ref.path_m - start.path_m, abs(ref.yaw - start.yaw), False)
         params = self.params
-        if (nees > params.cusum_threshold + params.cusum_drift - self.cusum
-                and (ref.path_m - start.path_m >= PROBE_M
-                     or abs(ref.yaw - start.yaw) >= CUT_MIN_RAD)):
+        threshold = params.cusum_threshold + params.cusum_drift - self.cusum
+        # without the parameter term first (one rollout): that term only lowers the NEES
+        if ((ref.path_m - start.path_m >= PROBE_M or abs(ref.yaw - start.yaw) >= CUT_MIN_RAD)
+                and self._score(ground, seg, motion, False)[2] > threshold
+                and self._score(ground, seg, motion, True)[2] > threshold):
             self.counters['online_early_cut'] += 1
             self._learn(start, ref)
             self._segment_ended(start, ref)
@@ -92,8 +96,9 @@ class ChangeLearner:
             self._seg_version = self.version
             self._segment_began()
             return
-        if self.travel_m < self._adapt_until_m and ground.window:
-            self._provisional(seg, cov)
+        if (self.travel_m < self._adapt_until_m
+                and 0 < len(ground.window) < PROVISIONAL_SEGMENTS):
+            self._provisional(seg, self._motion_cov(seg) + self._reference_cov())
             self._seg_version = self.version
 
     def _after_change(self, a: _Ref, b: _Ref, old: Ground) -> SegmentSet | None:
@@ -125,9 +130,9 @@ class ChangeLearner:
             return None
         return self._segment(c, b)
 
-    def _rate_cov(self, path: float, rot: float) -> np.ndarray:
-        """Return a diagonal covariance from the noise rates and the reference noise."""
+    def _rate_cov(self, path: float, rot: float, reference: bool = True) -> np.ndarray:
+        """Return a diagonal covariance from the noise rates (and the reference noise)."""
         var_x, var_y, var_yaw = self.noise.step_variances(path, rot)
-        return (np.diag([var_x + self.noise.var_x_const, var_y + self.noise.var_y_const,
-                         var_yaw + self.noise.var_yaw_const]) + self._reference_cov()
-                + 1e-9 * np.eye(3))
+        cov = np.diag([var_x + self.noise.var_x_const, var_y + self.noise.var_y_const,
+                       var_yaw + self.noise.var_yaw_const]) + 1e-9 * np.eye(3)
+        return cov + self._reference_cov() if reference else cov
