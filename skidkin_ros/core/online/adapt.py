@@ -6,7 +6,7 @@ mixin):
 
 * **Early detection** (:meth:`ChangeLearner._probe`): every ``PROBE_M`` of reference path
   (or ``PROBE_RAD`` of turning), the segment in progress is scored under the active ground
-  (its NEES against the noise rates' diagonal covariance, parameter uncertainty included). When that
+  (its NEES against the predictive covariance, parameter uncertainty included). When that
   alone would pass the CUSUM threshold, the segment is cut there and learned at once (the
   change is declared on it), instead of waiting for the calibrator's 2 m or 1 rad. Only a
   part of at least ``PROBE_M`` of path or ``CUT_MIN_RAD`` of turning is cut: a slip on a short
@@ -81,8 +81,7 @@ class ChangeLearner:
         if seg is None:
             return
         ground = self.active
-        # the noise rates' diagonal covariance (as the recognition's): no rollout of the steps
-        motion = self._rate_cov(ref.path_m - start.path_m, abs(ref.yaw - start.yaw), False)
+        motion = self._motion_cov(seg)
         params = self.params
         threshold = params.cusum_threshold + params.cusum_drift - self.cusum
         # without the parameter term first (one rollout): that term only lowers the NEES
@@ -98,7 +97,7 @@ class ChangeLearner:
             return
         if (self.travel_m < self._adapt_until_m
                 and 0 < len(ground.window) < PROVISIONAL_SEGMENTS):
-            self._provisional(seg, self._motion_cov(seg) + self._reference_cov())
+            self._provisional(seg, motion + self._reference_cov())
             self._seg_version = self.version
 
     def _after_change(self, a: _Ref, b: _Ref, old: Ground) -> SegmentSet | None:
