@@ -45,8 +45,6 @@ __all__ = ['ChangeLearner', 'PROBE_M', 'PROBE_RAD']
 # Reference path (m) or turning (rad) between two probes of the segment in progress.
 PROBE_M = 0.5
 PROBE_RAD = 0.25
-# Provisional steps stop once the ground taken has this many segments of its own.
-PROVISIONAL_SEGMENTS = 4
 # A part of a segment turning less than this (and shorter than PROBE_M) is never cut early.
 CUT_MIN_RAD = 0.5
 
@@ -95,8 +93,7 @@ class ChangeLearner:
             self._seg_version = self.version
             self._segment_began()
             return
-        if (self.travel_m < self._adapt_until_m
-                and 0 < len(ground.window) < PROVISIONAL_SEGMENTS):
+        if self.travel_m < self._adapt_until_m and ground.window:
             self._provisional(seg, motion + self._reference_cov())
             self._seg_version = self.version
 

@@ -34,7 +34,7 @@ bit. The recipe, for one reference pose:
    On every accepted reference pose, the last ``switch_window`` m are scored under every
    remembered ground: one that is better by ``switch_margin`` becomes the active one (two grounds
    that alternate every few metres are recognised, not averaged). The segment in progress is
-   scored every 0.25 m (a change is declared on it), the ground taken learns from the located
+   scored every 0.5 m (a change is declared on it), the ground taken learns from the located
    change on, and from its growing segment while adapting (``adapt.py``).
 6. **Update only what the segment observes** (information-form recursive least squares with
    forgetting toward the prior): the information Lambda fades by exp(-path / memory) toward the
