@@ -261,3 +261,77 @@ def test_save_writes_a_loadable_file_and_never_overwrites(tmp_path, change_drive
     assert loaded.active_parameter_uncertainty is not None
     with pytest.raises(OutputError, match='never overwritten'):
         save_learned(odometer_config, odometer.learner, target)
+
+
+def _learned_until(sim, **more):
+    """Run sim through an online odometer; return it and the wheel time of each first warning."""
+    odometer = online_odometer(_config(**{'online.enabled': True, **more}))
+    learner, seen = odometer.learner, {}
+    learner._warn = lambda cause, message, error=False: seen.setdefault(cause, learner._last_t1)
+    return odometer, odometer.predict(sim.wheels, reference=_reference(sim)), seen
+
+
+def test_a_change_is_caught_on_the_segment_in_progress_and_kept():
+    """A change is declared on the segment in progress and the new ground is kept.
+
+    The new ground learns from the located change on, and one odd window does not take the old
+    ground back.
+
+    The same drive with the segment-end detection, learning from the whole revealing segment
+    and the plain switch margin: found 2.9 m after the change, then switched back to the old
+    ground (alpha 29 % off the new ground's at the end).
+    """
+    effect = make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.85, yaw=YAW_SLIP)
+    sim = simulate(SimConfig(duration_s=160.0, seed=4, effects=(effect,)))
+    odometer, _, seen = _learned_until(sim)
+    counts = odometer.counters
+    assert counts['online_early_cut'] >= 1 and counts['online_change_point'] == 1
+    assert counts['online_change'] == 1 and counts['online_switch'] == 0
+    path = sim.truth.path_length()
+    t = sim.truth.t_ns
+    change = np.searchsorted(t, sim.start_ns + int(0.85 * 160e9))
+    found = np.searchsorted(t, seen['online_change'])
+    assert 0.0 < path[found] - path[change] < 2.2
+    values = odometer.learner.values
+    assert values['alpha_l'] == pytest.approx(0.9 * (1 - SLIP), rel=0.015)
+    assert values['alpha_r'] == pytest.approx(0.85 * (1 - SLIP), rel=0.015)
+    assert values['y_l'] - values['y_r'] == pytest.approx(
+        1.05 * (1 - SLIP) / (1 - YAW_SLIP), rel=0.03)
+
+
+def _pose_nees(sim, prediction):
+    t = (sim.wheels.t_ns - sim.start_ns) * 1e-9
+    out = []
+    for i in np.nonzero((t >= 10.0) & (np.mod(np.round(t * 20), 20) == 0))[0]:
+        err = sim.truth.poses[i] - prediction.poses[i]
+        err[2] = (err[2] + math.pi) % (2 * math.pi) - math.pi
+        cov = prediction.pose_covariances[i][np.ix_([0, 1, 5], [0, 1, 5])]
+        out.append(float(err @ np.linalg.solve(cov, err)))
+    return np.array(out)
+
+
+def test_the_published_noise_covers_alternating_grounds_and_stays_the_files_on_one():
+    """The calibrator's coverage rule on the odometry's own recent errors.
+
+    The pose NEES over the whole drive, from its start: what is left (3.3 here, with a noise-free
+    reference and the simulator's own parameters as the file) is the first change, before four
+    segments' errors are known.
+    """
+    effect = make_effect('terrain_regime', SLIP, mode='alternate', period_m=4.0, yaw=YAW_SLIP)
+    alternating = simulate(SimConfig(duration_s=160.0, seed=3, effects=(effect,)))
+    odometer, learned, _ = _learned_until(alternating)
+    learner = odometer.learner
+    assert learner.noise_scale > 2.0 and odometer.counters['online_noise_updates'] >= 1
+    assert learner.published_noise().var_x_per_m == pytest.approx(
+        learner.noise.var_x_per_m * learner.noise_scale)
+    nees = _pose_nees(alternating, learned)
+    # the file's noise throughout (the factor held at 1): over-confident (8.8 against 3.3)
+    odometer = online_odometer(_config(**{'online.enabled': True}))
+    odometer.learner._segment_ended = lambda a, b: None
+    files = _pose_nees(alternating, odometer.predict(alternating.wheels,
+                                                     reference=_reference(alternating)))
+    assert files.mean() > 6.0 and nees.mean() < 0.5 * files.mean()
+    # one ground: the file's noise is kept
+    plain = simulate(SimConfig(duration_s=160.0, seed=3))
+    odometer, _, _ = _learned_until(plain)
+    assert odometer.learner.noise_scale < 1.5

@@ -117,6 +117,13 @@ def _turn_product_gradient(p, q, x: str, power: int):
     return (grad_p, grad_q, 0.0, 0.0)
 
 
+def _cross_hinge_gradient(p, q, x: str, knot: float):
+    """Return the gradient of p * max(|q| - knot, 0) (x = 'v') or q * max(|p| - knot, 0)."""
+    if x == 'v':
+        return (_hinge(q, knot), p * _hinge_slope(q, knot), 0.0, 0.0)
+    return (q * _hinge_slope(p, knot), _hinge(p, knot), 0.0, 0.0)
+
+
 def _hinge_term_gradient(x: str, knot: float) -> Callable[..., object]:
     """Return the gradient of x * max(|x| - knot, 0) (see _hinge_term)."""
     if x == 'v':
@@ -186,10 +193,10 @@ TERM_GRADIENTS: dict[str, TermFn] = {
     'w_s2': lambda p, q, a, b: _turn_product_gradient(p, q, 'w', 2),
     'v_abs_s': lambda p, q, a, b: _turn_product_gradient(p, q, 'v', 1),
     'w_abs_s': lambda p, q, a, b: _turn_product_gradient(p, q, 'w', 1),
-    'v_w_hinge1': lambda p, q, a, b: (_hinge(q, KNOTS[1]), p * _hinge_slope(q, KNOTS[1]), 0.0, 0.0),
-    'v_w_hinge2': lambda p, q, a, b: (_hinge(q, KNOTS[3]), p * _hinge_slope(q, KNOTS[3]), 0.0, 0.0),
-    'w_v_hinge1': lambda p, q, a, b: (q * _hinge_slope(p, KNOTS[1]), _hinge(p, KNOTS[1]), 0.0, 0.0),
-    'w_v_hinge2': lambda p, q, a, b: (q * _hinge_slope(p, KNOTS[3]), _hinge(p, KNOTS[3]), 0.0, 0.0),
+    'v_w_hinge1': lambda p, q, a, b: _cross_hinge_gradient(p, q, 'v', KNOTS[1]),
+    'v_w_hinge2': lambda p, q, a, b: _cross_hinge_gradient(p, q, 'v', KNOTS[3]),
+    'w_v_hinge1': lambda p, q, a, b: _cross_hinge_gradient(p, q, 'w', KNOTS[1]),
+    'w_v_hinge2': lambda p, q, a, b: _cross_hinge_gradient(p, q, 'w', KNOTS[3]),
     'v3': lambda p, q, a, b: (3.0 * p * p, 0.0, 0.0, 0.0),
     'w3': lambda p, q, a, b: (0.0, 3.0 * q * q, 0.0, 0.0),
     'v2_w': lambda p, q, a, b: (2.0 * p * q, p * p, 0.0, 0.0),

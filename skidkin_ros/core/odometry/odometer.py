@@ -97,6 +97,8 @@ class Learner(Protocol):
 
     def take_error(self) -> Any: ...
 
+    def published_noise(self) -> Any: ...
+
 
 @dataclass(frozen=True)
 class SampleRules:
@@ -303,6 +305,7 @@ class Odometer:
         self.integrator.set_source(learner.bound_model())
         if self.covariance.calibrated:
             self.covariance.set_parameters(learner.uncertainty())
+            self.covariance.noise = learner.published_noise()
             error = learner.take_error()
             if error is not None:  # what the old ground's parameters got wrong, carried
                 self.covariance.cov = self.covariance.cov + error

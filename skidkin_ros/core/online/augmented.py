@@ -35,7 +35,7 @@ import numpy as np
 from skidkin_ros.core.calibration.engine import BASE, ParameterLayout
 from skidkin_ros.core.calibration.fitting import predict_end_poses, segment_errors
 from skidkin_ros.core.calibration.noise_fit import (mahalanobis, segment_covariances,
-                                                    segment_motion)
+                                                    segment_motion, SegmentMotion)
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.kinematics.augmented import BoundAugmented
 from skidkin_ros.core.kinematics.extensions import get_extension
@@ -144,6 +144,14 @@ class AugmentedCalibrator(OnlineCalibrator):
         motion = segment_motion(self.model.base.name, self.model.base.mapping(base_k),
                                 self.geometry, seg)
         return segment_covariances(self.noise, motion)[0]
+
+    def _noise_motion(self, k: np.ndarray, seg: SegmentSet) -> SegmentMotion:
+        # The noise bases are the base model's steps (as in _motion_cov); the parameter
+        # covariance is left out of the fixed term, so the learned factor errs high (covers
+        # the parameters' share too): conservative, never over-confident.
+        base_k, _ = self.model.layout.parameters(k)
+        return segment_motion(self.model.base.name, self.model.base.mapping(base_k),
+                              self.geometry, seg)
 
     def bound_model(self) -> BoundAugmented:
         return self.model.source(self.active.k.copy())

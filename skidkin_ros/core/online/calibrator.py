@@ -33,7 +33,9 @@ bit. The recipe, for one reference pose:
    ``adapting``: for ``adapt_distance`` m the memory is ``adapt_memory`` instead of ``memory``).
    On every accepted reference pose, the last ``switch_window`` m are scored under every
    remembered ground: one that is better by ``switch_margin`` becomes the active one (two grounds
-   that alternate every few metres are recognised, not averaged).
+   that alternate every few metres are recognised, not averaged). The segment in progress is
+   scored every 0.5 m (a change is declared on it), the ground taken learns from the located
+   change on, and from its growing segment while adapting (``adapt.py``).
 6. **Update only what the segment observes** (information-form recursive least squares with
    forgetting toward the prior): the information Lambda fades by exp(-path / memory) toward the
    prior's; the segment's information H = S^T Sigma^-1 S is split into eigen-directions (in
@@ -41,6 +43,9 @@ bit. The recipe, for one reference pose:
    ``min_information`` are updated (driving straight says nothing about the ICR: its direction
    keeps its value and its uncertainty grows back toward the prior). One Gauss-Newton step in that
    subspace; values kept inside their ranges and the model's constraints.
+
+7. **The published noise** is the file's times the calibrator's coverage factor on the
+   odometry's own errors over the last segments (``noise.py``).
 
 Memory and CPU are bounded: the wheel steps since the oldest pose still needed (a segment's
 start, the window's start) and at most ``MAX_STEPS`` of them; a segment costs 2p + 2 rollouts of
@@ -64,9 +69,11 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.reference import OnlineParams
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
+from skidkin_ros.core.online.adapt import ChangeLearner
 from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
+from skidkin_ros.core.online.noise import NoiseLearner
 from skidkin_ros.core.online.steps import WheelSteps
 from skidkin_ros.core.online.window import WindowSolver
 from skidkin_ros.core.timeunits import NS_PER_S
@@ -87,7 +94,8 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
+class OnlineCalibrator(ChangeLearner, NoiseLearner, ReferenceGates, GroundBank,
+                       WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by
@@ -204,7 +212,8 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
                                        'learned_m': self.active.learned_m,
                                        'travel_m': self.travel_m, 'cusum': self.cusum,
                                        'last_nees': self.last_nees,
-                                       'last_refusal': self.last_refusal or 'none'}
+                                       'last_refusal': self.last_refusal or 'none',
+                                       'noise_scale': self.noise_scale}
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
         for name, value, sd in zip(self.model.param_names, self.active.k, sigma):
             out[f'{name}'] = float(value)
@@ -330,9 +339,13 @@ class OnlineCalibrator(ReferenceGates, GroundBank, WindowSolver):
         if self.cusum > params.cusum_threshold:
             self._note_error(seg, e)
             self._change(seg, motion_cov)
-            if self.active is not ground:   # a new ground starts from ground.k: same rows
-                errors, sens = ((errors[-1:], sens[-1:]) if not self.active.window
-                                else (None, None))
+            if self.active is not ground:   # learn from the located change on (adapt.py)
+                seg = self._after_change(a, b, ground)
+                if seg is None:
+                    return
+                path = float(seg.path_m[0])
+                motion_cov = self._motion_cov(seg)
+                errors = sens = None
         self._update(seg, motion_cov + self._reference_cov(), path, errors, sens)
 
 

@@ -24,6 +24,10 @@ if TYPE_CHECKING:
 
 __all__ = ['Ground', 'GroundBank', 'CHI2_99_3DOF']
 
+# A remembered ground is taken back by the recognition with switch_margin when the ground last
+# changed within this many metres of reference path, else with STRICT_MARGIN x switch_margin.
+RECENT_SWITCH_M = 10.0
+STRICT_MARGIN = 4.0
 # A ground whose segment NEES is below this (chi2, 3 dof, 99 %) explains the segment.
 CHI2_99_3DOF = 11.34
 
@@ -56,6 +60,9 @@ class Ground:
 
 class GroundBank:
     """The grounds of :class:`OnlineCalibrator`: scored, changed, recognised (a mixin)."""
+
+    _switched_m = -math.inf    # reference travel at the last change or switch of ground
+    _changed_m = -math.inf     # reference travel at the last new ground
 
     def _reference_cov(self) -> np.ndarray:
         sx, syaw = self.params.sigma_xy, self.params.sigma_yaw
@@ -97,6 +104,7 @@ class GroundBank:
                 self.grounds.remove(self.active)
         self.grounds.append(ground)
         self._adapt_until_m = self.travel_m + self.params.adapt_distance
+        self._changed_m = self.travel_m
         self._activate(ground, 'online_change')
         self._warn('online_change', f'change of ground detected: learning ground {ground.ident} '
                    f'from the current parameters ({len(self.grounds)} grounds known)')
@@ -118,7 +126,22 @@ class GroundBank:
         error, self._error = self._error, np.zeros((3, 3))
         return error if error.any() else None
 
+    def _switch_margin(self) -> float:
+        """Return the NEES margin a remembered ground must win by to be taken back.
+
+        ``switch_margin`` where the ground changed within the last ``RECENT_SWITCH_M`` metres
+        (grounds that alternate: a switch is likely, take it at once); ``STRICT_MARGIN`` times
+        that after a long stretch of one ground, where a switch is rare (the prior of a switch
+        follows the recent switching, as the transition matrix of an interacting-multiple-model
+        filter would): one odd window does not take the old ground back.
+        """
+        margin = self.params.switch_margin
+        if self.travel_m - self._switched_m > RECENT_SWITCH_M:
+            margin *= STRICT_MARGIN
+        return margin
+
     def _activate(self, ground: Ground, cause: str) -> None:
+        self._switched_m = self.travel_m
         self.counters[cause] += 1
         self.active = ground
         ground.last_used = self.counters['online_segments'] + self.counters[cause]
@@ -135,10 +158,12 @@ class GroundBank:
             if item.path_m > ref.path_m - window:
                 break
             start = item
+        path = ref.path_m - start.path_m
+        if path > self.travel_m - self._changed_m:
+            return   # the window starts before a new ground began: it would judge a blend
         seg = self._segment(start, ref)
         if seg is None:
             return
-        path = ref.path_m - start.path_m
         rot = abs(ref.yaw - start.yaw)
         # a diagonal weight from the noise rates (the grounds are compared on the same one)
         var_x, var_y, var_yaw = self.noise.step_variances(path, rot)
@@ -147,7 +172,7 @@ class GroundBank:
         scores = [(self._score(g, seg, motion_cov, False), g) for g in self.grounds]
         active, residual = next((s[2], s[0]) for s, g in scores if g is self.active)
         best, ground = min(((s[2], g) for s, g in scores), key=lambda item: item[0])
-        if ground is not self.active and active - best > self.params.switch_margin:
+        if ground is not self.active and active - best > self._switch_margin():
             self._note_error(seg, residual)
             self._activate(ground, 'online_switch')
             self.cusum = 0.0

@@ -70,8 +70,30 @@ class WindowSolver:
             e, sens = self._residuals(ground, [item[0] for item in ground.window])
         else:
             e, sens = errors[keep], sens[keep]
-        weights = np.array([item[2] for item in ground.window])
-        inverse = np.stack([item[1] for item in ground.window]) * weights[:, None, None]
+        self._solve(ground, ground.window, e, sens)
+
+    def _provisional(self, seg: SegmentSet, cov: np.ndarray) -> None:
+        """One Gauss-Newton step on the window plus a segment still growing (not kept).
+
+        While adapting to a new ground, the segment in progress is solved with the window every
+        ``PROBE_M`` of path (:mod:`skidkin_ros.core.online.adapt`): the new ground's parameters
+        follow the first metres on it instead of waiting for a whole segment.
+        """
+        ground = self.active
+        items = ground.window + [[seg, np.linalg.inv(cov), 1.0]]
+        e, sens = self._residuals(ground, [item[0] for item in items])
+        self.counters['online_provisional'] += 1
+        self._solve(ground, items, e, sens)
+
+    def _solve(self, ground: Ground, items: list, e: np.ndarray, sens: np.ndarray) -> None:
+        """Take the Gauss-Newton step of ``items`` in the observable directions.
+
+        ``e``, ``sens``: the items' residuals and sensitivities at the ground's parameters; the
+        ground's prior holds the directions the items do not observe.
+        """
+        params = self.params
+        weights = np.array([item[2] for item in items])
+        inverse = np.stack([item[1] for item in items]) * weights[:, None, None]
         data = np.einsum('nip,nij,njq->pq', sens, inverse, sens)
         data = 0.5 * (data + data.T)
         u_offset = (ground.k - ground.anchor) / self.scale

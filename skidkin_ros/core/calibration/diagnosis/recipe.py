@@ -193,8 +193,9 @@ def _diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry
             base_model_name, refit, explored = other, switched, other_explored
         else:
             base_scores = tuple(replace(score, accepted=False, note=(
-                f'passes, but the given model with its extensions explains as much or more: held-out '
-                f'loss x{ratio_given:.2f} against x{ratio_other:.2f} on {other} with its own'))
+                f'passes, but the given model with its extensions explains as much or more: '
+                f'held-out loss x{ratio_given:.2f} against x{ratio_other:.2f} on {other} with '
+                f'its own'))
                 if score.accepted else score for score in base_scores)
     null, samples, residual, valid, trace, final, scores, accepted = explored
     eval_predictor = SegmentPredictor(evaluate, eval_seg, options.max_dt_s,
