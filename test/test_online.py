@@ -335,3 +335,26 @@ def test_the_published_noise_covers_alternating_grounds_and_stays_the_files_on_o
     plain = simulate(SimConfig(duration_s=160.0, seed=3))
     odometer, _, _ = _learned_until(plain)
     assert odometer.learner.noise_scale < 1.5
+
+
+def test_n143_a_non_finite_learned_covariance_keeps_the_last_parameters(change_drive):
+    """What the learner returns is checked before the odometry uses it (counted, never used)."""
+    odometer = online_odometer(_config(**{'online.enabled': True}))
+    learner = odometer.learner
+    good = type(learner).uncertainty
+
+    def poisoned(self):
+        out = good(self)
+        if out is None or len(self.grounds) < 2:
+            return out
+        bad = out.covariance.copy()
+        bad[0, 0] = math.nan
+        return type(out)(**{**out.__dict__, 'covariance': bad})
+
+    type(learner).uncertainty = poisoned
+    try:
+        result = odometer.predict(change_drive.wheels, reference=_reference(change_drive))
+    finally:
+        type(learner).uncertainty = good
+    assert odometer.counters['online_nonfinite'] >= 1
+    assert np.all(np.isfinite(result.poses)) and np.all(np.isfinite(result.pose_covariances))

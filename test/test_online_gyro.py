@@ -112,3 +112,18 @@ def test_the_node_refuses_a_reference_the_gyro_contradicts_as_predict_does(tmp_p
     assert len(result) == len(wheels)
     assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
     np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
+
+
+def test_n144_poses_farther_apart_than_the_gyro_buffer_are_counted_unchecked(drive):
+    """The gyro keeps a few seconds: a reference every 7 s is learned from unjudged, counted."""
+    dense = _learn(drive, _reference(drive), 'fuse')
+    full = _reference(drive, 20.0, 80.0)
+    sparse_track = PoseTrack(full.t_ns[::70], full.x[::70], full.y[::70], full.yaw[::70])
+    odometer = online_odometer(OdometryConfig.from_flat(
+        {**FILE, 'imu.mode': 'fuse', 'online.max_gap': 20.0}))
+    odometer.predict(drive.wheels, reference=sparse_track, imu=drive.imu)
+    assert dense.counters['reference_gyro_unchecked'] <= 1   # the first interval at most
+    counters = odometer.counters
+    # every pose that reached the gyro's judgement (the others: refused as jumps or gaps first)
+    assert counters['reference_gyro_unchecked'] >= 3
+    assert counters['reference_gyro'] == 0

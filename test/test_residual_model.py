@@ -328,3 +328,25 @@ def test_the_field_backlash_loses_its_play_at_each_reversal_and_nothing_else():
     assert forward == pytest.approx(3.0 - 0.5 * lost, abs=1e-3)
     assert backward == pytest.approx(-3.0 + lost, abs=1e-3)
     assert np.all(np.isfinite(out)) and not np.any(out[:, 2])
+
+
+def test_c230_a_file_of_the_earlier_20_term_library_loads_with_its_covariance(tmp_path):
+    """Its 60 coefficients are read by name; its 60 x 60 covariance is moved by name too."""
+    wheels = simulate(SimConfig(duration_s=10.0, seed=4)).wheels
+    legacy = [f'{out}_{term}' for out, _ in residual.OUTPUTS for term in residual.LEGACY_TERMS]
+    rng = np.random.default_rng(3)
+    root = rng.normal(size=(len(legacy), len(legacy))) * 1e-2
+    old_cov = root @ root.T
+    values = {'vx_v3': -0.05, 'wz_w': 0.05, **RANGES}
+    old = OdometryConfig.from_file(_calibrated_file(tmp_path, values, old_cov.ravel().tolist()))
+    names = residual.coefficient_names()
+    new_cov = np.zeros((len(names), len(names)))
+    index = [names.index(name) for name in legacy]
+    new_cov[np.ix_(index, index)] = old_cov
+    (tmp_path / 'residual.yaml').unlink()
+    new = OdometryConfig.from_file(_calibrated_file(tmp_path, values, new_cov.ravel().tolist()))
+    assert old.active_parameter_uncertainty is not None
+    a, b = Odometer.from_config(old).predict(wheels), Odometer.from_config(new).predict(wheels)
+    assert np.array_equal(a.poses, b.poses)
+    assert np.array_equal(a.pose_covariances, b.pose_covariances)
+    assert old['augmented.residual_model.covariance'] == new_cov.ravel().tolist()

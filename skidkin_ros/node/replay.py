@@ -202,7 +202,8 @@ def _reference_msg(t_ns: int, x: float, y: float, yaw: float, frame_id: str,
 
 def _send_with_reference(harness: '_Harness', samples: WheelSamples, reference: PoseTrack,
                          names: list[str], n_left: int, offset_ns: int, deadline: float,
-                         frames: tuple[str, str], imu: ImuSamples | None = None) -> None:
+                         frames: tuple[str, str], imu: ImuSamples | None = None,
+                         positions: Sequence[tuple[float, float] | None] | None = None) -> None:
     """Send wheel samples and reference poses (and gyro samples) in stamp order, one at a time.
 
     A reference pose stamped up to a wheel sample's stamp goes first (after the gyro samples up
@@ -224,7 +225,7 @@ def _send_with_reference(harness: '_Harness', samples: WheelSamples, reference: 
                            max(deadline - time.monotonic(), 0.0), f'reference pose {k}')
 
     sides = [] if imu is None else [_gyro_side(harness, imu, offset_ns, deadline)]
-    _send_interleaved(harness, samples, names, n_left, offset_ns, deadline, None,
+    _send_interleaved(harness, samples, names, n_left, offset_ns, deadline, positions,
                       sides + [(ref_t, send_reference, False)])
 
 
@@ -319,7 +320,7 @@ def replay_through_node(samples: WheelSamples, params_file: Path | None = None,
         n = len(samples)
         if reference is not None:
             _send_with_reference(harness, samples, reference, names, len(left), offset_ns,
-                                 deadline, reference_frames, imu)
+                                 deadline, reference_frames, imu, positions)
             sent = n
         elif imu is not None:
             _send_with_imu(harness, samples, imu, names, len(left), offset_ns, deadline,

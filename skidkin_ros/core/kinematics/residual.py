@@ -47,8 +47,8 @@ __all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS
            'TURN_WIDTH', 'KNOTS',
            'term_names', 'features',
            'scalar_features', 'correction', 'scalar_correction', 'coefficient_names',
-           'range_names', 'input_values', 'TERM_GRADIENTS', 'feature_gradients',
-           'correction_gradient']
+           'range_names', 'input_values', 'LEGACY_TERMS', 'upgrade_covariance',
+           'TERM_GRADIENTS', 'feature_gradients', 'correction_gradient']
 
 # The state the correction is a function of: (name, unit, what it is).
 INPUTS: tuple[tuple[str, str, str], ...] = (
@@ -370,3 +370,25 @@ def scalar_correction(coef: Sequence[float], phi: Sequence[float]) -> tuple[floa
             total = total + phi[j] * coef[o * count + j]
         out.append(total)
     return out[0], out[1], out[2]
+
+
+# The library of files written before the 40-term one (same names, this order; 60 coefficients).
+LEGACY_TERMS: tuple[str, ...] = (
+    'v', 'w', 'abs_v', 'abs_w', 'v_abs_v', 'w_abs_w', 'v_w', 'v_abs_w', 'w_abs_v', 'abs_v_abs_w',
+    'sign_v', 'sign_w', 'dv', 'dw', 'dv_up', 'dw_up', 'v3', 'w3', 'v2_w', 'v_w2')
+
+
+def upgrade_covariance(flat: Sequence[float]) -> list[float] | None:
+    """Return a legacy (60 x 60) coefficient covariance placed in today's layout, else None.
+
+    The coefficients are read by name, so an earlier file's values load as they are (the new
+    terms default to 0); only its covariance, a flat list in the earlier order, needs moving.
+    """
+    legacy = len(OUTPUTS) * len(LEGACY_TERMS)
+    if len(flat) != legacy * legacy:
+        return None
+    names = coefficient_names()
+    index = [names.index(f'{out}_{term}') for out, _ in OUTPUTS for term in LEGACY_TERMS]
+    matrix = np.zeros((len(names), len(names)))
+    matrix[np.ix_(index, index)] = np.asarray(flat, dtype=float).reshape(legacy, legacy)
+    return matrix.ravel().tolist()

@@ -20,6 +20,7 @@ from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
 from skidkin_ros.core.kinematics.models import get_model, MODELS
+from skidkin_ros.core.kinematics.residual import upgrade_covariance
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
 from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.gyro_params import GyroParams
@@ -197,6 +198,8 @@ def _check_entry(entry: SchemaEntry, value: Any) -> Any:
                            for v in value)):
             raise ParameterError(f'parameter {entry.name!r} must be a list of {entry.length} '
                                  f'numbers, got {brief(value)}')
+        if entry.name == f'augmented.{RESIDUAL_EXTENSION}.covariance':
+            value = upgrade_covariance(value) or value   # an earlier library's 60 x 60
         return check_parameter_covariance(entry.name, value, size).ravel().tolist()
     if entry.kind == 'double_array':
         if (not isinstance(value, (list, tuple)) or len(value) != entry.length

@@ -302,9 +302,15 @@ class Odometer:
     def apply_learned(self) -> None:
         """Integrate with the learner's parameters and publish their uncertainty."""
         learner = self.learner
+        uncertainty = learner.uncertainty()
+        if not np.all(np.isfinite(learner.k)) or (
+                uncertainty is not None and not np.all(np.isfinite(uncertainty.covariance))):
+            # the odometry never becomes non-finite because of what it learns: keep the last
+            self.counters['online_nonfinite'] += 1
+            return
         self.integrator.set_source(learner.bound_model())
         if self.covariance.calibrated:
-            self.covariance.set_parameters(learner.uncertainty())
+            self.covariance.set_parameters(uncertainty)
             self.covariance.noise = learner.published_noise()
             error = learner.take_error()
             if error is not None:  # what the old ground's parameters got wrong, carried

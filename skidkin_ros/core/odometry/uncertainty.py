@@ -19,8 +19,9 @@ matrices M_j = dR/dk_j R^+ are computed once per model (:class:`ParameterUncerta
 step costs a few dozen multiplications and does not depend on which wheel sample the integrator
 holds over the step. A model not linear in the wheel speeds (ROC) needs the speeds integrated over
 the step: d(twist)/dk is then a central difference of the model's twist at them, two twist
-evaluations per parameter and step (the integrator reports the speeds for stateless sources;
-for a stateful one, an augmented model, the sensitivity is not carried).
+evaluations per parameter and step (the integrator reports the speeds of every step, an
+augmented model's included: online learning of an augmented model carries its sensitivity by
+:class:`~skidkin_ros.core.online.augmented.LayoutUncertainty`).
 
 Per wheel sample, for a linear model, the step of S is one loop over its p columns on floats
 (:class:`~skidkin_ros.core.odometry.propagation.PoseCovariancePropagator`). The file's fixed

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import math
 from typing import Callable
 
 import numpy as np
@@ -60,12 +61,16 @@ def attach_online(odometer: Odometer, config: OdometryConfig,
 
 
 def _gyro_turn(odometer: Odometer, t_a_ns: int, t_b_ns: int) -> float | None:
-    """Return the gyro's yaw (rad) over a wheel-time interval; None where it cannot tell."""
+    """Return the gyro's yaw (rad) over a wheel-time interval.
+
+    None: no gyro (imu.mode off), or an empty interval; NaN: a gyro whose buffer does not
+    cover the interval (poses farther apart than the buffer's few seconds).
+    """
     gyro = odometer.gyro
     if gyro is None or t_b_ns <= t_a_ns:
         return None
     status, mean = gyro.buffer.mean_rate(t_a_ns, t_b_ns)
-    return mean * ((t_b_ns - t_a_ns) * 1e-9) if status is GyroStatus.COVERED else None
+    return mean * ((t_b_ns - t_a_ns) * 1e-9) if status is GyroStatus.COVERED else math.nan
 
 
 def online_odometer(config: OdometryConfig, **kwargs) -> Odometer:

@@ -177,6 +177,11 @@ class ReferenceGates:
         the chain there (a reference that relocalised its heading).
         """
         turn = self.gyro_turn(last.t_ns, ref.t_ns)
+        if turn is not None and math.isnan(turn):
+            # the gyro's buffer (a few seconds) does not cover the interval: poses farther
+            # apart than that are learned from unjudged, and counted so
+            self.counters['reference_gyro_unchecked'] += 1
+            turn = None
         if turn is None or math.isnan(last.gyro):   # the gyro does not cover it: a new epoch
             self._gyro_epoch += 1
             ref.gyro, ref.epoch = 0.0, self._gyro_epoch
