@@ -236,7 +236,11 @@ def test_the_diagnosis_questions_the_base_model():
 
 @pytest.mark.heavy
 def test_the_residual_model_helps_on_the_real_husky_without_a_heading_loss():
-    """The Husky windows (DRIVE), even calib_step train, odd evaluate: no loss, a gain in eps_t."""
+    """The Husky windows (DRIVE), even calib_step train, odd evaluate: no loss, a gain in eps_t.
+
+    The base refit drops the outlier segments (C211): on every segment a few ground-truth
+    glitches pulled b_hat from 1.170 to 1.197, and the heading stayed 4 % worse than the plain fit.
+    """
     from pathlib import Path
     from skidkin_ros.adapters.table import read_table
     from skidkin_ros.core.calibration.holdout import split_holdout
@@ -247,10 +251,13 @@ def test_the_residual_model_helps_on_the_real_husky_without_a_heading_loss():
     base = fit_model('edd_symmetric', GEOM, cut_segments(train, options.train_segments()))
     result = diagnose(train, evaluate, GEOM, {'edd_symmetric': base.values}, 'edd_symmetric',
                       options, jobs=2)
-    given, last = result.steps[0], result.steps[-1]
+    given, refitted, last = result.steps[0], result.steps[1], result.steps[-1]
     assert result.extensions == ('residual_model',)
+    # no loss against the calibrated model nor the refitted one, on either error (C211)
     assert last.stats_t.median < 0.9 * given.stats_t.median
-    assert last.stats_theta.median < 1.05 * given.stats_theta.median
+    assert last.stats_t.median <= refitted.stats_t.median
+    assert last.stats_theta.median <= given.stats_theta.median
+    assert last.stats_theta.median <= refitted.stats_theta.median
 
 
 def test_every_library_term_lies_in_unit_range_and_all_but_the_rates_vanish_at_rest():
@@ -350,3 +357,31 @@ def test_c230_a_file_of_the_earlier_20_term_library_loads_with_its_covariance(tm
     assert np.array_equal(a.poses, b.poses)
     assert np.array_equal(a.pose_covariances, b.pose_covariances)
     assert old['augmented.residual_model.covariance'] == new_cov.ravel().tolist()
+
+
+@pytest.mark.parametrize('strength', [0.05, 0.0])
+def test_a_slope_creep_nothing_explains_is_reported_as_unexplained(strength, tmp_path):
+    """A lateral creep down a side slope follows the world heading, no wheel signal (C212).
+
+    Nothing in the library can follow it: the diagnosis adds nothing and says which signal the
+    residual left follows, on stdout and on the report's page; an effect-free drive says nothing.
+    """
+    from lab.studies.unnamed_effects import drives, SmoothEffect
+    from skidkin_ros.report.diagnosis import write_diagnosis_report
+    effects = [SmoothEffect('field_slope_creep', strength, {}, 'slope_creep', (0.7,))] \
+        if strength else []
+    train = drives(effects, [1050, 1051], 90.0, 'courtyard')
+    evaluate = drives(effects, [1052, 1053], 90.0, 'courtyard')
+    options = DiagnosisOptions(interval=SIM_INTERVAL)
+    base = fit_model('edd_symmetric', GEOMETRY, cut_segments(train, options.train_segments()))
+    result = diagnose(train, evaluate, GEOMETRY, {'edd_symmetric': base.values}, 'edd_symmetric',
+                      options)
+    text = '\n'.join(result.summary_lines())
+    page = write_diagnosis_report(result, tmp_path / 'report').read_text()
+    if strength:
+        assert [lead.signal for lead in result.unexplained] == ['heading']
+        assert result.unexplained[0].component == 'v_y'
+        assert 'unexplained residual: signal heading' in text
+        assert 'unexplained residual: signal heading' in page
+    else:
+        assert not result.unexplained and 'unexplained residual' not in text + page

@@ -186,6 +186,9 @@ def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel, max_dt_s: float
         'v_omega': v * w, 'v_abs_v': v * np.abs(v), 'direction': np.sign(v),
         'time_in_drive': (t_ns - wheels.t_ns[0]) * 1e-9,
         'x': poses[:, 0], 'y': poses[:, 1],
+        # the world heading, times the speed: what a slope does (not a function of the wheels)
+        'speed_sin_heading': np.abs(v) * np.sin(poses[:, 2]),
+        'speed_cos_heading': np.abs(v) * np.cos(poses[:, 2]),
     }
     imu = drive.imu
     if imu is not None and len(imu.t_ns) > 1:

@@ -27,6 +27,13 @@ from skidkin_ros.core.kinematics.specs import Geometry
 __all__ = ['ModelStep', 'DiagnosisResult']
 
 
+# What a lead that no wheel-state model can follow suggests.
+_LEAD_HINTS = {
+    'heading': "; it follows the speed times the world heading's sine and cosine, as a creep "
+               'down a side slope does: no function of the wheel speeds can represent it',
+}
+
+
 @dataclass(frozen=True)
 class ModelStep:
     """One model of the before/after table, with its held-out errors."""
@@ -162,7 +169,8 @@ class DiagnosisResult:
         """Return one line per signal the final model's residual still follows."""
         return [f'unexplained residual: signal {lead.signal}, share {lead.share:.0%} of the '
                 f'velocity error left (residual {lead.component} of the final model follows it, '
-                f'r = {lead.r:+.2f}; no candidate explained it)' for lead in self.unexplained]
+                f'r = {lead.r:+.2f}; no candidate explained it){_LEAD_HINTS.get(lead.signal, "")}'
+                for lead in self.unexplained]
 
     def table_rows(self) -> list[list[str]]:
         """Return the before/after table rows (model, eps_t median/q25/q75/p90, eps_theta ...)."""

@@ -41,7 +41,11 @@ COARSE_STEPS = 5
 UNEXPLAINED_SHARE = 0.1
 # Signals that are the same quantity under another name: one lead per quantity.
 _SAME = {'omega_l': 'wheel', 'omega_r': 'wheel', 'wheel_sum': 'body_speed',
-         'wheel_diff': 'yaw_rate', 'd_wheel_sum': 'd_body_speed', 'd_wheel_diff': 'd_yaw_rate'}
+         'wheel_diff': 'yaw_rate', 'd_wheel_sum': 'd_body_speed', 'd_wheel_diff': 'd_yaw_rate',
+         'speed_sin_heading': 'heading', 'speed_cos_heading': 'heading'}
+# Signals a residual follows together (a slope pushes along its own direction, a combination of
+# the heading's sine and cosine): the lead is their joint fit, named by the quantity.
+_PAIRS = {'heading': ('speed_sin_heading', 'speed_cos_heading')}
 
 
 @dataclass(frozen=True)
@@ -126,6 +130,18 @@ class ResidualLead:
     share: float
 
 
+def _joint_r(target: np.ndarray, columns: Sequence[np.ndarray]) -> float:
+    """Return the multiple correlation (>= 0) of ``target`` with a linear fit on ``columns``."""
+    x = np.column_stack(columns)
+    ok = np.isfinite(target) & np.all(np.isfinite(x), axis=1)
+    if ok.sum() < 10 or np.std(target[ok]) == 0:
+        return math.nan
+    x = np.column_stack([x[ok], np.ones(ok.sum())])
+    y = target[ok] - target[ok].mean()
+    fit = x @ np.linalg.lstsq(x, y, rcond=None)[0]
+    return float(math.sqrt(max(0.0, min(1.0, (fit @ fit) / (y @ y)))))
+
+
 def residual_leads(residual: np.ndarray, valid: np.ndarray, signals: Mapping[str, np.ndarray],
                    geometry: Geometry, min_share: float = UNEXPLAINED_SHARE
                    ) -> tuple[ResidualLead, ...]:
@@ -145,6 +161,13 @@ def residual_leads(residual: np.ndarray, valid: np.ndarray, signals: Mapping[str
         if math.isfinite(r):
             share = r * r * float(spread[COMPONENTS.index(component)]) / total
             leads.append(ResidualLead(component, signal, r, share))
+    for name, pair in _PAIRS.items():
+        if not all(p in signals for p in pair):
+            continue
+        for c, component in enumerate(COMPONENTS):
+            r = _joint_r(residual[valid, c], [np.asarray(signals[p])[valid] for p in pair])
+            if math.isfinite(r):
+                leads.append(ResidualLead(component, name, r, r * r * float(spread[c]) / total))
     leads.sort(key=lambda lead: -lead.share)
     kept: list[ResidualLead] = []
     for lead in leads:
