@@ -185,12 +185,14 @@ def score(track: Any, sim: Any, valid_only: bool) -> dict[str, Any]:
 def _notes(stderr: str) -> dict[str, Any]:
     tested = re.search(r'(\d+) seam\(s\) tested, (\d+) of them cut', stderr)
     untested = re.search(r'; (\d+) cut untested', stderr)
-    check = ('kept' if 'agree with kiss-icp' in stderr else 'defaults'
-             if 'disagree with kiss-icp' in stderr else 'defaults (fine voxel)'
+    check = ('defaults' if 'disagree with kiss-icp' in stderr else 'kept'
+             if 'agree with kiss-icp' in stderr else 'defaults (fine voxel)'
              if "finer than kiss-icp's" in stderr else 'off')
     return {'seams_tested': int(tested.group(1)) if tested else 0,
             'seams_cut': (int(tested.group(2)) if tested else 0)
-            + (int(untested.group(1)) if untested else 0), 'self_check': check}
+            + (int(untested.group(1)) if untested else 0), 'self_check': check,
+            'check_note': next((line.strip() for line in stderr.splitlines()
+                                if 'self-check' in line), '')}
 
 
 def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: float = 20.0,
