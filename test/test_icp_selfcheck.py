@@ -142,3 +142,40 @@ def test_a_voxel_finer_than_kiss_icps_means_kiss_icps_defaults():
     assert finer_than_reference(IcpConfig(voxel_size_m=0.55), reference)
     assert not finer_than_reference(IcpConfig(voxel_size_m=1.4), reference)
     assert not finer_than_reference(IcpConfig(), reference_config(IcpConfig()))
+
+
+def test_one_scan_in_two_is_compared_with_every_scan():
+    # the full-rate reference registers every scan; the strided one every other: the motions
+    # are compared on the scans both registered
+    every = _straight(n=100)
+    strided = _straight(n=100)
+    strided = dataclasses.replace(strided, status=tuple('ok' if i % 2 == 0 else 'stride'
+                                                        for i in range(100)))
+    agreement = compare_motion(strided, every, (10**9, None), CHECK)
+    assert agreement.compared > 0 and agreement.share == 1.0
+    slid = _straight(n=100, slide_from=50, slide_m=0.05)
+    slid = dataclasses.replace(slid, status=strided.status)
+    assert compare_motion(slid, every, (10**9, None), CHECK).share < CHECK.min_agree
+
+
+@pytest.mark.heavy
+def test_one_scan_in_two_is_checked_against_every_scan_and_dropped_when_it_disagrees(drive):
+    # C220: --stride K is a rung of the self-check: its sample registers every scan; kept when
+    # the 1 s motions agree, else every scan with kiss-icp's defaults; same poses for any jobs
+    _, bag = drive
+    icp = IcpConfig(max_range_m=50.0, stride=2)
+    one = _truth(bag, icp, dataclasses.replace(CHUNKS, jobs=1))
+    two = _truth(bag, icp, dataclasses.replace(CHUNKS, jobs=2))
+    assert np.array_equal(one.track.poses, two.track.poses)  # bit for bit
+    checked = [n for n in one.notes if n.startswith('kiss-icp settings self-check')]
+    assert len(checked) == 1 and 'one scan in 2' in checked[0] and 'kept' in checked[0]
+    assert one.config.stride == 2 and one.counts.get('stride', 0) > 0
+    strict = dataclasses.replace(CHECK, abs_m=1e-9, abs_rad=1e-9, rel=0.0)
+    dropped = _truth(bag, icp, check=strict)
+    assert any('disagree' in n and 'every scan' in n for n in dropped.notes)
+    assert dropped.config.stride == 1 and not dropped.counts.get('stride')
+    with open_recording(bag) as rec:
+        first = next(iter(rec.iter_lidar('/points')))
+    reference = reference_config(IcpConfig(max_range_m=50.0).with_voxel_for(first.xyz))
+    direct = _truth(bag, reference, check=strict)
+    assert np.array_equal(dropped.track.poses, direct.track.poses)

@@ -185,17 +185,20 @@ def score(track: Any, sim: Any, valid_only: bool) -> dict[str, Any]:
 def _notes(stderr: str) -> dict[str, Any]:
     tested = re.search(r'(\d+) seam\(s\) tested, (\d+) of them cut', stderr)
     untested = re.search(r'; (\d+) cut untested', stderr)
-    check = ('kept' if 'agree with kiss-icp' in stderr else 'defaults'
-             if 'disagree with kiss-icp' in stderr else 'defaults (fine voxel)'
+    check = ('defaults' if 'disagree with kiss-icp' in stderr else 'kept'
+             if 'agree with kiss-icp' in stderr else 'defaults (fine voxel)'
              if "finer than kiss-icp's" in stderr else 'off')
     return {'seams_tested': int(tested.group(1)) if tested else 0,
             'seams_cut': (int(tested.group(2)) if tested else 0)
-            + (int(untested.group(1)) if untested else 0), 'self_check': check}
+            + (int(untested.group(1)) if untested else 0), 'self_check': check,
+            'check_note': next((line.strip() for line in stderr.splitlines()
+                                if 'self-check' in line), '')}
 
 
 def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: float = 20.0,
               jobs_list: Sequence[int] = (2, 1), repeat: int = 1,
-              before: bool = True) -> dict[str, Any]:
+              before: bool = True,
+              variants: Sequence[tuple[str, Sequence[str]]] = ()) -> dict[str, Any]:
     """Simulate one scene, run every contender on its bag, score and time them.
 
     Contenders: ``kiss``, ``before`` (unless ``before`` is False) and ``after_jN`` for every N
@@ -223,6 +226,8 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: flo
     chunks = ['--chunk-s', f'{chunk_s:g}']
     runs = [('before', ['--no-icp-check', '--jobs', str(jobs_list[0]), *chunks])] if before else []
     runs += [(f'after_j{n}', ['--jobs', str(n), *chunks]) for n in jobs_list]
+    runs += [(f'after_j{jobs_list[0]}_{label}', ['--jobs', str(jobs_list[0]), *chunks, *extra])
+             for label, extra in variants]
     for name, extra in runs:
         out = work / f'{scene}_{name}.csv'
         seconds, cpu_s, code, err = _median_timed(
@@ -296,8 +301,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help='runs of every contender; the median wall and CPU time is kept')
     parser.add_argument('--no-before', action='store_true',
                         help='skip the run without the self-check')
+    parser.add_argument('--variant', action='append', default=[], metavar='LABEL=ARGS',
+                        help='one more contender: the first of --jobs-list with these extra '
+                        'groundtruth arguments, e.g. stride2="--stride 2" (repeatable)')
     parser.add_argument('--json', type=Path, help='also write the results here')
     args = parser.parse_args(argv)
+    variants = []
+    for text in args.variant:
+        label, _, extra = text.partition('=')
+        if not label or not extra:
+            parser.error(f'--variant wants LABEL=ARGS, got {text!r}')
+        variants.append((label, extra.split()))
     counted = _adopt_orphans()
     print(f'  load average {load_average()}; CPU of pool workers '
           f'{"counted" if counted else "NOT counted (no subreaper)"}', flush=True)
@@ -306,7 +320,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for scene in args.scenes:
             print(f'  {scene}: {args.duration:g} s', flush=True)
             results.append(run_scene(scene, args.duration, args.seed, Path(tmp), args.chunk_s,
-                                     args.jobs_list, args.repeat, not args.no_before))
+                                     args.jobs_list, args.repeat, not args.no_before,
+                                     variants))
     print(table(results))
     print(json.dumps(results, indent=1, default=float))
     if args.json:

@@ -224,14 +224,15 @@ class SettingsChoice:
             return f'kiss-icp settings not self-checked: {self.reason}'
         detail = '; '.join(a.text() for a in self.agreements)
         if self.kept_fast:
+            scans = (f', one scan in {self.config.stride}' if self.config.stride > 1 else '')
             return (f'kiss-icp settings self-check: the fast settings (voxel '
-                    f'{self.config.voxel_size_m:g} m, convergence {self.config.convergence:g}) '
-                    f"agree with kiss-icp's defaults on {len(self.agreements)} sample "
-                    f'window(s): {detail}; kept')
+                    f'{self.config.voxel_size_m:g} m, convergence {self.config.convergence:g}'
+                    f"{scans}) agree with kiss-icp's defaults on every scan of "
+                    f'{len(self.agreements)} sample window(s): {detail}; kept')
         return (f"kiss-icp settings self-check: the fast settings disagree with kiss-icp's "
                 f'defaults ({detail}); the recording is registered with the defaults (voxel '
-                f'{self.config.voxel_size_m:g} m, convergence {self.config.convergence:g}), '
-                'slower')
+                f'{self.config.voxel_size_m:g} m, convergence {self.config.convergence:g}, '
+                f'every scan), slower')
 
 
 def choose(fast: IcpConfig, reference: IcpConfig, agreements: Sequence[Agreement],

@@ -38,7 +38,7 @@ this module wires them with the self-check (:func:`bag_ground_truth`) and re-exp
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import os
 from pathlib import Path
 from typing import Any, Union
@@ -108,15 +108,19 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
         notes.append(f'kiss-icp settings: the voxel from the data ({config.voxel_size_m:g} m) is '
                      f"finer than kiss-icp's ({reference.voxel_size_m:g} m), where the fast "
                      "settings are not faster: kiss-icp's defaults are used")
-        config = reference
+        config = replace(reference, stride=config.stride)
         tasks = plan.tasks(config)
+    if config.stride > 1:
+        # one scan in K is a rung of the check too: the reference registers every scan
+        reference = replace(reference, stride=1)
     span_ns = max(n_frames - 1, 0) * period_ns
     if (check.enabled and automatic and reference != config
             and span_ns >= (check.window_s + check.warmup_s) * NS_PER_S):
         windows = plan_samples([t.stop_ns for t in tasks], first_receive, first_receive + span_ns,
                                check)
+        grid = tasks[0].grid if reference.stride > 1 else None
         samples = [(window, ChunkTask(str(path), topic, _SAMPLE_INDEX + k, window[0],
-                                      window[1], None, reference, tasks[0].grid))
+                                      window[1], None, reference, grid))
                    for k, window in enumerate(windows)]
     identity = bag_identity(path) if cache_dir is not None else None
     cache = None if cache_dir is None else Path(cache_dir)

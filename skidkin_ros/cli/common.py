@@ -168,7 +168,8 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
                        help="skip the self-check of the fast kiss-icp settings against kiss-icp's "
                        'defaults on a sample of the recording (docs/ground-truth.md)')
     group.add_argument('--stride', type=stride_arg, default=icp.stride, metavar='K',
-                       help=f'register one lidar scan in K (default {icp.stride})')
+                       help=f'register one lidar scan in K (default {icp.stride}; the '
+                       'self-check compares it with every scan, docs/ground-truth.md)')
     group.add_argument('--chunk-s', type=float, default=chunks.chunk_s, metavar='S',
                        help='register the lidar in independent chunks of S seconds (default '
                        f'{chunks.chunk_s:g})')
