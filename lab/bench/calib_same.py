@@ -96,7 +96,10 @@ def compare(case: str) -> dict[str, Any]:
             'written_identical': fd['written'] == exact['written'],
             'written_keys_same': sorted(fd['written']) == sorted(exact['written']),
             'written_max_rel_diff': max(rel.values(), default=0.0),
-            'written_differing': sorted(rel, key=rel.get, reverse=True)[:5],
+            'written_differing': [(k, a[k], b[k]) for k in sorted(rel, key=rel.get,
+                                                                  reverse=True)[:8]],
+            'written_max_rel_diff_above_1e-10': max((r for k, r in rel.items()
+                                                     if abs(a[k]) > 1e-10), default=0.0),
             'table_identical': fd['table'] == exact['table'],
             'table_lines_differing': table_lines[:6],
             'warnings_identical': fd['warnings'] == exact['warnings'],
