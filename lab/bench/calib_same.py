@@ -1,4 +1,4 @@
-"""Calibrate the same data with exact and with finite-difference Jacobians; compare what is written.
+"""Calibrate with exact and with finite-difference Jacobians; compare what is written.
 
 ``skidkin calibrate``'s model fits use the exact (forward-mode) Jacobian of the segment errors
 (:func:`~skidkin_ros.core.calibration.fitting.segment_errors_jacobian`); scipy's finite
