@@ -66,11 +66,12 @@ __all__ = [
 
 LOG = logging.getLogger(__name__)
 
-# Fits of two or more parameters use the exact Jacobian of the segment errors (forward mode,
-# about two rollouts); one free parameter keeps scipy's finite difference (one rollout, cheaper).
-# False: finite differences everywhere (the comparison the tests make).
+# Fits of three or more parameters use the exact Jacobian of the segment errors (forward mode,
+# about three rollouts' cost); one or two free parameters keep scipy's finite difference (one
+# rollout each: edd_symmetric's fit is 8 % cheaper so). False: finite differences everywhere
+# (the comparison the tests make).
 EXACT_JACOBIAN = True
-EXACT_JACOBIAN_MIN_PARAMS = 2
+EXACT_JACOBIAN_MIN_PARAMS = 3
 
 ROBUST_LOSSES = ('linear', 'soft_l1', 'huber', 'cauchy', 'arctan')
 
@@ -209,7 +210,7 @@ def segment_errors_jacobian(model: KinematicModel, k: np.ndarray, geometry: Geom
     (:func:`~skidkin_ros.core.kinematics.augmented.base_tangents`) carried through each
     segment's rollout from the origin
     (:func:`~skidkin_ros.core.odometry.se2_tangent.window_tangents`, one window per segment).
-    The error is true - start * T in the start frame, so its derivative is -dT: about two
+    The error is true - start * T in the start frame, so its derivative is -dT: about three
     rollouts' cost for any number of parameters, where a finite difference takes one rollout
     per parameter.
     """
