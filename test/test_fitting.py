@@ -1,11 +1,14 @@
-"""Model fitting: recovery of known parameters, C14, C15, C16, C20."""
+"""Model fitting: recovery of known parameters, C14, C15, C16, C20, C193."""
 
 from _calib_synth import GEOMETRY, make_drive, TRUE_VALUES
 import numpy as np
 import pytest
 
-from skidkin_ros.core.calibration.fitting import fit_model, fit_models, FitOptions
+from skidkin_ros.core.calibration import fitting
+from skidkin_ros.core.calibration.fitting import (fit_model, fit_models, FitOptions,
+                                                  segment_errors, segment_errors_jacobian)
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.kinematics.models import get_model
 
 SEGMENTS = SegmentOptions(horizon_m=2.0, horizon_rad=1.0)
 
@@ -95,3 +98,34 @@ def test_same_input_same_output():
     second = fit_model('edd_asymmetric', GEOMETRY, segs, FitOptions(seed=3))
     assert first.values == second.values and first.std_errors == second.std_errors
     assert first.starts == 8
+
+
+@pytest.mark.parametrize('model', ['edd_symmetric', 'edd_asymmetric', 'roc', 'full_linear'])
+def test_c193_exact_jacobian_fits_land_where_finite_differences_do(model, monkeypatch):
+    """C193: the plain fits' exact Jacobian equals central differences; same optimum as FD."""
+    segs = _segments('edd_asymmetric', duration_s=200.0)
+    spec = get_model(model)
+    k = spec.vector({}, GEOMETRY) * 1.03
+    exact = segment_errors_jacobian(spec, k, GEOMETRY, segs)
+    central = np.zeros_like(exact)
+    for j in range(k.size):
+        step = 1e-6 * max(abs(k[j]), 1.0)
+        plus, minus = k.copy(), k.copy()
+        plus[j] += step
+        minus[j] -= step
+        central[:, :, j] = (segment_errors(spec, plus, GEOMETRY, segs)
+                            - segment_errors(spec, minus, GEOMETRY, segs)) / (2 * step)
+    assert np.abs(exact - central).max() <= 1e-6 * np.abs(central).max()
+    fits = {}
+    for flag in (False, True):
+        monkeypatch.setattr(fitting, 'EXACT_JACOBIAN', flag)
+        fits[flag] = fit_model(model, GEOMETRY, segs)
+    by_fd, by_exact = fits[False], fits[True]
+    for name, value in by_fd.values.items():
+        # both stop within the solver's own tolerance (xtol 1e-8 of the value) of the optimum
+        gap = abs(by_exact.values[name] - value)
+        assert gap <= 1e-6 * by_fd.std_errors[name] + 2e-8 * abs(value), name
+        assert by_exact.std_errors[name] == pytest.approx(by_fd.std_errors[name], rel=1e-6)
+    assert by_exact.warnings == by_fd.warnings and by_exact.valid == by_fd.valid
+    assert by_exact.segments_trimmed == by_fd.segments_trimmed
+    assert by_exact.cost == pytest.approx(by_fd.cost, rel=1e-9)

@@ -282,3 +282,30 @@ def test_roc_parameter_covariance_is_carried_by_the_node_propagation():
         assert np.diag(cov).max() > 1e-8  # not the zero of a sensitivity never carried
         checked += 1
     assert checked >= 3
+
+
+def _lapack_inverse(cov):
+    return np.linalg.inv(cov), np.linalg.det(cov)
+
+
+def test_c194_the_closed_form_inverse_fits_what_lapack_fits(monkeypatch):
+    """C194: the likelihood's 3x3 inverse by cofactors is LAPACK's to rounding; same fit."""
+    from skidkin_ros.core.calibration import noise_fit
+    errors, motion = _horizon_sets(WITH_CONSTANT, seed=2)
+    cov = segment_covariances(WITH_CONSTANT, motion)
+    # near-singular too: a covariance with almost no lateral variance
+    thin = cov.copy()
+    thin[:, 1, 1] = thin[:, 1, 0] * thin[:, 0, 1] / thin[:, 0, 0] + 1e-12
+    for batch in (cov, thin):
+        inv, det = noise_fit._inverse_3x3(batch)
+        ref_inv, ref_det = _lapack_inverse(batch)
+        assert np.allclose(det, ref_det, rtol=1e-9, atol=0.0)
+        scale = np.abs(ref_inv).max(axis=(1, 2))[:, None, None]
+        assert np.all(np.abs(inv - ref_inv) <= 1e-6 * scale)
+    fitted = fit_noise_model(errors, motion)
+    monkeypatch.setattr(noise_fit, '_inverse_3x3', _lapack_inverse)
+    reference = fit_noise_model(errors, motion)
+    # values the truth has to 1e-4 of themselves; those it lacks (per second here, nearly flat
+    # in the likelihood) to 5e-5 of its smallest value (2e-5)
+    for name, value in reference.as_dict().items():
+        assert getattr(fitted, name) == pytest.approx(value, rel=1e-4, abs=1e-9), name

@@ -173,7 +173,12 @@ class NoiseFit:
 
 def parameter_sensitivity(name: str, values: Mapping[str, float], geometry: Geometry,
                           segments: SegmentSet, rel_step: float = 1e-6) -> np.ndarray:
-    """Return d(predicted end pose, start frame)/dk for every segment, (N, 3, p)."""
+    """Return d(predicted end pose, start frame)/dk for every segment, (N, 3, p).
+
+    Central differences: the exact slope (:func:`~skidkin_ros.core.calibration.fitting.
+    segment_errors_jacobian`) is as cheap, but the noise likelihood of a model with many
+    parameters is so flat that a change of 1e-9 in this fixed term moved its values by 5 %.
+    """
     model = get_model(name)
     k = model.vector(dict(values), geometry)
     out = np.zeros((len(segments), 3, k.size))
@@ -260,6 +265,32 @@ def mahalanobis(cov: np.ndarray, errors: np.ndarray) -> np.ndarray:
     return np.einsum('ni,nij,nj->n', errors, np.linalg.inv(cov), errors)
 
 
+def _inverse_3x3(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the inverses and determinants of (N, 3, 3) matrices, by cofactors.
+
+    The likelihood inverts every segment's covariance at each of its hundreds of evaluations;
+    the closed form is several times cheaper than LAPACK's batched LU for 3 x 3 (same values
+    to rounding). Inverses where the determinant is not > 0 are not used.
+    """
+    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2]
+    d, e, f = cov[:, 1, 0], cov[:, 1, 1], cov[:, 1, 2]
+    g, h, i = cov[:, 2, 0], cov[:, 2, 1], cov[:, 2, 2]
+    adj = np.empty(cov.shape)
+    adj[:, 0, 0] = e * i - f * h
+    adj[:, 0, 1] = c * h - b * i
+    adj[:, 0, 2] = b * f - c * e
+    adj[:, 1, 0] = f * g - d * i
+    adj[:, 1, 1] = a * i - c * g
+    adj[:, 1, 2] = c * d - a * f
+    adj[:, 2, 0] = d * h - e * g
+    adj[:, 2, 1] = b * g - a * h
+    adj[:, 2, 2] = a * e - b * d
+    det = a * adj[:, 0, 0] + b * adj[:, 1, 0] + c * adj[:, 2, 0]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        inv = adj / det[:, None, None]
+    return inv, det
+
+
 def fit_noise_model(errors: np.ndarray, motion: SegmentMotion, constant: bool = True,
                     weights: np.ndarray | None = None, time: bool = True) -> NoiseModel:
     """Maximum-likelihood noise values from start-frame errors (N, 3) and their bases.
@@ -284,19 +315,21 @@ def fit_noise_model(errors: np.ndarray, motion: SegmentMotion, constant: bool = 
                       0.1 * pos, 0.1 * pos, 0.1 * yaw, pos / moving / 2, yaw / moving / 4])[use]
 
     w = np.ones(errors.shape[0]) if weights is None else np.asarray(weights, dtype=float)
+    flat = np.ascontiguousarray(mats.reshape(mats.shape[0], -1))  # (r, N * 9): BLAS products
 
     def nll(z: np.ndarray) -> tuple[float, np.ndarray]:
         theta = np.exp(z)
-        cov = np.einsum('r,rnij->nij', theta, mats) + fixed
-        sign, logdet = np.linalg.slogdet(cov)
-        if np.any(sign <= 0):
+        cov = (theta @ flat).reshape(-1, 3, 3) + fixed
+        inv, det = _inverse_3x3(cov)
+        if not np.all(det > 0):
             return 1e300, np.zeros_like(z)
-        inv = np.linalg.inv(cov)
+        logdet = np.log(det)
         a = np.einsum('nij,nj->ni', inv, errors)
         value = 0.5 * float((w * (logdet + np.einsum('ni,ni->n', errors, a))).sum())
         # d/dtheta_r = 0.5 sum_i w_i tr((inv - a a^T) M_r,i); chain rule through exp
         outer = (inv - a[:, :, None] * a[:, None, :]) * w[:, None, None]
-        grad = 0.5 * np.einsum('nij,rnji->r', outer, mats) * theta
+        # the bases are symmetric: tr(outer M) is the elementwise sum of outer * M
+        grad = 0.5 * (flat @ outer.reshape(-1)) * theta
         return value, grad
 
     z0 = np.log(guess)
