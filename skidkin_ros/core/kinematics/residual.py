@@ -283,6 +283,18 @@ def _scaled_partials(x: np.ndarray, lo: float, hi: float
     return d_x, d_lo, d_hi
 
 
+def _scaled_inputs(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarray | None
+                   ) -> tuple[list[np.ndarray], list[tuple]]:
+    """Return each input clamped and scaled, and its :func:`_scaled_partials`."""
+    scaled, slopes = [], []
+    for i, x in enumerate(input_values(twist, rate)):
+        x = np.asarray(x, dtype=float)
+        lo, hi = ranges[2 * i], ranges[2 * i + 1]
+        scaled.append(_scaled(x, lo, hi))
+        slopes.append(_scaled_partials(x, lo, hi))
+    return scaled, slopes
+
+
 def feature_gradients(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarray | None
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Return the terms' derivatives, d phi / d (v, w, dv, dw) and d phi / d ranges.
@@ -290,13 +302,7 @@ def feature_gradients(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarr
     Shapes (..., T, 4) and (..., T, 8), from :data:`TERM_GRADIENTS` and the clamp-and-scale of
     each input.
     """
-    raw = input_values(twist, rate)
-    scaled, slopes = [], []
-    for i, x in enumerate(raw):
-        x = np.asarray(x, dtype=float)
-        lo, hi = ranges[2 * i], ranges[2 * i + 1]
-        scaled.append(_scaled(x, lo, hi))
-        slopes.append(_scaled_partials(x, lo, hi))
+    scaled, slopes = _scaled_inputs(ranges, twist, rate)
     shape = np.shape(scaled[0])
     d_scaled = np.stack([np.stack([np.broadcast_to(np.asarray(g, dtype=float), shape)
                                    for g in TERM_GRADIENTS[name](*scaled)], axis=-1)
@@ -316,13 +322,8 @@ def correction_gradient(coef: np.ndarray, ranges: Sequence[float], twist: np.nda
     :func:`feature_gradients` contracted with the coefficients term by term, skipping the terms
     no output uses (above the chosen level every coefficient is 0): the fits need only this.
     """
-    raw = input_values(twist, rate)
-    scaled, slopes = [], []
-    for i, x in enumerate(raw):
-        x = np.asarray(x, dtype=float)
-        lo, hi = ranges[2 * i], ranges[2 * i + 1]
-        scaled.append(_scaled(x, lo, hi))
-        slopes.append(_scaled_partials(x, lo, hi)[0])
+    scaled, slopes = _scaled_inputs(ranges, twist, rate)
+    slopes = [slope[0] for slope in slopes]
     shape = np.shape(scaled[0])
     out = np.zeros(shape + (len(coef), len(INPUTS)))
     for t, (name, _, _, _) in enumerate(TERMS):

@@ -455,6 +455,17 @@ class PoseCovariancePropagator:
         return np.array(self.twist_covariance_flat(twist, period_s)).reshape(6, 6)
 
 
+def _step_frame(yaw: float, w: float, dt_s: float, dx: float, dy: float
+                ) -> tuple[float, float, float, float, float]:
+    """Return (cos, sin of the mid-step heading, F[0, 2], F[1, 2], dt / 2) of one step."""
+    cos_t = math.cos(yaw)
+    sin_t = math.sin(yaw)
+    mid = yaw + 0.5 * w * dt_s
+    a = -sin_t * dx - cos_t * dy  # F[0, 2]
+    b = cos_t * dx - sin_t * dy   # F[1, 2]
+    return math.cos(mid), math.sin(mid), a, b, 0.5 * dt_s
+
+
 def _propagate_sensitivity(sens: Sequence[tuple[float, float, float]],
                            jacobian: Sequence[tuple[float, float, float]], yaw: float, vx: float,
                            vy: float, w: float, dt_s: float) -> list[tuple[float, float, float]]:
@@ -464,14 +475,7 @@ def _propagate_sensitivity(sens: Sequence[tuple[float, float, float]],
     the mid-step heading, and a yaw-rate change turns the step by dw dt / 2.
     """
     _, _, _, dx, dy = step_scalar(0.0, 0.0, yaw, vx, vy, w, dt_s)
-    cos_t = math.cos(yaw)
-    sin_t = math.sin(yaw)
-    mid = yaw + 0.5 * w * dt_s
-    cos_m = math.cos(mid)
-    sin_m = math.sin(mid)
-    a = -sin_t * dx - cos_t * dy  # F[0, 2]
-    b = cos_t * dx - sin_t * dy   # F[1, 2]
-    half = 0.5 * dt_s
+    cos_m, sin_m, a, b, half = _step_frame(yaw, w, dt_s, dx, dy)
     out = []
     for (sx, sy, syaw), (dvx, dvy, dw) in zip(sens, jacobian):
         out.append((sx + a * syaw + dt_s * (cos_m * dvx - sin_m * dvy) + half * dw * a,
@@ -490,14 +494,7 @@ def _propagate_linear(sens: Sequence[tuple[float, float, float]],
     followed by :func:`_propagate_sensitivity` (bit for bit), without the intermediate list;
     (dx, dy) is the step's body-frame increment, which the pose step computed already.
     """
-    cos_t = math.cos(yaw)
-    sin_t = math.sin(yaw)
-    mid = yaw + 0.5 * w * dt_s
-    cos_m = math.cos(mid)
-    sin_m = math.sin(mid)
-    a = -sin_t * dx - cos_t * dy  # F[0, 2]
-    b = cos_t * dx - sin_t * dy   # F[1, 2]
-    half = 0.5 * dt_s
+    cos_m, sin_m, a, b, half = _step_frame(yaw, w, dt_s, dx, dy)
     out = []
     append = out.append
     for (sx, sy, syaw), (m0, m1, m2, m3, m4, m5, m6, m7, m8) in zip(sens, rows):
