@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
-from skidkin_ros.core.odometry import propagation
+from skidkin_ros.core.odometry import sensitivity
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.propagation import PoseCovariancePropagator
@@ -48,7 +48,7 @@ def _steps(rng, count):
 
 def _plain_step(sens, uncertainty, pose, twist, dt):
     jacobian = uncertainty.twist_jacobian(*twist)
-    return propagation._propagate_sensitivity(sens, jacobian, pose[2], *twist, dt)
+    return sensitivity.propagate_sensitivity(sens, jacobian, pose[2], *twist, dt)
 
 
 def _plain_read(sens, covariance):

@@ -42,7 +42,7 @@ from skidkin_ros.core.calibration.engine import (check_sigma_diag, ParameterLayo
                                                  TRIM_CHI2, trim_mask, TRIM_MAX_FRACTION,
                                                  TwistSource, whitening)
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
-from skidkin_ros.core.kinematics.augmented import base_tangents
+from skidkin_ros.core.kinematics.augmented_tangents import base_tangents
 from skidkin_ros.core.kinematics.models import BoundModel, get_model, KinematicModel, MODEL_NAMES
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.se2 import rollout_columns
@@ -207,7 +207,7 @@ def segment_errors_jacobian(model: KinematicModel, k: np.ndarray, geometry: Geom
     """Return the exact derivatives (N, 3, p) of :func:`segment_errors` (0 where not finite).
 
     Forward mode, the diagnosis's own tangents: d twist / d k
-    (:func:`~skidkin_ros.core.kinematics.augmented.base_tangents`) carried through each
+    (:func:`~skidkin_ros.core.kinematics.augmented_tangents.base_tangents`) carried through each
     segment's rollout from the origin
     (:func:`~skidkin_ros.core.odometry.se2_tangent.window_tangents`, one window per segment).
     The error is true - start * T in the start frame, so its derivative is -dT: about three

@@ -15,7 +15,7 @@ import numpy as np
 
 from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
 from skidkin_ros.core.drive import Drive
-from skidkin_ros.core.kinematics.augmented import base_tangents
+from skidkin_ros.core.kinematics.augmented_tangents import base_tangents, interval_tangents
 from skidkin_ros.core.odometry.integrator import (body_increment, compose, is_stateful,
                                                   rollout_columns)
 from skidkin_ros.core.odometry.interval import check_interval, DEFAULT_INTERVAL, held_wheels
@@ -190,7 +190,7 @@ class SegmentPredictor:
         index); ``offset``: the column of a free time offset, if any (it moves each window
         [t_a - offset, t_b - offset]: the end pose gains the twist held at the window end and
         loses the one at its start). Forward mode through the mean twists
-        (:meth:`~skidkin_ros.core.kinematics.augmented.BoundAugmented.interval_tangents`), the
+        (:func:`~skidkin_ros.core.kinematics.augmented_tangents.interval_tangents`), the
         drives' cumulative poses and the three moves of :meth:`predict_ends`. The error is
         true - start * T for the predicted move T, and in the start frame its derivative is
         -dT.
@@ -202,8 +202,8 @@ class SegmentPredictor:
         columns = len(free)
         with np.errstate(all='ignore'):
             if is_stateful(source):
-                mean, d_mean = source.interval_tangents(self.t_ns, self.omega_l, self.omega_r,
-                                                        self.dt_s, self.restart, free)
+                mean, d_mean = interval_tangents(source, self.t_ns, self.omega_l, self.omega_r,
+                                                 self.dt_s, self.restart, free)
             else:
                 mean = np.asarray(source.twist(self.omega_l, self.omega_r), dtype=float)
                 d_mean = base_tangents(source, self.omega_l, self.omega_r, free)
