@@ -106,7 +106,12 @@ def _true_poses(sim: Simulation, interval: str) -> np.ndarray:
     other = {'alpha_l': base['alpha_l'] * (1 - SLIP), 'alpha_r': base['alpha_r'] * (1 - SLIP),
              'x_v': base['x_v'] / (1.0 - YAW_SLIP), 'y_l': base['y_l'] * ratio,
              'y_r': base['y_r'] * ratio}
-    sources = (model.bind(base, geometry), model.bind(other, geometry))
+    return ground_poses(sim, (model.bind(base, geometry), model.bind(other, geometry)),
+                        interval)
+
+
+def ground_poses(sim: Simulation, sources: Sequence, interval: str) -> np.ndarray:
+    """Integrate the wheels with sources[0] off the terrain regime's second ground, [1] on it."""
     mask = sim.trace.masks.get('terrain_regime')
     on = (np.zeros(len(sim.wheels), bool) if mask is None else
           np.interp(sim.wheels.t_ns, sim.trace.t_ns, mask.astype(float)) > 0.5)

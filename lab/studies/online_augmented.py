@@ -27,13 +27,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
-from lab.studies.online import _reference, _scores
+from lab.studies.online import _reference, _scores, ground_poses
 import numpy as np
 
 from skidkin_ros.core.kinematics.augmented import AugmentedModel
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.odometry.integrator import StreamingIntegrator
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate, Simulation
@@ -80,18 +79,7 @@ def _true_poses(sim: Simulation, interval: str, effect: str) -> np.ndarray:
     sources = [structure.bind(get_model(MODEL).bind(values, geometry), {effect: {'k': k}})
                for values, k in ((DEFAULT_TRUE_PARAMS, EFFECTS[effect][0]),
                                  (new_values, new_k))]
-    mask = sim.trace.masks.get('terrain_regime')
-    on = np.interp(sim.wheels.t_ns, sim.trace.t_ns, mask.astype(float)) > 0.5
-    integrator = StreamingIntegrator(sources[0], None, interval)
-    poses = np.empty((len(sim.wheels), 3))
-    current = 0
-    for i, (t, left, right) in enumerate(zip(sim.wheels.t_ns.tolist(), sim.wheels.omega_l,
-                                             sim.wheels.omega_r)):
-        if int(on[i]) != current:
-            current = int(on[i])
-            integrator.set_source(sources[current])
-        poses[i] = integrator.step(t, left, right).pose
-    return poses
+    return ground_poses(sim, sources, interval)
 
 
 @dataclass
