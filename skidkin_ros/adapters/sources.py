@@ -1,10 +1,10 @@
-"""Turn a SOURCE (a rosbag2 recording or a CSV trajectory table) into core ``Drive`` objects.
+"""Turn a SOURCE (a rosbag2 or ROS 1 recording, or a CSV trajectory table) into ``Drive`` objects.
 
 A bag gives its wheel speeds (JointState, two Float64 topics, or a drive controller's Odometry
-twist with the controller's geometry), its IMU when present, and ground
-truth from the lidar through kiss-icp (``ground_truth='icp'``), from a pose topic
-(nav_msgs/Odometry or geometry_msgs/PoseStamped), or none (``'none'``: prediction only). A table
-gives one Drive per ``segment``. Decisions taken on the user's behalf (auto-selected topics and
+twist with the controller's geometry), its IMU when present, and ground truth from the lidar
+through kiss-icp (``ground_truth='icp'``), from a pose topic (nav_msgs/Odometry,
+geometry_msgs/PoseStamped or PoseWithCovarianceStamped), or none (``'none'``: prediction only).
+A table gives one Drive per ``segment``. Decisions taken on the user's behalf (auto-selected topics and
 joints, skipped messages, cache hits) are collected in ``notes`` for the CLI to print.
 """
 

@@ -151,8 +151,9 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
     if not ground_truth:
         return
     group.add_argument('--ground-truth', default='icp', metavar='icp|TOPIC|none',
-                       help='ground truth of a bag: kiss-icp on the lidar (default), or a '
-                       'nav_msgs/Odometry or geometry_msgs/PoseStamped topic')
+                       help='ground truth of a bag: kiss-icp on the lidar (default), a '
+                       'nav_msgs/Odometry, geometry_msgs/PoseStamped or '
+                       "PoseWithCovarianceStamped topic (AMCL's amcl_pose), or none")
     group.add_argument('--lidar-topic', help='sensor_msgs/PointCloud2 topic')
     group.add_argument('--base-frame', default='base_link', help='robot body frame')
     group.add_argument('--extrinsic', nargs=6, type=float,
