@@ -106,6 +106,7 @@ def table(result: dict[str, Any]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the schemes named on the command line (all by default) and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('schemes', nargs='*', metavar='SCHEME',
                         help=f'training-segment schemes to run, of {", ".join(TRAIN_SEGMENTS)} '

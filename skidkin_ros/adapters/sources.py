@@ -4,8 +4,8 @@ A bag gives its wheel speeds (JointState, two Float64 topics, or a drive control
 twist with the controller's geometry), its IMU when present, and ground truth from the lidar
 through kiss-icp (``ground_truth='icp'``), from a pose topic (nav_msgs/Odometry,
 geometry_msgs/PoseStamped or PoseWithCovarianceStamped), or none (``'none'``: prediction only).
-A table gives one Drive per ``segment``. Decisions taken on the user's behalf (auto-selected topics and
-joints, skipped messages, cache hits) are collected in ``notes`` for the CLI to print.
+A table gives one Drive per ``segment``. Decisions taken on the user's behalf (auto-selected
+topics and joints, skipped messages, cache hits) are collected in ``notes`` for the CLI to print.
 """
 
 from __future__ import annotations

@@ -29,8 +29,9 @@ from skidkin_ros.errors import ConfigError, ParameterError
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
            'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'stride_arg', 'RoundBars',
-           'check_report_dir', 'check_split_without_eval', 'input_parameters', 'calibration_provenance',
-           'print_calibration', 'controller_from_args', 'plain_reference_lines']
+           'check_report_dir', 'check_split_without_eval', 'input_parameters',
+           'calibration_provenance', 'print_calibration', 'controller_from_args',
+           'plain_reference_lines']
 
 
 def say(*parts: object) -> None:
@@ -244,10 +245,10 @@ def check_split_without_eval(args: argparse.Namespace) -> None:
     in silence (and with EVAL = TRAIN, every score would come from the training data).
     """
     if args.split_by and args.eval:
-        raise ConfigError(f'--split-by {args.split_by} splits TRAIN into a training and a held-out '
-                          'half when no --eval is given; with --eval the evaluation data is EVAL '
-                          'and nothing is split: drop --split-by, or drop --eval to score the odd '
-                          f'values of {args.split_by}')
+        raise ConfigError(f'--split-by {args.split_by} splits TRAIN into a training and a '
+                          'held-out half when no --eval is given; with --eval the evaluation data '
+                          'is EVAL and nothing is split: drop --split-by, or drop --eval to score '
+                          f'the odd values of {args.split_by}')
 
 
 def check_report_dir(path: Path | None, force: bool, what: str = '--report') -> None:

@@ -286,9 +286,10 @@ class OdometryConfig:
     def active_parameter_uncertainty(self) -> ParameterUncertainty | None:
         """Return the parameter covariance to propagate (None: off, unknown or not possible).
 
-        Off when ``use_parameter_covariance`` is false, when the file holds none (all zeros, or
-        a file written before it existed), and for an augmented model (its extensions change the
-        twist's dependence on the base parameters).
+        Off when ``use_parameter_covariance`` is false and when the file holds none (all zeros, or
+        a file written before it existed). An augmented model carries its residual model's
+        coefficient covariance only, never the base parameters' (its extensions change the
+        twist's dependence on them).
         """
         if not self.values.get('use_parameter_covariance', True):
             return None
