@@ -1,5 +1,7 @@
 """Switching to `augmented` needs an augmented model: without one it would be an ideal drive."""
 
+import re
+
 from skidkin_ros.adapters.sim_writer import write_truth_csv
 from skidkin_ros.cli.main import main
 from skidkin_ros.core.odometry.config import models_held, write_params_file
@@ -53,3 +55,24 @@ def test_n145_the_node_warns_at_start_and_refuses_at_runtime_an_augmented_it_lac
     err = capfd.readouterr().err
     assert "model 'augmented' runs its default parameters (an ideal drive)" in err
     assert 'no augmented.base or augmented.extensions parameter was given' in err
+
+
+def test_n146_the_node_says_which_topics_its_gyro_and_online_calibration_read(
+        make_rig, tmp_path, capfd):
+    from rclpy.parameter import Parameter
+    params = write_params_file(tmp_path / 'p.yaml', CALIBRATED)
+    capfd.readouterr()
+    rig = make_rig(overrides={'online.enabled': True, 'imu.mode': 'fuse'}, params_file=params)
+    err = capfd.readouterr().err
+    # the resolved names: the rig runs in a namespace of its own
+    assert re.search(r'imu.mode fuse: the gyro is read from sensor_msgs/Imu on /\S*imu/data', err)
+    assert re.search(r'online calibration on: learning from nav_msgs/Odometry on '
+                     r'/\S*reference/odom', err)
+    results = rig.node.set_parameters([Parameter('online.enabled', value=False),
+                                       Parameter('imu.mode', value='off')])
+    assert all(r.successful for r in results), [r.reason for r in results]
+    err = capfd.readouterr().err
+    assert 'online calibration off' in err and 'imu.mode off' in err
+    make_rig(params_file=params)
+    err = capfd.readouterr().err
+    assert 'online calibration' not in err and 'imu.mode' not in err

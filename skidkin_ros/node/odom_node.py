@@ -255,9 +255,12 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
             self._imu_sub = self.create_subscription(
                 Imu, 'imu/data', self._on_imu, sensor_qos(),
                 qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            self.get_logger().info(f'imu.mode {config["imu.mode"]}: the gyro is read from '
+                                   f'sensor_msgs/Imu on {self._imu_sub.topic_name}')
         elif not wanted and self._imu_sub is not None:
             self.destroy_subscription(self._imu_sub)
             self._imu_sub = None
+            self.get_logger().info('imu.mode off: the gyro is no longer read')
 
     def _sync_reference_subscription(self, config: OdometryConfig) -> None:
         """Subscribe to the reference while online.enabled (no cost when off)."""
@@ -266,9 +269,12 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
             self._reference_sub = self.create_subscription(
                 Odometry, 'reference/odom', self._on_reference, sensor_qos(),
                 qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            self.get_logger().info('online calibration on: learning from nav_msgs/Odometry on '
+                                   f'{self._reference_sub.topic_name}')
         elif not wanted and self._reference_sub is not None:
             self.destroy_subscription(self._reference_sub)
             self._reference_sub = None
+            self.get_logger().info('online calibration off: the reference is no longer read')
 
     @property
     def config(self) -> OdometryConfig:
