@@ -22,6 +22,7 @@ Run alone::
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import replace
 import json
 from pathlib import Path
@@ -104,8 +105,22 @@ def table(result: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
-if __name__ == '__main__':
-    schemes = tuple(sys.argv[1:]) or TRAIN_SEGMENTS
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the schemes named on the command line (all by default) and print the table."""
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('schemes', nargs='*', metavar='SCHEME',
+                        help=f'training-segment schemes to run, of {", ".join(TRAIN_SEGMENTS)} '
+                        '(default: all)')
+    schemes = tuple(parser.parse_args(argv).schemes) or TRAIN_SEGMENTS
+    unknown = sorted(set(schemes) - set(TRAIN_SEGMENTS))
+    if unknown:  # argparse's choices refuse an empty list with nargs='*' on Python 3.11
+        parser.error(f'unknown scheme(s) {", ".join(unknown)}: choose from '
+                     f'{", ".join(TRAIN_SEGMENTS)}')
     out = run(schemes)
     print(table(out))
     print(json.dumps(out['rows'], indent=1, default=str))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,11 +1,11 @@
-"""Turn a SOURCE (a rosbag2 recording or a CSV trajectory table) into core ``Drive`` objects.
+"""Turn a SOURCE (a rosbag2 or ROS 1 recording, or a CSV trajectory table) into ``Drive`` objects.
 
 A bag gives its wheel speeds (JointState, two Float64 topics, or a drive controller's Odometry
-twist with the controller's geometry), its IMU when present, and ground
-truth from the lidar through kiss-icp (``ground_truth='icp'``), from a pose topic
-(nav_msgs/Odometry or geometry_msgs/PoseStamped), or none (``'none'``: prediction only). A table
-gives one Drive per ``segment``. Decisions taken on the user's behalf (auto-selected topics and
-joints, skipped messages, cache hits) are collected in ``notes`` for the CLI to print.
+twist with the controller's geometry), its IMU when present, and ground truth from the lidar
+through kiss-icp (``ground_truth='icp'``), from a pose topic (nav_msgs/Odometry,
+geometry_msgs/PoseStamped or PoseWithCovarianceStamped), or none (``'none'``: prediction only).
+A table gives one Drive per ``segment``. Decisions taken on the user's behalf (auto-selected
+topics and joints, skipped messages, cache hits) are collected in ``notes`` for the CLI to print.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from skidkin_ros.adapters.bag_reader import check_overlap, NoWheelInputError, open_recording
+from skidkin_ros.adapters.bags.common import ROS1_SUFFIX, STORAGE_SUFFIXES
 from skidkin_ros.adapters.icp_selfcheck import SelfCheckOptions
 from skidkin_ros.adapters.lidar_chunks import bag_ground_truth, ChunkOptions
 from skidkin_ros.adapters.lidar_gt import IcpConfig
@@ -37,6 +38,24 @@ IMU = 'sensor_msgs/msg/Imu'
 
 def is_table(path: Path) -> bool:
     return path.suffix.lower() in TABLE_SUFFIXES
+
+
+def _check_not_a_folder_of_tables(path: Path) -> None:
+    """Refuse a folder that holds CSV tables and no recording, naming the tables to pass.
+
+    A table is read from its file; its folder (``data/husky``) would otherwise be opened as a
+    rosbag2 and refused with a message about metadata.yaml that does not say what to pass.
+    """
+    if not path.is_dir() or (path / 'metadata.yaml').exists():
+        return
+    entries = sorted(path.iterdir())
+    if any(p.suffix in (*STORAGE_SUFFIXES, ROS1_SUFFIX) for p in entries):
+        return
+    tables = [p for p in entries if p.suffix.lower() in ('.csv', '.tsv') and p.is_file()]
+    if tables:
+        names = ', '.join(str(p) for p in tables[:5])
+        raise RecordingError(f'{path} is a folder of trajectory tables, not a recording: pass '
+                             f'the table file itself ({names})')
 
 
 def extrinsic_from_xyz_rpy(values: Sequence[float]) -> np.ndarray:
@@ -120,6 +139,7 @@ def load_source(path: str | Path, options: SourceOptions,
             notes.append(f'{source}: a table holds wheel speeds only; wheel_signal '
                          f'{options.wheel_signal} does not apply to it, its speeds are used')
         return LoadedSource(source, 'table', drives, notes)
+    _check_not_a_folder_of_tables(source)
     return _load_bag(source, options, need_truth)
 
 

@@ -9,8 +9,9 @@ import sys
 from skidkin_ros.adapters.sources import load_sources
 from skidkin_ros.atomic import check_writable
 from skidkin_ros.cli.common import (add_geometry_args, add_source_args, calibration_provenance,
-                                    check_report_dir, geometry_from_args, input_parameters,
-                                    print_calibration, print_notes, say, source_options)
+                                    check_report_dir, check_split_without_eval,
+                                    geometry_from_args, input_parameters, print_calibration,
+                                    print_notes, say, source_options)
 from skidkin_ros.core.calibration.pipeline import (calibrate_interval, CalibrationOptions,
                                                    horizon_study, result_to_parameters,
                                                    SELECTIONS, TRAIN_SEGMENTS)
@@ -59,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     _deprecations(args)
     check_writable(args.out, args.force)
     check_report_dir(args.report, args.force)
+    check_split_without_eval(args)
     options = _options(args)
     geometry = geometry_from_args(args)
     if args.wheel_radius is None or args.track_width is None:

@@ -7,8 +7,8 @@ from pathlib import Path
 
 from skidkin_ros.adapters.sources import load_sources
 from skidkin_ros.atomic import check_writable
-from skidkin_ros.cli.common import (add_source_args, check_report_dir, jobs_arg, print_notes,
-                                    RoundBars, say, source_options)
+from skidkin_ros.cli.common import (add_source_args, check_report_dir, check_split_without_eval,
+                                    jobs_arg, print_notes, RoundBars, say, source_options)
 from skidkin_ros.core.calibration.diagnosis import diagnose, DiagnosisOptions
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS
 from skidkin_ros.core.odometry.config import OdometryConfig, read_params_file, write_params_file
@@ -21,6 +21,7 @@ __all__ = ['add_parser']
 def run(args: argparse.Namespace) -> int:
     check_writable(args.out, args.force)
     check_report_dir(args.report, args.force)
+    check_split_without_eval(args)
     # The file's own parameters are carried into the written file, so read them as given.
     flat = read_params_file(args.params)
     config = OdometryConfig.from_flat(flat)

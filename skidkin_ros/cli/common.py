@@ -29,8 +29,9 @@ from skidkin_ros.errors import ConfigError, ParameterError
 
 __all__ = ['add_source_args', 'add_geometry_args', 'source_options', 'geometry_from_args',
            'say', 'print_notes', 'default_cache_dir', 'jobs_arg', 'stride_arg', 'RoundBars',
-           'check_report_dir', 'input_parameters', 'calibration_provenance',
-           'print_calibration', 'controller_from_args', 'plain_reference_lines']
+           'check_report_dir', 'check_split_without_eval', 'input_parameters',
+           'calibration_provenance', 'print_calibration', 'controller_from_args',
+           'plain_reference_lines']
 
 
 def say(*parts: object) -> None:
@@ -151,8 +152,9 @@ def add_source_args(parser: argparse.ArgumentParser, ground_truth: bool = True) 
     if not ground_truth:
         return
     group.add_argument('--ground-truth', default='icp', metavar='icp|TOPIC|none',
-                       help='ground truth of a bag: kiss-icp on the lidar (default), or a '
-                       'nav_msgs/Odometry or geometry_msgs/PoseStamped topic')
+                       help='ground truth of a bag: kiss-icp on the lidar (default), a '
+                       'nav_msgs/Odometry, geometry_msgs/PoseStamped or '
+                       "PoseWithCovarianceStamped topic (AMCL's amcl_pose), or none")
     group.add_argument('--lidar-topic', help='sensor_msgs/PointCloud2 topic')
     group.add_argument('--base-frame', default='base_link', help='robot body frame')
     group.add_argument('--extrinsic', nargs=6, type=float,
@@ -234,6 +236,19 @@ def controller_from_args(args: argparse.Namespace) -> ControllerGeometry | None:
         return None
     left, right, separation = multipliers or (1.0, 1.0, 1.0)
     return ControllerGeometry(geometry[0], geometry[1], left, right, separation)
+
+
+def check_split_without_eval(args: argparse.Namespace) -> None:
+    """Refuse ``--split-by`` beside ``--eval``: the split only applies when EVAL is not given.
+
+    With both, the evaluation data is EVAL and TRAIN is not split: the option would be ignored
+    in silence (and with EVAL = TRAIN, every score would come from the training data).
+    """
+    if args.split_by and args.eval:
+        raise ConfigError(f'--split-by {args.split_by} splits TRAIN into a training and a '
+                          'held-out half when no --eval is given; with --eval the evaluation data '
+                          'is EVAL and nothing is split: drop --split-by, or drop --eval to score '
+                          f'the odd values of {args.split_by}')
 
 
 def check_report_dir(path: Path | None, force: bool, what: str = '--report') -> None:

@@ -85,7 +85,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
-from skidkin_ros.core.odometry.config import check_model_given, models_given, OdometryConfig
+from skidkin_ros.core.odometry.config import check_model_given, models_held, OdometryConfig
 from skidkin_ros.core.odometry.odometer import Estimate
 from skidkin_ros.core.online import attach_online, online_odometer
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
@@ -132,11 +132,13 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
         config = self._config
         # Models whose parameters were given (file, command line, later at runtime): the only
         # ones `model` may switch to (the others would run their defaults, an ideal drive).
-        self._models_given = set(models_given(self._parameter_overrides))
-        if config.model not in self._models_given and config.model != 'augmented':
+        self._models_given = set(models_held(self._parameter_overrides))
+        if config.model not in self._models_given:
+            keys = ('augmented.base or augmented.extensions' if config.model == 'augmented'
+                    else f'models.{config.model}.*')
             self.get_logger().warning(
                 f'model {config.model!r} runs its default parameters (an ideal drive): no '
-                f'models.{config.model}.* parameter was given; load a calibrated file')
+                f'{keys} parameter was given; load a calibrated file')
         self._odometer = online_odometer(config, counters=self.counters, warn=self._warn,
                                          fresh=self._mark_fresh, note=self._note_signal)
         self._last_accepted_mono_ns: int | None = None
@@ -206,13 +208,14 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
             return SetParametersResult(successful=True)
         flat = current_flat(self, self._schema)
         flat.update(changes)
-        given = self._models_given | set(models_given(changes))
+        given = self._models_given | set(models_held(changes))
         try:
             config = OdometryConfig.from_flat(flat)
             if 'model' in changes and changes['model'] != self._config.model:
-                check_model_given(changes['model'], given,
-                                  'the parameters the node was given (set its models.'
-                                  f'{changes["model"]}.* parameters first)')
+                keys = ('augmented.base and augmented.extensions'
+                        if changes['model'] == 'augmented' else f'models.{changes["model"]}.*')
+                check_model_given(changes['model'], given, 'the parameters the node was given '
+                                  f'(set its {keys} parameters first)')
         except ConfigError as err:
             self.get_logger().warning(f'parameter change rejected: {err}')
             return SetParametersResult(successful=False, reason=str(err))
@@ -252,9 +255,12 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
             self._imu_sub = self.create_subscription(
                 Imu, 'imu/data', self._on_imu, sensor_qos(),
                 qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            self.get_logger().info(f'imu.mode {config["imu.mode"]}: the gyro is read from '
+                                   f'sensor_msgs/Imu on {self._imu_sub.topic_name}')
         elif not wanted and self._imu_sub is not None:
             self.destroy_subscription(self._imu_sub)
             self._imu_sub = None
+            self.get_logger().info('imu.mode off: the gyro is no longer read')
 
     def _sync_reference_subscription(self, config: OdometryConfig) -> None:
         """Subscribe to the reference while online.enabled (no cost when off)."""
@@ -263,9 +269,12 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
             self._reference_sub = self.create_subscription(
                 Odometry, 'reference/odom', self._on_reference, sensor_qos(),
                 qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            self.get_logger().info('online calibration on: learning from nav_msgs/Odometry on '
+                                   f'{self._reference_sub.topic_name}')
         elif not wanted and self._reference_sub is not None:
             self.destroy_subscription(self._reference_sub)
             self._reference_sub = None
+            self.get_logger().info('online calibration off: the reference is no longer read')
 
     @property
     def config(self) -> OdometryConfig:

@@ -53,6 +53,8 @@ __all__ = [
     'nest',
     'parse_extensions',
     'models_given',
+    'augmented_given',
+    'models_held',
     'check_model_given',
     'implied_interval',
     'read_params_file',
@@ -112,14 +114,33 @@ def models_given(names: Iterable[str]) -> tuple[str, ...]:
                  if not m.params or any(f'models.{m.name}.{p.name}' in names for p in m.params))
 
 
+def augmented_given(names: Iterable[str]) -> bool:
+    """Tell whether ``names`` set an augmented model (its base or extensions: diagnose's file)."""
+    names = set(names)
+    return 'augmented.base' in names or 'augmented.extensions' in names
+
+
+def models_held(names: Iterable[str]) -> tuple[str, ...]:
+    """Return the models ``names`` set, ``augmented`` included when its base or extensions are."""
+    names = set(names)
+    return models_given(names) + ((AUGMENTED_NAME,) if augmented_given(names) else ())
+
+
 def check_model_given(model: str, given: Iterable[str], source: str) -> None:
     """Refuse to switch to a model whose parameters ``source`` does not hold.
 
     Its defaults are the ideal differential drive: run under a calibrated model's name, they
-    would look calibrated. An augmented model needs its base model's parameters.
+    would look calibrated. ``augmented`` counts as given when its base or extensions were
+    (:func:`augmented_given`): without them it is ideal_dd with no extension.
     """
     given = tuple(given)
     wanted = model
+    if model == AUGMENTED_NAME and AUGMENTED_NAME not in given:
+        raise ParameterError(
+            f'model {AUGMENTED_NAME!r} is not in {source}: no augmented.base or '
+            'augmented.extensions was given, so it would run ideal_dd with no extension (an '
+            'ideal drive), not a calibration; load the file `skidkin diagnose` writes, or '
+            f'choose one of {", ".join(m for m in given if m != AUGMENTED_NAME) or "none"}')
     if model == AUGMENTED_NAME:
         return
     if wanted not in given:
@@ -260,6 +281,8 @@ class OdometryConfig:
     augmented_values: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     # Models whose parameters the source gave (ideal_dd needs none): the others hold defaults.
     models_in_file: tuple[str, ...] = ()
+    # Whether the source gave augmented.base or augmented.extensions (augmented_given).
+    augmented_in_file: bool = False
 
     def __getitem__(self, name: str) -> Any:
         return self.values[name]
@@ -286,9 +309,10 @@ class OdometryConfig:
     def active_parameter_uncertainty(self) -> ParameterUncertainty | None:
         """Return the parameter covariance to propagate (None: off, unknown or not possible).
 
-        Off when ``use_parameter_covariance`` is false, when the file holds none (all zeros, or
-        a file written before it existed), and for an augmented model (its extensions change the
-        twist's dependence on the base parameters).
+        Off when ``use_parameter_covariance`` is false and when the file holds none (all zeros, or
+        a file written before it existed). An augmented model carries its residual model's
+        coefficient covariance only, never the base parameters' (its extensions change the
+        twist's dependence on them).
         """
         if not self.values.get('use_parameter_covariance', True):
             return None
@@ -407,7 +431,8 @@ class OdometryConfig:
         _check_online(values)
         given = models_given(flat)
         return cls(values['model'], geometry, model_values, noise, values,
-                   values['augmented.base'], extensions, augmented_values, given)
+                   values['augmented.base'], extensions, augmented_values, given,
+                   augmented_given(flat))
 
 
 def _check_online(values: Mapping[str, Any]) -> None:

@@ -174,9 +174,11 @@ def parameter_schema(geometry: Geometry | None = None) -> list[SchemaEntry]:
                     "or odometry (a drive controller's nav_msgs/Odometry twist, with its "
                     'geometry in controller.*)', choices=INPUT_MODES),
         SchemaEntry('left_wheel_joints', 'string_array', list(DEFAULT_LEFT_JOINTS),
-                    'JointState names of the left wheels (speed = mean of their velocities)'),
+                    'JointState names of the left wheels (the side speed is their mean, read '
+                    'as wheel_signal says)'),
         SchemaEntry('right_wheel_joints', 'string_array', list(DEFAULT_RIGHT_JOINTS),
-                    'JointState names of the right wheels (speed = mean of their velocities)'),
+                    'JointState names of the right wheels (the side speed is their mean, read '
+                    'as wheel_signal says)'),
         SchemaEntry('odom_frame_id', 'string', 'odom', 'frame_id of the published odometry'),
         SchemaEntry('base_frame_id', 'string', 'base_link',
                     'child_frame_id of the published odometry'),

@@ -1,0 +1,78 @@
+"""Switching to `augmented` needs an augmented model: without one it would be an ideal drive."""
+
+import re
+
+from skidkin_ros.adapters.sim_writer import write_truth_csv
+from skidkin_ros.cli.main import main
+from skidkin_ros.core.odometry.config import models_held, write_params_file
+from skidkin_ros.sim.simulate import SimConfig, simulate
+
+# What `skidkin calibrate` writes, reduced: a calibrated base model and no augmented.*.
+CALIBRATED = {'model': 'edd_symmetric', 'models.edd_symmetric.noise.calibrated': True,
+              'models.edd_symmetric.alpha': 0.9, 'models.edd_symmetric.b_hat': 0.7}
+# What `skidkin diagnose` adds.
+DIAGNOSED = {'augmented.base': 'edd_symmetric', 'augmented.extensions': 'time_offset',
+             'augmented.time_offset.offset_s': 0.05}
+
+
+def test_augmented_is_held_only_when_its_base_or_extensions_are_given():
+    assert 'augmented' not in models_held(f'models.edd_symmetric.{p}' for p in ('alpha',))
+    assert 'augmented' in models_held(DIAGNOSED)
+    assert 'augmented' in models_held(['augmented.base'])
+
+
+def test_n145_predict_refuses_augmented_from_a_file_without_one(tmp_path, capsys):
+    table = write_truth_csv(simulate(SimConfig(duration_s=6.0, seed=3)), tmp_path / 'd.csv')
+    plain = write_params_file(tmp_path / 'calibrated.yaml', CALIBRATED)
+    out = tmp_path / 'o.csv'
+    assert main(['predict', str(table), '--params', str(plain), '--model', 'augmented',
+                 '--out', str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "model 'augmented' is not in the file" in err and 'ideal_dd with no extension' in err
+    assert 'skidkin diagnose' in err and 'Traceback' not in err and not out.exists()
+    diagnosed = write_params_file(tmp_path / 'augmented.yaml', {**CALIBRATED, **DIAGNOSED})
+    assert main(['predict', str(table), '--params', str(diagnosed), '--model', 'augmented',
+                 '--out', str(out)]) == 0
+
+
+def test_n145_the_node_warns_at_start_and_refuses_at_runtime_an_augmented_it_lacks(
+        make_rig, tmp_path, capfd):
+    from rclpy.parameter import Parameter
+    rig = make_rig(params_file=write_params_file(tmp_path / 'p.yaml', CALIBRATED))
+    result = rig.node.set_parameters([Parameter('model', value='augmented')])[0]
+    assert not result.successful
+    assert "model 'augmented' is not in" in result.reason
+    assert 'augmented.base and augmented.extensions parameters first' in result.reason
+    assert rig.node.config.model == 'edd_symmetric'
+    results = rig.node.set_parameters([Parameter(name, value=value)
+                                       for name, value in DIAGNOSED.items()]
+                                      + [Parameter('model', value='augmented')])
+    assert all(r.successful for r in results), [r.reason for r in results]
+    assert rig.node.config.model == 'augmented'
+    capfd.readouterr()
+    make_rig(overrides={'model': 'augmented'},
+             params_file=write_params_file(tmp_path / 'q.yaml', CALIBRATED))
+    err = capfd.readouterr().err
+    assert "model 'augmented' runs its default parameters (an ideal drive)" in err
+    assert 'no augmented.base or augmented.extensions parameter was given' in err
+
+
+def test_n146_the_node_says_which_topics_its_gyro_and_online_calibration_read(
+        make_rig, tmp_path, capfd):
+    from rclpy.parameter import Parameter
+    params = write_params_file(tmp_path / 'p.yaml', CALIBRATED)
+    capfd.readouterr()
+    rig = make_rig(overrides={'online.enabled': True, 'imu.mode': 'fuse'}, params_file=params)
+    err = capfd.readouterr().err
+    # the resolved names: the rig runs in a namespace of its own
+    assert re.search(r'imu.mode fuse: the gyro is read from sensor_msgs/Imu on /\S*imu/data', err)
+    assert re.search(r'online calibration on: learning from nav_msgs/Odometry on '
+                     r'/\S*reference/odom', err)
+    results = rig.node.set_parameters([Parameter('online.enabled', value=False),
+                                       Parameter('imu.mode', value='off')])
+    assert all(r.successful for r in results), [r.reason for r in results]
+    err = capfd.readouterr().err
+    assert 'online calibration off' in err and 'imu.mode off' in err
+    make_rig(params_file=params)
+    err = capfd.readouterr().err
+    assert 'online calibration' not in err and 'imu.mode' not in err
