@@ -210,9 +210,10 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: flo
     Contenders: ``kiss``, ``before`` (unless ``before`` is False) and ``after_jN`` for every N
     of ``jobs_list``; each is run ``repeat`` times in turn and its median wall and CPU time
     kept; with ``old`` (a folder holding another version of skidkin_ros) also ``old_jN``, that
-    code run beside this one. ``identical_jN``: the CSV of ``--jobs N`` equals that of the first of ``jobs_list``
-    byte for byte; ``scaling``: wall of ``--jobs 1`` over ``--jobs N`` (when 1 is listed) and
-    the parallel efficiency, that speed-up over N.
+    code run beside this one. ``identical_jN``: the CSV of ``--jobs N`` equals that of the
+    first of ``jobs_list`` byte for byte (``identical_old_jN``: that of ``old_jN``);
+    ``scaling``: wall of ``--jobs 1`` over ``--jobs N`` (when 1 is listed) and the parallel
+    efficiency, that speed-up over N.
     """
     from skidkin_ros.adapters.sim_writer import write_bag
     from skidkin_ros.sim import simulate

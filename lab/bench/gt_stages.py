@@ -48,7 +48,6 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 import json
-import math
 from pathlib import Path
 import sys
 import tempfile
@@ -187,8 +186,8 @@ def kiss_pipeline(bag: Path, topic: str, threads: int) -> tuple[dict[str, float]
         clock.lap('decode')
         pts = kp._Vector3dVector(points)
         clock.lap('convert')
-        frame_v = kiss.preprocessor._preprocessor._preprocess(pts, timestamps.ravel(),
-                                                                kiss.last_delta)
+        frame_v = kiss.preprocessor._preprocessor._preprocess(
+            pts, timestamps.ravel(), kiss.last_delta)
         clock.lap('preprocess')
         down_v = kp._voxel_down_sample(frame_v, voxel * 0.5)
         source_v = kp._voxel_down_sample(down_v, voxel * 1.5)
@@ -213,6 +212,55 @@ def kiss_pipeline(bag: Path, topic: str, threads: int) -> tuple[dict[str, float]
     return clock.spent, len(dataset)
 
 
+def threads_ab(bag: Path, topic: str, rounds: int) -> dict[str, list[float]]:
+    """Wall and CPU s of kiss-icp's loop with 1 thread and with its default (every core).
+
+    Alternated ``rounds`` times (1, default, 1, default ...), so both see the same load.
+    """
+    out: dict[str, list[float]] = {'wall_1': [], 'cpu_1': [], 'wall_all': [], 'cpu_all': []}
+    for _ in range(rounds):
+        for threads, key in ((1, '1'), (0, 'all')):
+            wall, cpu = time.perf_counter(), time.process_time()
+            kiss_pipeline(bag, topic, threads)
+            out['wall_' + key].append(time.perf_counter() - wall)
+            out['cpu_' + key].append(time.process_time() - cpu)
+    return out
+
+
+_LOOP_CPU = """
+import sys, time
+from skidkin_ros.adapters.bag_reader import open_recording
+from skidkin_ros.adapters.lidar_gt import IcpConfig, register_frames
+import kiss_icp.kiss_icp, scipy.spatial
+with open_recording(sys.argv[1]) as rec:
+    tic = time.process_time()
+    register_frames(rec.iter_lidar('/points'), IcpConfig(voxel_size_m=float(sys.argv[2]),
+                                                         convergence=float(sys.argv[3])))
+    print(time.process_time() - tic)
+"""
+
+
+def loop_ab(bag: Path, config: Any, old: Path, rounds: int) -> dict[str, list[float]]:
+    """CPU s of ``register_frames`` (reading included) over the bag, this code and ``old``'s.
+
+    Each run is a fresh interpreter importing skidkin_ros from this checkout or from ``old``,
+    alternated ``rounds`` times.
+    """
+    import os
+    import subprocess
+
+    here = str(Path(__file__).resolve().parents[2])
+    out: dict[str, list[float]] = {'new': [], 'old': []}
+    for _ in range(rounds):
+        for key, root in (('old', str(old)), ('new', here)):
+            done = subprocess.run(
+                [sys.executable, '-c', _LOOP_CPU, str(bag), str(config.voxel_size_m),
+                 str(config.convergence)], env=dict(os.environ, PYTHONPATH=root),
+                capture_output=True, text=True, check=True)
+            out[key].append(float(done.stdout.strip()))
+    return out
+
+
 def conversions_cost(bag: Path, topic: str) -> dict[str, float]:
     """CPU s of the numpy <-> C++ conversions kiss-icp's Python wrapper does, per call kind."""
     from kiss_icp.pybind import kiss_icp_pybind as kp
@@ -223,13 +271,15 @@ def conversions_cost(bag: Path, topic: str) -> dict[str, float]:
     with open_recording(str(bag)) as rec:
         for frame in rec.iter_lidar(topic):
             clouds.append(np.ascontiguousarray(np.asarray(frame.xyz, dtype=np.float64)))
-    tic = time.process_time()
-    vectors = [kp._Vector3dVector(c) for c in clouds]
-    to_cpp = time.process_time() - tic
-    tic = time.process_time()
-    for v in vectors:
-        np.asarray(v)
-    to_np = time.process_time() - tic
+    to_cpp = to_np = 0.0
+    for cloud in clouds:
+        # one at a time, as in the loop (600 clouds alive at once would time the page faults)
+        tic = time.process_time()
+        vector = kp._Vector3dVector(cloud)
+        to_cpp += time.process_time() - tic
+        tic = time.process_time()
+        np.asarray(vector)
+        to_np += time.process_time() - tic
     return {'frames': len(clouds), 'points_per_frame': float(np.mean([len(c) for c in clouds])),
             'numpy_to_cpp_s': to_cpp, 'cpp_to_numpy_s': to_np}
 
@@ -260,6 +310,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--duration', type=float, default=60.0)
     parser.add_argument('--seed', type=int, default=5)
     parser.add_argument('--kiss-threads', type=int, default=1)
+    parser.add_argument('--threads-ab', type=int, default=0, metavar='R',
+                        help="also time kiss-icp's loop with 1 thread and with every core, "
+                        'alternated R times (wall and CPU)')
+    parser.add_argument('--old', type=Path, metavar='DIR',
+                        help='also time register_frames of the skidkin_ros in DIR against '
+                        "this checkout's, alternated --rounds times (fresh interpreters)")
+    parser.add_argument('--rounds', type=int, default=3)
     parser.add_argument('--variant', action='append', default=[], metavar='LABEL=K=V,...')
     parser.add_argument('--json', type=Path)
     args = parser.parse_args(argv)
@@ -294,6 +351,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         result['ours'] = spent
         result['frames'] = n_frames
         result['conversions'] = conversions_cost(bag, topic)
+        if args.old is not None:
+            result['loop_ab'] = loop_ab(bag, config, args.old, args.rounds)
+        if args.threads_ab:
+            result['threads_ab'] = threads_ab(bag, topic, args.threads_ab)
         result['ours_1s'] = accuracy(stamps, poses, sim, extrinsic)
         for text in args.variant:
             label, settings = _parse_variant(text)
