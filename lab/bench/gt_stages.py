@@ -39,8 +39,13 @@ Variants (``--variant LABEL=key=value,...``) register again with changed setting
 and report the 1 s increment error against the simulator's truth, so that a cheaper setting is
 seen with what it costs in accuracy:
 
+``--old DIR`` times the whole ``register_frames`` of another checkout (a ``git archive`` of an
+older commit) against this one in fresh interpreters, alternated ``--rounds`` times;
+``--threads-ab R`` times kiss-icp's loop with one thread and with every core, alternated:
+
     python lab/bench/gt_stages.py --scene courtyard --duration 60
-    python lab/bench/gt_stages.py --variant mpv5=max_points_per_voxel=5 --seed 13
+    python lab/bench/gt_stages.py --variant mpv10=max_points_per_voxel=10 --seed 13
+    python lab/bench/gt_stages.py --old /tmp/old --rounds 5 --threads-ab 3
 """
 
 from __future__ import annotations
