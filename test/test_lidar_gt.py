@@ -197,6 +197,41 @@ def test_se3_power_scales_a_motion_in_time():
     assert np.allclose(se3_power(motion, 2.0), motion @ motion)
 
 
+def test_the_quality_measure_is_the_same_with_the_cheaper_tree(short_drive):
+    """The unbalanced, uncompacted tree of the previous map points gives the same bits."""
+    from scipy.spatial import cKDTree
+
+    from skidkin_ros.adapters.lidar_quality import _world, registration_quality
+    from skidkin_ros.adapters.lidar_register import _TREE
+
+    sim, scans = short_drive
+    pose = np.eye(4)
+    pose[:2, :2] = [[math.cos(0.2), -math.sin(0.2)], [math.sin(0.2), math.cos(0.2)]]
+    pose[:3, 3] = (0.4, -0.3, 0.01)
+    measured = []
+    for previous, current in zip(scans[:-1:5], scans[1::5]):
+        world = _world(np.asarray(previous.xyz, dtype=float)[::3], pose)
+        source = np.asarray(current.xyz, dtype=float)[::7]
+        for tree in (cKDTree(world), cKDTree(world, **_TREE)):
+            measured.append(registration_quality(source, pose, tree, 0.5, 400))
+        assert measured[-1] == measured[-2]
+        assert 0.0 < measured[-1][0] <= 1.0
+    assert len(measured) >= 4
+
+
+def test_se3_power_is_one_logarithm_and_a_scaled_exponential():
+    """The loop takes one logarithm per frame for its two scaled motions: the same bits."""
+    from skidkin_ros.core.rigid import se3_exp_scaled, se3_log
+
+    motion = np.eye(4)
+    motion[:2, :2] = [[math.cos(0.1), -math.sin(0.1)], [math.sin(0.1), math.cos(0.1)]]
+    motion[:3, 3] = (0.12, 0.01, -0.003)
+    twist = se3_log(motion)
+    for fraction in (0.37, 1.0, 1.9):
+        assert se3_exp_scaled(*twist, fraction).tobytes() == se3_power(motion, fraction).tobytes()
+    assert np.allclose(se3_exp_scaled(*twist, 1.0), motion)
+
+
 def test_an_open_field_is_degenerate_and_flagged_by_icp_own_quality():
     sim = simulate(SimConfig(duration_s=4.0, seed=3, lidar=LidarConfig(azimuth_resolution_deg=1.0),
                              scene='forest'))

@@ -144,6 +144,11 @@ def _median_timed(command: Sequence[str], repeat: int, **kwargs: Any
     return float(np.median(walls)), float(np.median(cpus)), code, err
 
 
+def _old_env(old: Path) -> dict[str, str]:
+    """Return the environment that makes ``skidkin`` import the skidkin_ros under ``old``."""
+    return dict(os.environ, PYTHONPATH=str(old))
+
+
 def load_average() -> str:
     """Return the 1, 5 and 15 min load averages (others' work on a shared machine)."""
     return ' '.join(f'{x:.2f}' for x in os.getloadavg())
@@ -198,14 +203,17 @@ def _notes(stderr: str) -> dict[str, Any]:
 def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: float = 20.0,
               jobs_list: Sequence[int] = (2, 1), repeat: int = 1,
               before: bool = True,
-              variants: Sequence[tuple[str, Sequence[str]]] = ()) -> dict[str, Any]:
+              variants: Sequence[tuple[str, Sequence[str]]] = (),
+              old: Path | None = None) -> dict[str, Any]:
     """Simulate one scene, run every contender on its bag, score and time them.
 
     Contenders: ``kiss``, ``before`` (unless ``before`` is False) and ``after_jN`` for every N
     of ``jobs_list``; each is run ``repeat`` times in turn and its median wall and CPU time
-    kept. ``identical_jN``: the CSV of ``--jobs N`` equals that of the first of ``jobs_list``
-    byte for byte; ``scaling``: wall of ``--jobs 1`` over ``--jobs N`` (when 1 is listed) and
-    the parallel efficiency, that speed-up over N.
+    kept; with ``old`` (a folder holding another version of skidkin_ros) also ``old_jN``, that
+    code run beside this one. ``identical_jN``: the CSV of ``--jobs N`` equals that of the
+    first of ``jobs_list`` byte for byte (``identical_old_jN``: that of ``old_jN``);
+    ``scaling``: wall of ``--jobs 1`` over ``--jobs N`` (when 1 is listed) and the parallel
+    efficiency, that speed-up over N.
     """
     from skidkin_ros.adapters.sim_writer import write_bag
     from skidkin_ros.sim import simulate
@@ -228,11 +236,14 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: flo
     runs += [(f'after_j{n}', ['--jobs', str(n), *chunks]) for n in jobs_list]
     runs += [(f'after_j{jobs_list[0]}_{label}', ['--jobs', str(jobs_list[0]), *chunks, *extra])
              for label, extra in variants]
+    if old is not None:
+        runs += [(f'old_j{n}', ['--jobs', str(n), *chunks]) for n in jobs_list]
     for name, extra in runs:
         out = work / f'{scene}_{name}.csv'
         seconds, cpu_s, code, err = _median_timed(
             [_tool('skidkin'), 'groundtruth', str(bag), '--out', str(out), '--force',
-             '--no-cache', '--no-progress', *extra], repeat)
+             '--no-cache', '--no-progress', *extra], repeat,
+            env=_old_env(old) if name.startswith('old_') else None)
         if code != 0:
             result[name] = {'error': f'exited {code}: {err[-800:]}'}
             continue
@@ -245,6 +256,10 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: flo
         other = work / f'{scene}_after_j{n}.csv'
         if first.is_file() and other.is_file():
             result[f'identical_j{n}'] = first.read_bytes() == other.read_bytes()
+    for n in jobs_list:
+        mine, theirs = work / f'{scene}_after_j{n}.csv', work / f'{scene}_old_j{n}.csv'
+        if mine.is_file() and theirs.is_file():
+            result[f'identical_old_j{n}'] = mine.read_bytes() == theirs.read_bytes()
     one = result.get('after_j1')
     if one and 'seconds' in one:
         for n in jobs_list:
@@ -266,7 +281,7 @@ def table(results: Sequence[dict[str, Any]]) -> str:
              '| seams cut/tested | path 1 s / true | 1 s cm / mrad | check |',
              '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for res in results:
-        names = ['kiss'] + [k for k in res if k == 'before' or k.startswith('after_j')]
+        names = ['kiss'] + [k for k in res if k == 'before' or k.startswith(('after_j', 'old_j'))]
         for name in names:
             row = res.get(name)
             if not row or 'error' in row:
@@ -304,6 +319,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--variant', action='append', default=[], metavar='LABEL=ARGS',
                         help='one more contender: the first of --jobs-list with these extra '
                         'groundtruth arguments, e.g. stride2="--stride 2" (repeatable)')
+    parser.add_argument('--old', type=Path, metavar='DIR',
+                        help='also run the skidkin_ros found in DIR (e.g. /work/main, or a '
+                        '`git archive` of an older commit) with every --jobs-list N, as old_jN')
     parser.add_argument('--json', type=Path, help='also write the results here')
     args = parser.parse_args(argv)
     variants = []
@@ -321,7 +339,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f'  {scene}: {args.duration:g} s', flush=True)
             results.append(run_scene(scene, args.duration, args.seed, Path(tmp), args.chunk_s,
                                      args.jobs_list, args.repeat, not args.no_before,
-                                     variants))
+                                     variants, args.old))
     print(table(results))
     print(json.dumps(results, indent=1, default=float))
     if args.json:

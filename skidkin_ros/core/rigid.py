@@ -14,7 +14,8 @@ import math
 
 import numpy as np
 
-__all__ = ['change_frame', 'planar_pose', 'planar_poses', 'se3_power']
+__all__ = ['change_frame', 'planar_pose', 'planar_poses', 'se3_exp_scaled', 'se3_log',
+           'se3_power']
 
 
 def change_frame(transform: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -61,14 +62,24 @@ def _left_jacobian(w: np.ndarray) -> np.ndarray:
             + (theta - math.sin(theta)) / theta ** 3 * k @ k)
 
 
-def se3_power(transform: np.ndarray, fraction: float) -> np.ndarray:
-    """Return exp(fraction log(T)) of a rigid 4x4 transform: the same motion, scaled in time."""
+def se3_log(transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (rho, rotvec) of a rigid 4x4 transform: its twist, exp([rho, rotvec]) = T."""
     from scipy.spatial.transform import Rotation
 
     rotvec = Rotation.from_matrix(transform[:3, :3]).as_rotvec()
     rho = np.linalg.solve(_left_jacobian(rotvec), transform[:3, 3])
+    return rho, rotvec
+
+
+def se3_exp_scaled(rho: np.ndarray, rotvec: np.ndarray, fraction: float) -> np.ndarray:
+    """Return exp(fraction [rho, rotvec]) as a rigid 4x4 transform."""
     scaled = fraction * rotvec
     out = np.eye(4)
     out[:3, :3] = _so3_exp(scaled)
     out[:3, 3] = _left_jacobian(scaled) @ (fraction * rho)
     return out
+
+
+def se3_power(transform: np.ndarray, fraction: float) -> np.ndarray:
+    """Return exp(fraction log(T)) of a rigid 4x4 transform: the same motion, scaled in time."""
+    return se3_exp_scaled(*se3_log(transform), fraction)
