@@ -102,7 +102,7 @@ def test_alternating_grounds_with_an_augmented_model_beat_the_fixed_file():
 
 
 @pytest.mark.parametrize('extensions', ['first_order_lag', 'speed_slip,time_offset',
-                                        'residual_model', 'terrain_regime'])
+                                        'terrain_regime'])
 def test_extensions_that_need_state_or_rates_are_refused_with_the_reason(extensions):
     with pytest.raises(ConfigError, match='cannot be learned online') as info:
         OdometryConfig.from_flat({**AUGMENTED, 'augmented.extensions': extensions,
@@ -181,3 +181,123 @@ def test_the_parameter_uncertainty_is_the_central_difference_on_floats(slip_driv
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
         assert np.any(a != 0.0) == (wheels != (0.0, 0.0))
     assert fast.twist_jacobian(0.0, 0.0, 0.0, None) is None
+
+
+def _central_difference_residuals(self, ground, segments):
+    """The segment residuals with the Jacobian by central differences (the reference form)."""
+    from skidkin_ros.core.calibration.fitting import predict_end_poses, segment_errors
+    from skidkin_ros.core.calibration.segments import segment_frame_error
+    from skidkin_ros.core.online.window import _stack
+    batch = _stack(segments)
+    k = ground.k
+    errors = segment_errors(self.model, k, self.geometry, batch)
+    sens = np.zeros((len(batch), 3, k.size))
+    for j in range(k.size):
+        step = 1e-6 * max(abs(float(k[j])), 1.0)
+        plus, minus = k.copy(), k.copy()
+        plus[j] += step
+        minus[j] -= step
+        sens[:, :, j] = segment_frame_error(
+            batch.start, predict_end_poses(self.model, plus, self.geometry, batch),
+            predict_end_poses(self.model, minus, self.geometry, batch)) / (2.0 * step)
+    return errors, sens * self.scale
+
+
+def test_online_learning_takes_the_exact_segment_jacobian_and_learns_what_differences_did(
+        monkeypatch):
+    """The exact (forward-mode) segment Jacobian, against central differences, and a drive.
+
+    Central differences of step h = 1e-6 max(|k|, 1) err by about eps / h (1e-10) of the end
+    pose; the window's Gauss-Newton steps multiply that by the information's condition (in
+    scaled units, 1e2-1e4): the learned values agree to 1e-6, the decisions (segments,
+    changes) exactly.
+    """
+    from skidkin_ros.core.online.augmented import AugmentedCalibrator
+    sim = simulate(SimConfig(duration_s=60.0, seed=8, effects=(
+        make_effect('speed_slip', SPEED_SLIP), make_effect('ratio_yaw_slip', 0.3),
+        make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.5, yaw=YAW_SLIP))))
+    flat = {**AUGMENTED, 'augmented.extensions': 'speed_slip,lateral_skid,ratio_yaw_slip',
+            'augmented.lateral_skid.k': 0.02, 'augmented.ratio_yaw_slip.k': 0.2,
+            'online.enabled': True}
+    runs = {}
+    for name in ('exact', 'differences'):
+        if name == 'differences':
+            monkeypatch.setattr(AugmentedCalibrator, '_residuals',
+                                _central_difference_residuals)
+        odometer = online_odometer(OdometryConfig.from_flat(flat))
+        prediction = odometer.predict(sim.wheels, reference=_reference(sim))
+        learner = odometer.learner
+        window = [item[0] for item in learner.active.window]
+        runs[name] = (learner.k.copy(), learner.covariance, prediction.poses,
+                      dict(odometer.counters))
+    exact, differences = runs['exact'], runs['differences']
+    assert exact[3]['online_segments'] >= 10 and exact[3]['online_change'] >= 1
+    assert exact[3] == differences[3]
+    np.testing.assert_allclose(exact[0], differences[0], rtol=1e-6)
+    np.testing.assert_allclose(exact[1], differences[1], rtol=1e-5,
+                               atol=1e-6 * np.abs(differences[1]).max())
+    np.testing.assert_allclose(exact[2], differences[2], rtol=0, atol=1e-6)
+    # at the same parameters and segments, the two Jacobians themselves
+    monkeypatch.undo()
+    errors, sens = learner._residuals(learner.active, window)
+    assert len(window) >= 4 and sens.shape[2] == 9 and np.all(np.isfinite(sens))
+    reference = _central_difference_residuals(learner, learner.active, window)[1]
+    np.testing.assert_allclose(sens, reference, rtol=1e-5, atol=1e-7 * np.abs(reference).max())
+
+
+RESIDUAL = {**PLAIN, 'model': 'augmented', 'augmented.base': 'edd_asymmetric',
+            'augmented.extensions': 'residual_model'}
+
+
+def _residual_file(k=SPEED_SLIP, span=3.0):
+    """A level-2 residual model equal to speed_slip of strength k (v_x += C (v/span)|v/span|)."""
+    values = {f'augmented.residual_model.{name}_{side}': sign * span
+              for name in ('v', 'w', 'dv', 'dw') for side, sign in (('lo', -1.0), ('hi', 1.0))}
+    values.update({'augmented.residual_model.level': 2.0,
+                   'augmented.residual_model.vx_v_abs_v': -k * span ** 2})
+    return {**RESIDUAL, **values}
+
+
+def test_a_residual_model_learns_its_gains_with_its_coefficients_held(slip_drive):
+    """The slip grows by 1 / (1 - SLIP) against the base twist on the new ground: gain_vx."""
+    sim = slip_drive
+    flat = _residual_file()
+    eps = {}
+    for name, online in (('fixed', False), ('online', True)):
+        odometer = online_odometer(OdometryConfig.from_flat({**flat, 'online.enabled': online}))
+        prediction = odometer.predict(sim.wheels, reference=_reference(sim) if online else None)
+        assert np.all(np.isfinite(prediction.poses))
+        eps[name] = _eps_t(sim, prediction.poses)
+    learner = odometer.learner
+    assert learner.model.param_names[5:] == ('residual_model.gain_vx', 'residual_model.gain_vy',
+                                             'residual_model.gain_wz')
+    values = learner.values
+    assert values['residual_model.gain_vx'] == pytest.approx(1.0 / (1.0 - SLIP), rel=0.2)
+    # no correction on v_y or the yaw rate: nothing observes those gains, they keep 1
+    assert values['residual_model.gain_vy'] == values['residual_model.gain_wz'] == 1.0
+    held = learner.bound_model().extension_values()['residual_model']
+    for name, value in flat.items():
+        if name.startswith('augmented.residual_model.'):
+            assert held[name.rsplit('.', 1)[1]] == value
+    assert eps['online'] < 0.5 * eps['fixed']
+
+
+def test_a_residual_model_with_rate_terms_is_refused_with_the_reason():
+    flat = {**_residual_file(), 'augmented.residual_model.level': 3.0,
+            'augmented.residual_model.vx_dv': 0.1, 'online.enabled': True}
+    with pytest.raises(ConfigError, match='rate terms') as info:
+        OdometryConfig.from_flat(flat)
+    assert 'vx_dv' in str(info.value) and '50 ms blocks' in str(info.value)
+    # the same coefficient above the model's level is not a term of it: accepted
+    OdometryConfig.from_flat({**flat, 'augmented.residual_model.level': 2.0})
+
+
+def test_save_writes_a_residual_model_file_with_the_learned_gains(tmp_path, slip_drive):
+    config = OdometryConfig.from_flat({**_residual_file(), 'online.enabled': True})
+    odometer = online_odometer(config)
+    odometer.predict(slip_drive.wheels, reference=_reference(slip_drive))
+    path = save_learned(config, odometer.learner, tmp_path / 'learned.yaml')
+    loaded = OdometryConfig.from_file(path)
+    saved = loaded.augmented_values['residual_model']
+    assert saved['gain_vx'] == odometer.learner.values['residual_model.gain_vx'] != 1.0
+    assert saved['vx_v_abs_v'] == -SPEED_SLIP * 9.0 and saved['level'] == 2.0

@@ -20,6 +20,14 @@ Scores: ε_t and ε_θ over the whole drive (mean increment error over 2 m of tr
 
 ``--effect ratio_yaw_slip``: the truth loses up to 40 % of its yaw rate at a slow/fast wheel
 speed ratio near 0.5 instead (the model edd_asymmetric + ratio_yaw_slip).
+
+``--effect residual_model``: the truth of the speed_slip case, modelled by a residual-model file
+instead of the named extension: one coefficient (the term v|v| of the forward speed) that
+reproduces the calibration ground's slip exactly (``residual_file``; level 2, input ranges
++-3 m/s and +-3 rad/s, fixed before any drive was run), the gains 1. On the new ground the slip
+relative to the base twist is 1 / (1 - SLIP) times stronger: the residual effect changes
+strength mid-drive, and online learning of the residual model's gains (its coefficients held)
+should take gain_vx to 1 / (1 - SLIP) = 1.333. "fixed augmented" is then that file as it is.
 """
 
 from __future__ import annotations
@@ -46,7 +54,29 @@ SLIP, YAW_SLIP = 0.25, 0.15
 # ratio_yaw_slip (the simulator's peak 0.5 and width 0.15 are the extension's defaults):
 # omega = (1 - YAW_SLIP) omega0 (1 - k bump) = omega1 (1 - k bump), the same k.
 EFFECTS = {'speed_slip': (SPEED_SLIP, SPEED_SLIP / (1.0 - SLIP)),
-           'ratio_yaw_slip': (0.4, 0.4)}
+           'ratio_yaw_slip': (0.4, 0.4),
+           # the truth's speed slip, as the residual model's gain_vx (1 on the calibration ground)
+           'residual_model': (1.0, 1.0 / (1.0 - SLIP))}
+# The truth's effect and the named extension whose true values give the floor ('true').
+TRUTH = {'speed_slip': 'speed_slip', 'ratio_yaw_slip': 'ratio_yaw_slip',
+         'residual_model': 'speed_slip'}
+# The learned value shown in the table.
+LEARNED = {'speed_slip': 'speed_slip.k', 'ratio_yaw_slip': 'ratio_yaw_slip.k',
+           'residual_model': 'residual_model.gain_vx'}
+# Input ranges of the residual-model file (m/s, rad/s; the rates: unused at level 2).
+RESIDUAL_RANGE = 3.0
+
+
+def residual_file(k: float = SPEED_SLIP) -> dict[str, float]:
+    """Return a residual model (level 2) equal to speed_slip of strength k within its range.
+
+    The correction of v_x is C p|p| with p = v / RESIDUAL_RANGE (clamped, scaled), so C = -k
+    RESIDUAL_RANGE^2 gives -k v|v|, speed_slip's change, wherever k |v| stays below its cap.
+    """
+    values = {f'{name}_{side}': sign * RESIDUAL_RANGE for name in ('v', 'w', 'dv', 'dw')
+              for side, sign in (('lo', -1.0), ('hi', 1.0))}
+    values.update({'level': 2.0, 'vx_v_abs_v': -k * RESIDUAL_RANGE ** 2})
+    return values
 MODEL = 'edd_asymmetric'
 ODOMETRIES = ('fixed augmented', 'online plain', 'online augmented', 'true')
 
@@ -57,8 +87,12 @@ def _flat(model: str, online: bool, effect: str = 'speed_slip') -> dict:
             **{f'models.{MODEL}.{name}': v for name, v in values.items()},
             'online.enabled': online}
     if model == 'augmented':
-        flat.update({'augmented.base': MODEL, 'augmented.extensions': effect,
-                     f'augmented.{effect}.k': EFFECTS[effect][0]})
+        flat.update({'augmented.base': MODEL, 'augmented.extensions': effect})
+        if effect == 'residual_model':
+            flat.update({f'augmented.{effect}.{name}': value
+                         for name, value in residual_file().items()})
+        else:
+            flat[f'augmented.{effect}.k'] = EFFECTS[effect][0]
     return flat
 
 
@@ -74,6 +108,7 @@ def _new_ground(effect: str = 'speed_slip') -> tuple[dict, float]:
 
 def _true_poses(sim: Simulation, interval: str, effect: str) -> np.ndarray:
     geometry = sim.config.geometry
+    effect = TRUTH[effect]
     structure = AugmentedModel(MODEL, (effect,))
     new_values, new_k = _new_ground(effect)
     sources = [structure.bind(get_model(MODEL).bind(values, geometry), {effect: {'k': k}})
@@ -97,7 +132,8 @@ class AugmentedResult:
 def run_seed(seed: int, duration_s: float = 200.0, effect: str = 'speed_slip'
              ) -> AugmentedResult:
     """Run the four odometries on one drive (module docstring)."""
-    effects = (make_effect(effect, EFFECTS[effect][0]),
+    truth = TRUTH[effect]
+    effects = (make_effect(truth, EFFECTS[truth][0]),
                make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.5, yaw=YAW_SLIP))
     sim = simulate(SimConfig(duration_s=duration_s, seed=seed, effects=effects))
     reference = _reference(sim, np.random.default_rng(seed))
@@ -122,7 +158,7 @@ def table(results: Sequence[AugmentedResult]) -> str:
     """Return the study's table: ε_t (mm/m... as metres per 2 m) and ε_θ per odometry."""
     head = ('| effect | seed | path m | ' + ' | '.join(f'ε_t {n}' for n in ODOMETRIES)
             + ' | online aug / online plain | online aug / fixed aug | ε_θ online aug / plain |'
-              ' k learned (true new ground) |')
+              ' learned k or gain (true new ground) |')
     lines = [head, '|' + '---|' * (head.count('|') - 1)]
     for r in results:
         e = r.eps_t
@@ -133,5 +169,5 @@ def table(results: Sequence[AugmentedResult]) -> str:
             + f' | {e["online augmented"] / e["online plain"]:.2f}'
             f' | {e["online augmented"] / e["fixed augmented"]:.2f}'
             f' | {r.eps_th["online augmented"] / r.eps_th["online plain"]:.2f}'
-            f' | {r.learned["online augmented"][f"{r.effect}.k"]:.3f} ({new_k:.3f}) |')
+            f' | {r.learned["online augmented"][LEARNED[r.effect]]:.3f} ({new_k:.3f}) |')
     return '\n'.join(lines)

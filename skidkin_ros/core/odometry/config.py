@@ -31,7 +31,8 @@ from skidkin_ros.core.odometry.noise import NOISE_SPECS, NoiseModel
 from skidkin_ros.core.odometry.params_file import (flatten, MAX_PARAMS_FILE_BYTES,  # noqa: F401
                                                    nest, params_document, parse_params_text,
                                                    read_params_document, read_params_file)
-from skidkin_ros.core.odometry.reference import ONLINE_EXTENSIONS, OnlineParams
+from skidkin_ros.core.odometry.reference import (ONLINE_EXTENSIONS, OnlineParams,
+                                                 residual_rate_terms)
 from skidkin_ros.core.odometry.residual_uncertainty import (coefficient_count, RESIDUAL_EXTENSION,
                                                             ResidualUncertainty)
 from skidkin_ros.core.odometry.schema import (DEFAULT_LEFT_JOINTS,  # noqa: F401
@@ -425,6 +426,18 @@ def _check_online(values: Mapping[str, Any]) -> None:
                 'state carried between segments); online calibration learns augmented models '
                 f'built from {list(ONLINE_EXTENSIONS)}: drop the others, run the base model '
                 f'(model: {values["augmented.base"]}) or turn online.enabled off')
+        prefix = f'augmented.{RESIDUAL_EXTENSION}.'
+        rate_terms = (residual_rate_terms({key[len(prefix):]: value for key, value in
+                                           values.items() if key.startswith(prefix)})
+                      if RESIDUAL_EXTENSION in parse_extensions(values['augmented.extensions'])
+                      else [])
+        if rate_terms:
+            raise ConfigError(
+                f'online.enabled: the residual model uses rate terms {rate_terms[:4]}: online '
+                'calibration learns its gains from learning segments whose wheel steps are '
+                'merged into 50 ms blocks from rest, which carry no rate of the base twist; a '
+                'residual model without rate terms (level below 3, or those coefficients 0) '
+                'can be learned online, or turn online.enabled off')
         # every online extension has a fitted parameter: only a bare base can have none
         model = ('' if parse_extensions(values['augmented.extensions'])
                  else values['augmented.base'])

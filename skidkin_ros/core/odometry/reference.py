@@ -26,13 +26,16 @@ from typing import Any, Mapping
 from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 from skidkin_ros.core.timeunits import s_to_ns
 
-__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'OnlineParams', 'ReferenceStatus', 'base_pose']
+__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'residual_rate_terms', 'OnlineParams', 'ReferenceStatus', 'base_pose']
 
 # Extensions of an augmented model that online calibration learns (with the base model's
 # parameters): twist-stage ones that depend on the wheel speeds and the base twist only
-# (skidkin_ros.core.online.augmented says why the others are refused).
+# (skidkin_ros.core.online.augmented says why the others are refused). The residual model
+# learns its gains only (its coefficients held) and only without rate terms (below).
 ONLINE_EXTENSIONS: tuple[str, ...] = ('speed_slip', 'direction_asymmetry', 'lateral_skid',
-                                      'icr_offset', 'ratio_yaw_slip')
+                                      'icr_offset', 'ratio_yaw_slip', 'residual_model')
+# The residual model's inputs that are rates of the base twist (a learning segment has none).
+RATE_INPUTS = ('dv', 'dw')
 
 ONLINE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('time_offset', 's', 0.0, -1.0, 1.0,
@@ -185,3 +188,21 @@ def base_pose(x: float, y: float, yaw: float,
     c, s = math.cos(yaw_b), math.sin(yaw_b)
     return (x - (c * params.mount_x - s * params.mount_y),
             y - (s * params.mount_x + c * params.mount_y), yaw_b)
+
+
+def residual_rate_terms(values: Mapping[str, float]) -> list[str]:
+    """Return the residual model's non-zero coefficients on a rate term (dv, dw), by name.
+
+    ``values``: the residual model's parameters by name (``vx_dv``, ..., ``level``); a term
+    above the model's level counts as zero, as the model has it.
+    """
+    from skidkin_ros.core.kinematics import residual
+    level = float(values.get('level', 0.0))
+    used = []
+    for out, _ in residual.OUTPUTS:
+        for term, term_level, _, _ in residual.TERMS:
+            name = f'{out}_{term}'
+            if (residual.TERM_INPUTS[term] in RATE_INPUTS and term_level <= level
+                    and float(values.get(name, 0.0)) != 0.0):
+                used.append(name)
+    return used

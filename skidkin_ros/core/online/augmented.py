@@ -7,9 +7,12 @@ width keeps its value). Online, the same layout is wrapped as a kinematic model
 (:class:`LayoutModel`) whose twist is the bound augmented model's
 (:meth:`BoundAugmented.twist`), so the calibrator's own functions score it:
 :func:`~skidkin_ros.core.calibration.fitting.segment_errors` rolls a segment out through the
-augmented twist, the Jacobian is the central difference of
-:func:`~skidkin_ros.core.calibration.fitting.predict_end_poses` (the step
-:func:`~skidkin_ros.core.calibration.noise_fit.parameter_sensitivity` takes), the noise weighting
+augmented twist and :func:`~skidkin_ros.core.calibration.fitting.segment_errors_jacobian` gives
+its exact derivatives, from the layout model's exact twist gradient
+(:meth:`LayoutModel.twist_gradient`: the diagnosis's forward-mode tangents,
+:func:`~skidkin_ros.core.kinematics.augmented_tangents.interval_tangents`, built on each
+extension's :meth:`~skidkin_ros.core.kinematics.extensions.Extension.partials`; one home for
+the derivative of an augmented twist, offline and online), the noise weighting
 is the base model's noise (an augmented model publishes its base model's noise), and the window,
 the eigen-direction rule, the change detection and the reference gates are the plain model's
 (:class:`~skidkin_ros.core.online.calibrator.OnlineCalibrator`, unchanged; the two places
@@ -33,11 +36,12 @@ from typing import Mapping
 import numpy as np
 
 from skidkin_ros.core.calibration.engine import BASE, ParameterLayout
-from skidkin_ros.core.calibration.fitting import predict_end_poses, segment_errors
+from skidkin_ros.core.calibration.fitting import segment_errors, segment_errors_jacobian
 from skidkin_ros.core.calibration.noise_fit import (mahalanobis, segment_covariances,
                                                     segment_motion, SegmentMotion)
-from skidkin_ros.core.calibration.segments import segment_frame_error, SegmentSet
+from skidkin_ros.core.calibration.segments import SegmentSet
 from skidkin_ros.core.kinematics.augmented import BoundAugmented
+from skidkin_ros.core.kinematics.augmented_tangents import interval_tangents
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel, get_model, KinematicModel
 from skidkin_ros.core.kinematics.specs import Geometry
@@ -92,6 +96,27 @@ class LayoutModel(KinematicModel):
     def twist(self, k: np.ndarray, geometry: Geometry, omega_l, omega_r) -> np.ndarray:
         return np.asarray(self.source(k).twist(omega_l, omega_r), dtype=float)
 
+    def twist_gradient(self, k: np.ndarray, geometry: Geometry, omega_l: np.ndarray,
+                       omega_r: np.ndarray) -> np.ndarray:
+        """Return d twist / d k (..., 3, p), exact: :func:`interval_tangents` of the twist.
+
+        :meth:`twist` is the bound model's memoryless twist at the drive start (rate 0, no
+        lag state), so the tangents are those of one-sample intervals at t = 0 with a zero
+        step: the base model's gradient carried through each extension's partials, the
+        diagnosis's own forward mode.
+        """
+        omega_l = np.asarray(omega_l, dtype=float)
+        omega_r = np.asarray(omega_r, dtype=float)
+        shape = np.broadcast_shapes(omega_l.shape, omega_r.shape)
+        rows = (1, -1) if len(shape) != 2 else shape
+        left = np.broadcast_to(omega_l, shape).reshape(rows)
+        right = np.broadcast_to(omega_r, shape).reshape(rows)
+        still = np.zeros(left.shape)
+        # the tangents may live in the work arrays of base_tangents: stacked into a new array
+        _, tangents = interval_tangents(self.source(k), still.astype(np.int64), left, right,
+                                        still, still.astype(bool), self.layout.free)
+        return np.moveaxis(np.stack(tangents), (0, 1), (-2, -1)).reshape(shape + (3, -1))
+
     def file_values(self, k: np.ndarray) -> dict[str, float]:
         """Return the flat parameters-file entries of ``k`` (models.<base>.*, augmented.*)."""
         base_values, ext_values = self.layout.values(np.asarray(k, dtype=float))
@@ -117,18 +142,10 @@ class AugmentedCalibrator(OnlineCalibrator):
     def _residuals(self, ground: Ground, segments: list[SegmentSet]
                    ) -> tuple[np.ndarray, np.ndarray]:
         batch = _stack(segments)
-        k = ground.k
-        errors = segment_errors(self.model, k, self.geometry, batch)
-        sens = np.zeros((len(batch), 3, k.size))
-        for j in range(k.size):
-            step = REL_STEP * max(abs(float(k[j])), 1.0)
-            plus, minus = k.copy(), k.copy()
-            plus[j] += step
-            minus[j] -= step
-            sens[:, :, j] = segment_frame_error(
-                batch.start, predict_end_poses(self.model, plus, self.geometry, batch),
-                predict_end_poses(self.model, minus, self.geometry, batch)) / (2.0 * step)
-        return errors, sens * self.scale
+        errors = segment_errors(self.model, ground.k, self.geometry, batch)
+        # the sensitivity is d (predicted end pose) / dk: minus that of the error (true - pred)
+        sens = segment_errors_jacobian(self.model, ground.k, self.geometry, batch)
+        return errors, sens * -self.scale
 
     def _score(self, ground: Ground, seg: SegmentSet, motion_cov: np.ndarray,
                with_parameters: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
