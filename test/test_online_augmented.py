@@ -184,7 +184,7 @@ def test_the_parameter_uncertainty_is_the_central_difference_on_floats(slip_driv
 
 
 def _central_difference_residuals(self, ground, segments):
-    """The segment residuals with the Jacobian by central differences (the reference form)."""
+    """Return the segment residuals, the Jacobian by central differences (the reference)."""
     from skidkin_ros.core.calibration.fitting import predict_end_poses, segment_errors
     from skidkin_ros.core.calibration.segments import segment_frame_error
     from skidkin_ros.core.online.window import _stack
@@ -250,7 +250,7 @@ RESIDUAL = {**PLAIN, 'model': 'augmented', 'augmented.base': 'edd_asymmetric',
 
 
 def _residual_file(k=SPEED_SLIP, span=3.0):
-    """A level-2 residual model equal to speed_slip of strength k (v_x += C (v/span)|v/span|)."""
+    """Return a level-2 residual model equal to speed_slip of strength k (C (v/span)|v/span|)."""
     values = {f'augmented.residual_model.{name}_{side}': sign * span
               for name in ('v', 'w', 'dv', 'dw') for side, sign in (('lo', -1.0), ('hi', 1.0))}
     values.update({'augmented.residual_model.level': 2.0,
@@ -282,14 +282,16 @@ def test_a_residual_model_learns_its_gains_with_its_coefficients_held(slip_drive
     assert eps['online'] < 0.5 * eps['fixed']
 
 
-def test_a_residual_model_with_rate_terms_is_refused_with_the_reason():
+def test_a_residual_model_with_rate_terms_on_a_nonlinear_base_is_refused_with_the_reason():
     flat = {**_residual_file(), 'augmented.residual_model.level': 3.0,
             'augmented.residual_model.vx_dv': 0.1, 'online.enabled': True}
+    OdometryConfig.from_flat(flat)   # edd_asymmetric: the rate follows the wheels' exactly
     with pytest.raises(ConfigError, match='rate terms') as info:
-        OdometryConfig.from_flat(flat)
-    assert 'vx_dv' in str(info.value) and '50 ms blocks' in str(info.value)
+        OdometryConfig.from_flat({**flat, 'augmented.base': 'roc'})
+    assert 'vx_dv' in str(info.value) and 'not linear in the wheel speeds' in str(info.value)
     # the same coefficient above the model's level is not a term of it: accepted
-    OdometryConfig.from_flat({**flat, 'augmented.residual_model.level': 2.0})
+    OdometryConfig.from_flat({**flat, 'augmented.base': 'roc',
+                              'augmented.residual_model.level': 2.0})
 
 
 def test_save_writes_a_residual_model_file_with_the_learned_gains(tmp_path, slip_drive):
@@ -301,3 +303,51 @@ def test_save_writes_a_residual_model_file_with_the_learned_gains(tmp_path, slip
     saved = loaded.augmented_values['residual_model']
     assert saved['gain_vx'] == odometer.learner.values['residual_model.gain_vx'] != 1.0
     assert saved['vx_v_abs_v'] == -SPEED_SLIP * 9.0 and saved['level'] == 2.0
+
+
+def _rate_file():
+    """Return the speed-slip residual file plus a rate term (v_x loses 0.05 dv while speeding up)."""
+    flat = _residual_file()
+    flat.update({'augmented.residual_model.level': 3.0,
+                 'augmented.residual_model.vx_dv_up': -0.05 * 3.0})
+    return flat
+
+
+@pytest.mark.parametrize('interval', ['ending', 'starting', 'midpoint'])
+def test_a_rate_term_segment_rolls_out_as_the_node_integrates(interval):
+    """A paired segment's predicted end pose is the odometry's own over the same steps."""
+    from skidkin_ros.core.calibration.fitting import predict_end_poses
+    from skidkin_ros.core.online.gates import _Ref
+    sim = simulate(SimConfig(duration_s=20.0, seed=2, wheel_rate_hz=200.0))
+    flat = {**_rate_file(), 'interval': interval, 'online.enabled': True}
+    odometer = online_odometer(OdometryConfig.from_flat(flat))
+    learner = odometer.learner
+    learner._trim_old = lambda: None   # keep every wheel step (no reference asks for them)
+    prediction = odometer.predict(sim.wheels)   # no reference: nothing learned, k fixed
+    assert learner.model.paired and len(learner._steps) == len(sim.wheels) - 1
+    t, poses = sim.wheels.t_ns, prediction.poses
+    for i, j in ((200, 900), (1500, 2300), (3000, 3999)):
+        a = _Ref(int(t[i]), *poses[i], 0.0)
+        b = _Ref(int(t[j]), *poses[j], 1.0)
+        seg = learner._segment(a, b)
+        assert seg.step_counts[0] == 2 * (j - i)
+        end = predict_end_poses(learner.model, learner.k, learner.geometry, seg)[0]
+        np.testing.assert_allclose(end, poses[j], rtol=0, atol=1e-9)
+    # the rate term is in it: zeroing the ghost columns' rate moves the end pose
+    flat_no_rate = {**flat, 'augmented.residual_model.vx_dv_up': 0.0}
+    other = online_odometer(OdometryConfig.from_flat(flat_no_rate)).predict(sim.wheels).poses
+    assert np.abs(other[3999, :2] - poses[3999, :2]).max() > 1e-4
+
+
+def test_a_residual_model_with_a_rate_term_learns_its_gains(slip_drive):
+    sim = slip_drive
+    flat = _rate_file()
+    eps = {}
+    for name, online in (('fixed', False), ('online', True)):
+        odometer = online_odometer(OdometryConfig.from_flat({**flat, 'online.enabled': online}))
+        prediction = odometer.predict(sim.wheels, reference=_reference(sim) if online else None)
+        eps[name] = _eps_t(sim, prediction.poses)
+    values = odometer.learner.values
+    assert odometer.learner.model.paired and odometer.counters['online_segments'] >= 20
+    assert values['residual_model.gain_vx'] == pytest.approx(1.0 / (1.0 - SLIP), rel=0.2)
+    assert eps['online'] < 0.5 * eps['fixed']

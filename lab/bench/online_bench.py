@@ -137,7 +137,7 @@ def _old_residuals(checkout: str):
 
 @contextlib.contextmanager
 def _residuals(function):
-    """Learn with ``function`` as AugmentedCalibrator._residuals (None: this checkout's)."""
+    """Learn with ``function`` as the augmented learner's residuals (None: this checkout's)."""
     from skidkin_ros.core.online.augmented import AugmentedCalibrator
     saved = AugmentedCalibrator._residuals
     if function is not None:
@@ -197,20 +197,24 @@ def _augmented(args) -> None:
           f'{out["on new"][0].get("online_segments", 0)} segments; medians of {args.repeats} '
           'turns, process CPU:')
     print('  us per wheel sample: ' + ', '.join(f'{k} {v:.2f}' for k, v in cost.items()))
+    off = np.array(runs['off'])
     for key in keys[1:]:
-        learning = (np.array(runs[key]) - np.array(runs['off'])) / poses * 1e6
-        print(f'  {key}: learning us per reference pose (on - off): '
-              f'{float(np.median(learning)):.0f}; on/off {float(np.median(np.divide(runs[key], runs["off"]))):.3f}')
+        learning = (np.array(runs[key]) - off) / poses * 1e6
+        ratio = float(np.median(np.array(runs[key]) / off))
+        print(f'  {key}: online us per reference pose (on - off): '
+              f'{float(np.median(learning)):.0f}; on/off {ratio:.3f}')
     if old is not None:
+        new_on, old_on = np.array(runs['on new']), np.array(runs['on old'])
         print('  medians of the paired ratios new/old: on '
-              f'{float(np.median(np.divide(runs["on new"], runs["on old"]))):.3f}, learning '
-              f'{float(np.median((np.array(runs["on new"]) - runs["off"]) / (np.array(runs["on old"]) - runs["off"]))):.3f}')
+              f'{float(np.median(new_on / old_on)):.3f}, on - off '
+              f'{float(np.median((new_on - off) / (old_on - off))):.3f}')
         (k_new, cov_new, pose_new), (k_old, cov_old, pose_old) = (out['on new'][1],
                                                                   out['on old'][1])
-        print(f'  new vs old: values max rel diff {np.max(np.abs(k_new - k_old) / np.abs(k_old)):.2e}, '
-              f'covariance max rel diff {np.max(np.abs(cov_new - cov_old)) / np.max(np.abs(cov_old)):.2e}, '
-              f'last pose diff {np.max(np.abs(pose_new - pose_old)):.2e} (m, rad); counts equal: '
-              f'{out["on new"][0] == out["on old"][0]}')
+        values = np.max(np.abs(k_new - k_old) / np.abs(k_old))
+        covariance = np.max(np.abs(cov_new - cov_old)) / np.max(np.abs(cov_old))
+        print(f'  new vs old: values max rel diff {values:.2e}, covariance max rel diff '
+              f'{covariance:.2e}, last pose diff {np.max(np.abs(pose_new - pose_old)):.2e} '
+              f'(m, rad); counts equal: {out["on new"][0] == out["on old"][0]}')
 
 
 def main(argv=None) -> int:

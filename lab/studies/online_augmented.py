@@ -77,6 +77,8 @@ def residual_file(k: float = SPEED_SLIP) -> dict[str, float]:
               for side, sign in (('lo', -1.0), ('hi', 1.0))}
     values.update({'level': 2.0, 'vx_v_abs_v': -k * RESIDUAL_RANGE ** 2})
     return values
+
+
 MODEL = 'edd_asymmetric'
 ODOMETRIES = ('fixed augmented', 'online plain', 'online augmented', 'true')
 

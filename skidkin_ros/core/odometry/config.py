@@ -19,7 +19,7 @@ import numpy as np
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
-from skidkin_ros.core.kinematics.models import get_model, MODELS
+from skidkin_ros.core.kinematics.models import get_model, KinematicModel, MODELS
 from skidkin_ros.core.kinematics.residual import upgrade_covariance
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
 from skidkin_ros.core.odometry.controller import ControllerGeometry
@@ -431,13 +431,15 @@ def _check_online(values: Mapping[str, Any]) -> None:
                                            values.items() if key.startswith(prefix)})
                       if RESIDUAL_EXTENSION in parse_extensions(values['augmented.extensions'])
                       else [])
-        if rate_terms:
+        base = get_model(values['augmented.base'])
+        if rate_terms and type(base).rows is KinematicModel.rows:
             raise ConfigError(
-                f'online.enabled: the residual model uses rate terms {rate_terms[:4]}: online '
-                'calibration learns its gains from learning segments whose wheel steps are '
-                'merged into 50 ms blocks from rest, which carry no rate of the base twist; a '
-                'residual model without rate terms (level below 3, or those coefficients 0) '
-                'can be learned online, or turn online.enabled off')
+                f'online.enabled: the residual model uses rate terms {rate_terms[:4]} on the '
+                f'base model {base.name}, whose twist is not linear in the wheel speeds: online '
+                'calibration takes the base twist\'s rate from the wheel speeds\' rate, exact '
+                'only for a linear base model; use edd_symmetric, edd_asymmetric or '
+                'full_linear as the base, a residual model without rate terms (level below '
+                '3), or turn online.enabled off')
         # every online extension has a fitted parameter: only a bare base can have none
         model = ('' if parse_extensions(values['augmented.extensions'])
                  else values['augmented.base'])

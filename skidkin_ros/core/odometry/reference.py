@@ -26,15 +26,16 @@ from typing import Any, Mapping
 from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 from skidkin_ros.core.timeunits import s_to_ns
 
-__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'residual_rate_terms', 'OnlineParams', 'ReferenceStatus', 'base_pose']
+__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'residual_rate_terms',
+           'OnlineParams', 'ReferenceStatus', 'base_pose']
 
 # Extensions of an augmented model that online calibration learns (with the base model's
 # parameters): twist-stage ones that depend on the wheel speeds and the base twist only
-# (skidkin_ros.core.online.augmented says why the others are refused). The residual model
-# learns its gains only (its coefficients held) and only without rate terms (below).
+# (skidkin_ros.core.online.augmented says why the others are refused), and the residual model
+# (its gains; its coefficients held; rate terms only on a base model linear in the speeds).
 ONLINE_EXTENSIONS: tuple[str, ...] = ('speed_slip', 'direction_asymmetry', 'lateral_skid',
                                       'icr_offset', 'ratio_yaw_slip', 'residual_model')
-# The residual model's inputs that are rates of the base twist (a learning segment has none).
+# The residual model's inputs that are rates of the base twist.
 RATE_INPUTS = ('dv', 'dw')
 
 ONLINE_SPECS: tuple[ParamSpec, ...] = (

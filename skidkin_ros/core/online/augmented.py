@@ -21,11 +21,22 @@ parameter uncertainty, are overridden here to take it from the layout model).
 
 Which extensions can be learned online (``ONLINE_EXTENSIONS``): those of the twist stage whose
 formula depends on the wheel speeds and the base twist only (speed_slip, direction_asymmetry,
-lateral_skid, icr_offset, ratio_yaw_slip). The others need what a learning segment does not
-carry: the time since the drive started (terrain_regime), the base twist's rate over each wheel
-sample (acceleration_slip, and the residual_model's and the sparse_correction's rate terms: a
-segment's wheel steps are merged into 50 ms blocks), or a state carried across the segment's
-start (the lags, time_offset). A configuration with one of them is refused with that reason.
+lateral_skid, icr_offset, ratio_yaw_slip), and the residual model, whose gains are learned with
+its coefficients held (the offline regression's terms and coefficients, scaled to the current
+ground). The others need what a learning segment does not carry: the time since the drive
+started (terrain_regime), or a state carried across the segment's start (the lags,
+time_offset); acceleration_slip and the sparse correction are not offered (no online use asked
+of them yet). A configuration with one of them is refused with that reason.
+
+**The residual model's rate terms** read the base twist's rate at each wheel sample, which the
+50 ms blocks of a learning segment lose. A layout with an extension that reads the rate
+(:attr:`LayoutModel.paired`) keeps every wheel step in its segments, each as a pair of
+columns: the wheel speeds one second earlier at the step's wheel-speed rate (the node's rule:
+the difference to the step before over their start stamps' distance, 0 after a break), with
+zero duration, then the step itself. The layout model reads a pair as two samples one second
+apart (:meth:`BoundAugmented.intervals`: the rate is the difference of the base twists, the
+node's, exact for a base model linear in the wheel speeds) and gives the first column no twist,
+so the calibrator's rollouts, Jacobian and noise bases run on such segments unchanged.
 """
 
 from __future__ import annotations
@@ -40,7 +51,7 @@ from skidkin_ros.core.calibration.fitting import segment_errors, segment_errors_
 from skidkin_ros.core.calibration.noise_fit import (mahalanobis, segment_covariances,
                                                     segment_motion, SegmentMotion)
 from skidkin_ros.core.calibration.segments import SegmentSet
-from skidkin_ros.core.kinematics.augmented import BoundAugmented
+from skidkin_ros.core.kinematics.augmented import BoundAugmented, MIN_RATE_STEP_S
 from skidkin_ros.core.kinematics.augmented_tangents import interval_tangents
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel, get_model, KinematicModel
@@ -48,10 +59,13 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.reference import ONLINE_EXTENSIONS
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
+from skidkin_ros.core.online.gates import _Ref
 from skidkin_ros.core.online.grounds import Ground
+from skidkin_ros.core.online.steps import CHAIN, LEFT, RIGHT, T0
 from skidkin_ros.core.online.window import _stack
 
-__all__ = ['LayoutModel', 'LayoutUncertainty', 'AugmentedCalibrator', 'ONLINE_EXTENSIONS']
+__all__ = ['LayoutModel', 'LayoutUncertainty', 'AugmentedCalibrator', 'PairedSegmentSet',
+           'ONLINE_EXTENSIONS']
 
 # Relative step of the central differences (parameter_sensitivity's).
 REL_STEP = 1e-6
@@ -79,6 +93,8 @@ class LayoutModel(KinematicModel):
                 specs.append(replace(ext.params[j], name=f'{ext.name}.{ext.params[j].name}'))
         self.params = tuple(specs)
         self.title = f'{layout.base_name} + {", ".join(layout.extensions)}'
+        # an extension reads the base twist's rate: segments come as pairs (module docstring)
+        self.paired = any(get_extension(name).uses_rate for name in layout.extensions)
 
     def defaults(self, geometry: Geometry) -> dict[str, float]:
         return self.mapping(self.layout.vector())
@@ -94,7 +110,13 @@ class LayoutModel(KinematicModel):
                               self.layout.extensions, ext_k)
 
     def twist(self, k: np.ndarray, geometry: Geometry, omega_l, omega_r) -> np.ndarray:
-        return np.asarray(self.source(k).twist(omega_l, omega_r), dtype=float)
+        if not self.paired:
+            return np.asarray(self.source(k).twist(omega_l, omega_r), dtype=float)
+        left, right, shape = _rows(omega_l, omega_r)
+        still, dt_s, restart = _pair_steps(left.shape)
+        twist = self.source(k).intervals(still, left, right, dt_s, restart)[1].copy()
+        twist[:, ::2] = 0.0   # the first column of a pair only gives the rate
+        return twist.reshape(shape + (3,))
 
     def twist_gradient(self, k: np.ndarray, geometry: Geometry, omega_l: np.ndarray,
                        omega_r: np.ndarray) -> np.ndarray:
@@ -105,17 +127,19 @@ class LayoutModel(KinematicModel):
         step: the base model's gradient carried through each extension's partials, the
         diagnosis's own forward mode.
         """
-        omega_l = np.asarray(omega_l, dtype=float)
-        omega_r = np.asarray(omega_r, dtype=float)
-        shape = np.broadcast_shapes(omega_l.shape, omega_r.shape)
-        rows = (1, -1) if len(shape) != 2 else shape
-        left = np.broadcast_to(omega_l, shape).reshape(rows)
-        right = np.broadcast_to(omega_r, shape).reshape(rows)
-        still = np.zeros(left.shape)
+        left, right, shape = _rows(omega_l, omega_r)
+        if self.paired:
+            still, dt_s, restart = _pair_steps(left.shape)
+        else:
+            still = np.zeros(left.shape, dtype=np.int64)
+            dt_s, restart = np.zeros(left.shape), np.zeros(left.shape, dtype=bool)
         # the tangents may live in the work arrays of base_tangents: stacked into a new array
-        _, tangents = interval_tangents(self.source(k), still.astype(np.int64), left, right,
-                                        still, still.astype(bool), self.layout.free)
-        return np.moveaxis(np.stack(tangents), (0, 1), (-2, -1)).reshape(shape + (3, -1))
+        _, tangents = interval_tangents(self.source(k), still, left, right, dt_s, restart,
+                                        self.layout.free)
+        out = np.moveaxis(np.stack(tangents), (0, 1), (-2, -1))
+        if self.paired:
+            out[:, ::2] = 0.0
+        return out.reshape(shape + (3, -1))
 
     def file_values(self, k: np.ndarray) -> dict[str, float]:
         """Return the flat parameters-file entries of ``k`` (models.<base>.*, augmented.*)."""
@@ -124,6 +148,43 @@ class LayoutModel(KinematicModel):
         for ext, values in ext_values.items():
             out.update({f'augmented.{ext}.{name}': value for name, value in values.items()})
         return out
+
+
+def _rows(omega_l, omega_r) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+    """Return the wheel speeds as (D, L) rows (one row unless 2-D) and their shape."""
+    omega_l = np.asarray(omega_l, dtype=float)
+    omega_r = np.asarray(omega_r, dtype=float)
+    shape = np.broadcast_shapes(omega_l.shape, omega_r.shape)
+    rows = (1, -1) if len(shape) != 2 else shape
+    return (np.broadcast_to(omega_l, shape).reshape(rows),
+            np.broadcast_to(omega_r, shape).reshape(rows), shape)
+
+
+def _pair_steps(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return stamps, steps and restarts that read (D, L) columns as pairs one second apart.
+
+    Even columns start afresh (rate 0) and step 1 s to the odd column after them, whose rate is
+    then the difference of the two base twists (:func:`twist_rates`).
+    """
+    dt_s = np.zeros(shape)
+    dt_s[:, ::2] = 1.0
+    restart = np.zeros(shape, dtype=bool)
+    restart[:, ::2] = True
+    return np.zeros(shape, dtype=np.int64), dt_s, restart
+
+
+class PairedSegmentSet(SegmentSet):
+    """Learning segments whose steps come as pairs of columns (the module docstring).
+
+    The first column of a pair has zero duration; the steps counted (what the rollouts' widths
+    are cut to) reach the last pair's second column.
+    """
+
+    @property
+    def step_counts(self) -> np.ndarray:
+        moving = self.dt_s > 0.0
+        last = moving.shape[1] - np.argmax(moving[:, ::-1], axis=1)
+        return np.where(moving.any(axis=1), last, 0)
 
 
 def online_layout(base_name: str, geometry: Geometry, base_values: Mapping[str, float],
@@ -146,6 +207,44 @@ class AugmentedCalibrator(OnlineCalibrator):
         # the sensitivity is d (predicted end pose) / dk: minus that of the error (true - pred)
         sens = segment_errors_jacobian(self.model, ground.k, self.geometry, batch)
         return errors, sens * -self.scale
+
+    def _segment(self, a: _Ref, b: _Ref) -> SegmentSet | None:
+        """Return the segment a -> b; for a paired layout, every step as a pair of columns."""
+        if not self.model.paired:
+            return super()._segment(a, b)
+        span = self._steps.span(a.t_ns, b.t_ns)
+        if span is None:
+            return None
+        i0, i1 = span
+        first = max(i0 - 1, 0)   # the step before: the first step's rate
+        rows = self._steps.rows[first:i1 + 1]
+        count = len(rows)
+        t0 = np.fromiter((row[T0] for row in rows), np.int64, count)
+        chain = np.fromiter((row[CHAIN] for row in rows), np.int64, count)
+        t1 = np.array(self._steps.t1[first:i1 + 1], dtype=np.int64)
+        speeds = [np.fromiter((row[side] for row in rows), float, count)
+                  for side in (LEFT, RIGHT)]
+        # the node's rate: the difference to the step before over their start stamps' distance
+        step = np.diff(t0) * 1e-9
+        usable = (step > 0.0) & (chain[1:] == chain[:-1])
+        safe = np.where(usable, np.maximum(step, MIN_RATE_STEP_S), 1.0)
+        rates = [np.where(usable, np.diff(w) / safe, 0.0) for w in speeds]
+        skip = i0 - first
+        dt_s = (np.minimum(t1, b.t_ns) - np.maximum(t0, a.t_ns))[skip:] * 1e-9
+        if dt_s.max() > self.options.max_gap_s:
+            return None
+        width = 2 * dt_s.size
+        pairs = [np.empty(width) for _ in range(2)]
+        for pair, w, rate in zip(pairs, speeds, rates):
+            pair[1::2] = w[skip:]
+            pair[::2] = w[skip:] - (rate[skip - 1:] if skip else np.r_[0.0, rate])
+        steps = np.zeros(width)
+        steps[1::2] = dt_s
+        return PairedSegmentSet(
+            drive=np.zeros(1, dtype=int), t_a_ns=np.array([a.t_ns], np.int64),
+            t_b_ns=np.array([b.t_ns], np.int64), start=np.array([[a.x, a.y, a.yaw]]),
+            end=np.array([[b.x, b.y, b.yaw]]), omega_l=pairs[0][None], omega_r=pairs[1][None],
+            dt_s=steps[None], path_m=np.array([b.path_m - a.path_m]))
 
     def _score(self, ground: Ground, seg: SegmentSet, motion_cov: np.ndarray,
                with_parameters: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
