@@ -26,6 +26,10 @@ reference pose (on minus off, over the poses) and how far the old and new learne
 parameter covariances and poses are apart::
 
     python -m lab.bench.online_bench --augmented --seconds 60 --repeats 3 --old /work/main
+
+``--augmented --residual``: the augmented model is ``edd_asymmetric`` + a residual model with a
+rate term (its learning segments keep every wheel step: no 50 ms blocks); no ``--old`` (the
+residual model was not learned online before).
 """
 
 from __future__ import annotations
@@ -125,6 +129,15 @@ AUGMENTED = {'model': 'augmented', 'augmented.base': 'edd_asymmetric',
                 if k != 'model' and not k.endswith('parameter_covariance')}}
 
 
+RESIDUAL = {**{k: v for k, v in AUGMENTED.items() if not k.startswith('augmented.')},
+            'augmented.base': 'edd_asymmetric', 'augmented.extensions': 'residual_model',
+            **{f'augmented.residual_model.{name}_{side}': sign * 3.0
+               for name in ('v', 'w', 'dv', 'dw') for side, sign in (('lo', -1.0), ('hi', 1.0))},
+            'augmented.residual_model.level': 3.0,
+            'augmented.residual_model.vx_v_abs_v': -0.25 * 9.0,
+            'augmented.residual_model.vx_dv_up': -0.05 * 3.0}
+
+
 def _old_residuals(checkout: str):
     """Return another checkout's AugmentedCalibrator._residuals, its module loaded beside."""
     path = pathlib.Path(checkout) / 'skidkin_ros' / 'core' / 'online' / 'augmented.py'
@@ -135,13 +148,28 @@ def _old_residuals(checkout: str):
     return module.AugmentedCalibrator._residuals
 
 
+# CPU seconds and calls spent in the learner's segment residuals and Jacobian (_residuals).
+_SPENT = [0.0, 0]
+
+
 @contextlib.contextmanager
 def _residuals(function):
-    """Learn with ``function`` as the augmented learner's residuals (None: this checkout's)."""
+    """Learn with ``function`` as the augmented learner's residuals (None: this checkout's).
+
+    The residuals are timed into ``_SPENT`` (process CPU).
+    """
     from skidkin_ros.core.online.augmented import AugmentedCalibrator
     saved = AugmentedCalibrator._residuals
-    if function is not None:
-        AugmentedCalibrator._residuals = function
+    chosen = saved if function is None else function
+
+    def timed(self, ground, segments):
+        tic = time.process_time()
+        try:
+            return chosen(self, ground, segments)
+        finally:
+            _SPENT[0] += time.process_time() - tic
+            _SPENT[1] += 1
+    AugmentedCalibrator._residuals = timed
     try:
         yield
     finally:
@@ -178,18 +206,22 @@ def _augmented(args) -> None:
     sim = simulate(SimConfig(duration_s=args.seconds, seed=1, wheel_rate_hz=1000.0,
                              effects=effects))
     reference = sim.truth_at(np.arange(sim.start_ns, sim.end_ns, 100_000_000))
-    configs = {'off': OdometryConfig.from_flat(AUGMENTED),
-               'on': OdometryConfig.from_flat({**AUGMENTED, 'online.enabled': True})}
-    old = _old_residuals(args.old) if args.old else None
+    flat = RESIDUAL if args.residual else AUGMENTED
+    configs = {'off': OdometryConfig.from_flat(flat),
+               'on': OdometryConfig.from_flat({**flat, 'online.enabled': True})}
+    old = _old_residuals(args.old) if args.old and not args.residual else None
     keys = ['off', 'on new'] + (['on old'] if old is not None else [])
     runs = {key: [] for key in keys}
+    spent = {key: [] for key in keys}
     out = {}
     for _ in range(args.repeats):
         for key in keys:
+            _SPENT[:] = [0.0, 0]
             with _residuals(old if key == 'on old' else None):
                 seconds, counts, learned = _run_learned(configs[key.split()[0]], sim,
                                                         reference)
             runs[key].append(seconds)
+            spent[key].append(tuple(_SPENT))
             out[key] = (counts, learned)
     samples, poses = len(sim.wheels), len(reference)
     cost = {key: float(np.median(v)) / samples * 1e6 for key, v in runs.items()}
@@ -201,13 +233,19 @@ def _augmented(args) -> None:
     for key in keys[1:]:
         learning = (np.array(runs[key]) - off) / poses * 1e6
         ratio = float(np.median(np.array(runs[key]) / off))
+        residual = np.array([t for t, _ in spent[key]])
+        calls = spent[key][0][1]
         print(f'  {key}: online us per reference pose (on - off): '
-              f'{float(np.median(learning)):.0f}; on/off {ratio:.3f}')
+              f'{float(np.median(learning)):.0f}; on/off {ratio:.3f}; segment residuals and '
+              f'Jacobian: {calls} calls, {float(np.median(residual)) / calls * 1e6:.0f} us '
+              f'per call, {float(np.median(residual)) / poses * 1e6:.0f} us per reference pose')
     if old is not None:
         new_on, old_on = np.array(runs['on new']), np.array(runs['on old'])
+        residuals = [a[0] / b[0] for a, b in zip(spent['on new'], spent['on old'])]
         print('  medians of the paired ratios new/old: on '
               f'{float(np.median(new_on / old_on)):.3f}, on - off '
-              f'{float(np.median((new_on - off) / (old_on - off))):.3f}')
+              f'{float(np.median((new_on - off) / (old_on - off))):.3f}, segment residuals '
+              f'and Jacobian {float(np.median(residuals)):.3f}')
         (k_new, cov_new, pose_new), (k_old, cov_old, pose_old) = (out['on new'][1],
                                                                   out['on old'][1])
         values = np.max(np.abs(k_new - k_old) / np.abs(k_old))
@@ -226,6 +264,8 @@ def main(argv=None) -> int:
                              '/work/main), with and without a file parameter covariance')
     parser.add_argument('--augmented', action='store_true',
                         help='time an augmented model learning online (see above)')
+    parser.add_argument('--residual', action='store_true',
+                        help='with --augmented: a residual model with a rate term instead')
     args = parser.parse_args(argv)
     if args.augmented:
         _augmented(args)

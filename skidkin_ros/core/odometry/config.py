@@ -436,7 +436,7 @@ def _check_online(values: Mapping[str, Any]) -> None:
             raise ConfigError(
                 f'online.enabled: the residual model uses rate terms {rate_terms[:4]} on the '
                 f'base model {base.name}, whose twist is not linear in the wheel speeds: online '
-                'calibration takes the base twist\'s rate from the wheel speeds\' rate, exact '
+                "calibration takes the base twist's rate from the wheel speeds' rate, exact "
                 'only for a linear base model; use edd_symmetric, edd_asymmetric or '
                 'full_linear as the base, a residual model without rate terms (level below '
                 '3), or turn online.enabled off')

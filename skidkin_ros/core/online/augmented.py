@@ -289,6 +289,9 @@ class LayoutUncertainty(ParameterUncertainty):
     """
 
     pairs: tuple = ()   # per parameter: (model at k + h, model at k - h, 1 / 2h)
+    # a layout whose twist reads the rate: the base model's pseudo-inverse (2 x 3 floats) that
+    # turns the state's base twist and rate back into wheel speeds and their rate; else None
+    wheels_of: tuple | None = None
 
     @classmethod
     def of_layout(cls, model: LayoutModel, k: np.ndarray, geometry: Geometry,
@@ -304,7 +307,38 @@ class LayoutUncertainty(ParameterUncertainty):
             plus[j] += step
             minus[j] -= step
             pairs.append((model.source(plus), model.source(minus), 1.0 / (2.0 * step)))
-        return cls(covariance, (), (model, tuple(k.tolist()), geometry, REL_STEP), tuple(pairs))
+        wheels_of = None
+        if model.paired:
+            rows = model.base.rows(model.layout.parameters(k)[0], geometry)
+            wheels_of = tuple(np.linalg.pinv(np.asarray(rows, dtype=float)).ravel().tolist())
+        return cls(covariance, (), (model, tuple(k.tolist()), geometry, REL_STEP), tuple(pairs),
+                   wheels_of)
+
+    def state_jacobian(self, state) -> list[tuple[float, float, float]] | None:
+        """Return d(twist)/dk at the step's source state, rate terms included (None: not used).
+
+        For a layout whose twist reads the base twist's rate (the residual model's rate terms)
+        the wheel speeds alone do not give the twist: the state's base twist and rate (at the
+        parameters in force) are turned back into the wheel speeds and their rate (the base
+        model is linear in them: the pseudo-inverse recovers them), and each perturbed model
+        takes its own base twist and rate of those. Other layouts: None (``twist_jacobian``).
+        """
+        if self.wheels_of is None or state is None:
+            return None
+        a0, a1, a2, b0, b1, b2 = self.wheels_of
+        (v0, v1, v2), (r0, r1, r2) = state.b, state.r
+        left, right = a0 * v0 + a1 * v1 + a2 * v2, b0 * v0 + b1 * v1 + b2 * v2
+        rate_l, rate_r = a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2
+        out = []
+        for plus, minus, inverse in self.pairs:
+            a = plus.scalar_memoryless(left, right, 0.0, plus.base.scalar_twist(rate_l, rate_r),
+                                       plus.base.scalar_twist(left, right))
+            b = minus.scalar_memoryless(left, right, 0.0,
+                                        minus.base.scalar_twist(rate_l, rate_r),
+                                        minus.base.scalar_twist(left, right))
+            out.append(((a[0] - b[0]) * inverse, (a[1] - b[1]) * inverse,
+                        (a[2] - b[2]) * inverse))
+        return out
 
     def twist_jacobian(self, vx: float, vy: float, w: float,
                        wheels: tuple[float, float] | None = None
