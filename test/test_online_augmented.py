@@ -7,6 +7,7 @@ import pytest
 from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.online import online_odometer
+from skidkin_ros.core.odometry.residual_uncertainty import coefficient_count
 from skidkin_ros.core.online.save import save_learned
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.sim.accuracy import increment_errors
@@ -110,9 +111,13 @@ def test_extensions_that_need_state_or_rates_are_refused_with_the_reason(extensi
     assert 'speed_slip' in str(info.value) and 'edd_asymmetric' in str(info.value)
 
 
-def test_disabled_online_runs_the_augmented_model_bit_for_bit(slip_drive):
+@pytest.mark.parametrize('model', ['speed_slip', 'residual model with a rate term'])
+def test_disabled_online_runs_the_augmented_model_bit_for_bit(slip_drive, model):
     sim = slip_drive
-    config = OdometryConfig.from_flat(AUGMENTED)
+    flat = AUGMENTED if model == 'speed_slip' else {
+        **_rate_file(), 'augmented.residual_model.covariance': list(
+            np.diag(np.full(coefficient_count(), 1e-4)).ravel())}
+    config = OdometryConfig.from_flat(flat)
     plain = online_odometer(config).predict(sim.wheels)
     ignored = online_odometer(config).predict(sim.wheels, reference=_reference(sim))
     assert np.array_equal(plain.poses, ignored.poses)
@@ -141,13 +146,15 @@ def test_save_writes_an_augmented_file_the_node_loads(tmp_path, slip_drive):
 
 
 @pytest.mark.ros
-def test_the_node_learns_an_augmented_model_as_predict_does(tmp_path, slip_drive):
+@pytest.mark.parametrize('model', ['speed_slip', 'residual model with a rate term'])
+def test_the_node_learns_an_augmented_model_as_predict_does(tmp_path, slip_drive, model):
     from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
     from skidkin_ros.node.replay import replay_through_node
     sim = simulate(SimConfig(duration_s=40.0, seed=3, effects=(
         make_effect('speed_slip', SPEED_SLIP),
         make_effect('terrain_regime', SLIP, mode='time', switch_frac=0.4, yaw=0.1))))
-    path = write_params_file(tmp_path / 'online.yaml', {**AUGMENTED, 'online.enabled': True},
+    flat = AUGMENTED if model == 'speed_slip' else _rate_file()
+    path = write_params_file(tmp_path / 'online.yaml', {**flat, 'online.enabled': True},
                              {'source': 'test'})
     reference = _reference(sim)
     wire_yaw = [quaternion_to_yaw(*yaw_to_quaternion(float(v))) for v in reference.yaw]
@@ -286,12 +293,15 @@ def test_a_residual_model_with_rate_terms_on_a_nonlinear_base_is_refused_with_th
     flat = {**_residual_file(), 'augmented.residual_model.level': 3.0,
             'augmented.residual_model.vx_dv': 0.1, 'online.enabled': True}
     OdometryConfig.from_flat(flat)   # edd_asymmetric: the rate follows the wheels' exactly
-    with pytest.raises(ConfigError, match='rate terms') as info:
-        OdometryConfig.from_flat({**flat, 'augmented.base': 'roc'})
-    assert 'vx_dv' in str(info.value) and 'not linear in the wheel speeds' in str(info.value)
+    for extensions in ('residual_model', 'acceleration_slip'):
+        with pytest.raises(ConfigError, match='read the rate of the base twist') as info:
+            OdometryConfig.from_flat({**flat, 'augmented.base': 'roc',
+                                      'augmented.extensions': extensions})
+        assert extensions in str(info.value) and 'not linear' in str(info.value)
     # the same coefficient above the model's level is not a term of it: accepted
-    OdometryConfig.from_flat({**flat, 'augmented.base': 'roc',
-                              'augmented.residual_model.level': 2.0})
+    config = OdometryConfig.from_flat({**flat, 'augmented.base': 'roc',
+                                       'augmented.residual_model.level': 2.0})
+    assert not online_odometer(config).learner.model.paired   # 50 ms blocks, as before
 
 
 def test_save_writes_a_residual_model_file_with_the_learned_gains(tmp_path, slip_drive):
@@ -313,13 +323,18 @@ def _rate_file():
     return flat
 
 
-@pytest.mark.parametrize('interval', ['ending', 'starting', 'midpoint'])
-def test_a_rate_term_segment_rolls_out_as_the_node_integrates(interval):
+@pytest.mark.parametrize('interval, model', [
+    ('ending', 'residual'), ('starting', 'residual'), ('midpoint', 'residual'),
+    ('ending', 'acceleration_slip')])
+def test_a_rate_term_segment_rolls_out_as_the_node_integrates(interval, model):
     """A paired segment's predicted end pose is the odometry's own over the same steps."""
     from skidkin_ros.core.calibration.fitting import predict_end_poses
     from skidkin_ros.core.online.gates import _Ref
     sim = simulate(SimConfig(duration_s=20.0, seed=2, wheel_rate_hz=200.0))
     flat = {**_rate_file(), 'interval': interval, 'online.enabled': True}
+    if model == 'acceleration_slip':
+        flat.update({'augmented.extensions': 'speed_slip,acceleration_slip',
+                     'augmented.speed_slip.k': 0.2, 'augmented.acceleration_slip.tau_s': 0.1})
     odometer = online_odometer(OdometryConfig.from_flat(flat))
     learner = odometer.learner
     learner._trim_old = lambda: None   # keep every wheel step (no reference asks for them)
@@ -333,8 +348,9 @@ def test_a_rate_term_segment_rolls_out_as_the_node_integrates(interval):
         assert seg.step_counts[0] == 2 * (j - i)
         end = predict_end_poses(learner.model, learner.k, learner.geometry, seg)[0]
         np.testing.assert_allclose(end, poses[j], rtol=0, atol=1e-9)
-    # the rate term is in it: zeroing the ghost columns' rate moves the end pose
-    flat_no_rate = {**flat, 'augmented.residual_model.vx_dv_up': 0.0}
+    # the rate term is in it: without it the end pose moves
+    flat_no_rate = {**flat, 'augmented.residual_model.vx_dv_up': 0.0,
+                    'augmented.acceleration_slip.tau_s': 0.0}
     other = online_odometer(OdometryConfig.from_flat(flat_no_rate)).predict(sim.wheels).poses
     assert np.abs(other[3999, :2] - poses[3999, :2]).max() > 1e-4
 

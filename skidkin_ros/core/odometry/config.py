@@ -32,7 +32,7 @@ from skidkin_ros.core.odometry.params_file import (flatten, MAX_PARAMS_FILE_BYTE
                                                    nest, params_document, parse_params_text,
                                                    read_params_document, read_params_file)
 from skidkin_ros.core.odometry.reference import (ONLINE_EXTENSIONS, OnlineParams,
-                                                 residual_rate_terms)
+                                                 rate_extensions)
 from skidkin_ros.core.odometry.residual_uncertainty import (coefficient_count, RESIDUAL_EXTENSION,
                                                             ResidualUncertainty)
 from skidkin_ros.core.odometry.schema import (DEFAULT_LEFT_JOINTS,  # noqa: F401
@@ -421,25 +421,23 @@ def _check_online(values: Mapping[str, Any]) -> None:
                   if name not in ONLINE_EXTENSIONS]
         if others:
             raise ConfigError(
-                f'online.enabled: the extension(s) {others} cannot be learned online (they need '
-                'the time since the drive started, the wheel acceleration of every sample or a '
-                'state carried between segments); online calibration learns augmented models '
+                f'online.enabled: the extension(s) {others} cannot be learned online (a '
+                'learning segment is rolled out from its start: it has no time since the drive '
+                'started (terrain_regime) and no state carried in (the lags, time_offset); the '
+                'sparse correction has nothing of its own to learn: its terms and coefficients '
+                'come from a regression over a whole drive); online calibration learns '
+                'augmented models '
                 f'built from {list(ONLINE_EXTENSIONS)}: drop the others, run the base model '
                 f'(model: {values["augmented.base"]}) or turn online.enabled off')
-        prefix = f'augmented.{RESIDUAL_EXTENSION}.'
-        rate_terms = (residual_rate_terms({key[len(prefix):]: value for key, value in
-                                           values.items() if key.startswith(prefix)})
-                      if RESIDUAL_EXTENSION in parse_extensions(values['augmented.extensions'])
-                      else [])
+        rated = rate_extensions(parse_extensions(values['augmented.extensions']), values)
         base = get_model(values['augmented.base'])
-        if rate_terms and type(base).rows is KinematicModel.rows:
+        if rated and type(base).rows is KinematicModel.rows:
             raise ConfigError(
-                f'online.enabled: the residual model uses rate terms {rate_terms[:4]} on the '
-                f'base model {base.name}, whose twist is not linear in the wheel speeds: online '
-                "calibration takes the base twist's rate from the wheel speeds' rate, exact "
-                'only for a linear base model; use edd_symmetric, edd_asymmetric or '
-                'full_linear as the base, a residual model without rate terms (level below '
-                '3), or turn online.enabled off')
+                f'online.enabled: {rated} read the rate of the base twist, and the base model '
+                f'{base.name} is not linear in the wheel speeds: online calibration takes that '
+                "rate from the wheel speeds' rate, exact only for a linear base model; use "
+                'edd_symmetric, edd_asymmetric or full_linear as the base, a residual model '
+                'without rate terms (level below 3), or turn online.enabled off')
         # every online extension has a fitted parameter: only a bare base can have none
         model = ('' if parse_extensions(values['augmented.extensions'])
                  else values['augmented.base'])

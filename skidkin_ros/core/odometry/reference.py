@@ -21,20 +21,21 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 import enum
 import math
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 from skidkin_ros.core.timeunits import s_to_ns
 
-__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'residual_rate_terms',
+__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'residual_rate_terms', 'rate_extensions',
            'OnlineParams', 'ReferenceStatus', 'base_pose']
 
 # Extensions of an augmented model that online calibration learns (with the base model's
 # parameters): twist-stage ones that depend on the wheel speeds and the base twist only
-# (skidkin_ros.core.online.augmented says why the others are refused), and the residual model
-# (its gains; its coefficients held; rate terms only on a base model linear in the speeds).
+# (skidkin_ros.core.online.augmented says why the others are refused), acceleration_slip and the
+# residual model (its gains; its coefficients held), which read the base twist's rate.
 ONLINE_EXTENSIONS: tuple[str, ...] = ('speed_slip', 'direction_asymmetry', 'lateral_skid',
-                                      'icr_offset', 'ratio_yaw_slip', 'residual_model')
+                                      'icr_offset', 'ratio_yaw_slip', 'acceleration_slip',
+                                      'residual_model')
 # The residual model's inputs that are rates of the base twist.
 RATE_INPUTS = ('dv', 'dw')
 
@@ -207,3 +208,23 @@ def residual_rate_terms(values: Mapping[str, float]) -> list[str]:
                     and float(values.get(name, 0.0)) != 0.0):
                 used.append(name)
     return used
+
+
+def rate_extensions(extensions: Sequence[str], values: Mapping[str, Any]) -> list[str]:
+    """Return the extensions whose twist reads the base twist's rate, with these values.
+
+    ``values``: flat parameters (``augmented.<extension>.<name>``); the residual model counts
+    only with a rate term in use (:func:`residual_rate_terms`).
+    """
+    from skidkin_ros.core.kinematics.extensions import get_extension
+    out = []
+    for name in extensions:
+        if not get_extension(name).uses_rate:
+            continue
+        if name == 'residual_model':
+            prefix = f'augmented.{name}.'
+            if not residual_rate_terms({key[len(prefix):]: value for key, value in
+                                        values.items() if key.startswith(prefix)}):
+                continue
+        out.append(name)
+    return out

@@ -21,15 +21,16 @@ parameter uncertainty, are overridden here to take it from the layout model).
 
 Which extensions can be learned online (``ONLINE_EXTENSIONS``): those of the twist stage whose
 formula depends on the wheel speeds and the base twist only (speed_slip, direction_asymmetry,
-lateral_skid, icr_offset, ratio_yaw_slip), and the residual model, whose gains are learned with
-its coefficients held (the offline regression's terms and coefficients, scaled to the current
-ground). The others need what a learning segment does not carry: the time since the drive
-started (terrain_regime), or a state carried across the segment's start (the lags,
-time_offset); acceleration_slip and the sparse correction are not offered (no online use asked
-of them yet). A configuration with one of them is refused with that reason.
+lateral_skid, icr_offset, ratio_yaw_slip), acceleration_slip, and the residual model, whose
+gains are learned with its coefficients held (the offline regression's terms and coefficients,
+scaled to the current ground). The others need what a learning segment does not carry: the time
+since the drive started (terrain_regime), or a state carried across the segment's start (the
+lags, time_offset); the sparse correction has nothing of its own to learn (no gain; its terms
+and coefficients come from a regression over a whole drive). A configuration with one of them
+is refused with that reason.
 
-**The residual model's rate terms** read the base twist's rate at each wheel sample, which the
-50 ms blocks of a learning segment lose. A layout with an extension that reads the rate
+**acceleration_slip and the residual model's rate terms** read the base twist's rate at each
+wheel sample, which the 50 ms blocks of a learning segment lose. A layout with one in use
 (:attr:`LayoutModel.paired`) keeps every wheel step in its segments, each as a pair of
 columns: the wheel speeds one second earlier at the step's wheel-speed rate (the node's rule:
 the difference to the step before over their start stamps' distance, 0 after a break), with
@@ -56,7 +57,7 @@ from skidkin_ros.core.kinematics.augmented_tangents import interval_tangents
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel, get_model, KinematicModel
 from skidkin_ros.core.kinematics.specs import Geometry
-from skidkin_ros.core.odometry.reference import ONLINE_EXTENSIONS
+from skidkin_ros.core.odometry.reference import ONLINE_EXTENSIONS, rate_extensions
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
 from skidkin_ros.core.online.gates import _Ref
@@ -94,7 +95,10 @@ class LayoutModel(KinematicModel):
         self.params = tuple(specs)
         self.title = f'{layout.base_name} + {", ".join(layout.extensions)}'
         # an extension reads the base twist's rate: segments come as pairs (module docstring)
-        self.paired = any(get_extension(name).uses_rate for name in layout.extensions)
+        _, ext_values = layout.values(layout.vector())
+        self.paired = bool(rate_extensions(layout.extensions, {
+            f'augmented.{ext}.{name}': value for ext, named in ext_values.items()
+            for name, value in named.items()}))
 
     def defaults(self, geometry: Geometry) -> dict[str, float]:
         return self.mapping(self.layout.vector())
