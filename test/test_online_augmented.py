@@ -103,7 +103,7 @@ def test_alternating_grounds_with_an_augmented_model_beat_the_fixed_file():
 
 
 @pytest.mark.parametrize('extensions', ['first_order_lag', 'speed_slip,time_offset',
-                                        'terrain_regime'])
+                                        'terrain_regime', 'sparse_correction'])
 def test_extensions_that_need_state_or_rates_are_refused_with_the_reason(extensions):
     with pytest.raises(ConfigError, match='cannot be learned online') as info:
         OdometryConfig.from_flat({**AUGMENTED, 'augmented.extensions': extensions,
