@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
-from skidkin_ros.core.online import online_odometer
 from skidkin_ros.core.odometry.residual_uncertainty import coefficient_count
+from skidkin_ros.core.online import online_odometer
 from skidkin_ros.core.online.save import save_learned
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.sim.accuracy import increment_errors
