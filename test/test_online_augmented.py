@@ -400,3 +400,27 @@ def test_the_per_sample_jacobian_agrees_with_the_exact_twist_gradient():
                 assert uncertainty.state_jacobian(None) is None
             np.testing.assert_allclose(np.array(floats).T, exact, rtol=1e-6,
                                        atol=1e-8 * np.abs(exact).max())
+
+
+def test_a_learned_residual_model_carries_the_files_coefficient_covariance(slip_drive):
+    """The held coefficients keep their uncertainty in the published covariance while learning."""
+    from skidkin_ros.core.kinematics.residual import coefficient_names
+    names = coefficient_names()
+    cov = np.zeros((len(names), len(names)))
+    index = names.index('vx_v_abs_v')
+    cov[index, index] = (0.2 * SPEED_SLIP * 9.0) ** 2   # 20 % of the coefficient
+    sim = slip_drive
+    published = {}
+    for name, extra in (('without', {}), ('with', {
+            'augmented.residual_model.covariance': cov.ravel().tolist()})):
+        odometer = online_odometer(OdometryConfig.from_flat({**_residual_file(), **extra,
+                                                             'online.enabled': True}))
+        prediction = odometer.predict(sim.wheels, reference=_reference(sim))
+        published[name] = prediction.pose_covariances[:, :2, :2]
+        uncertainty = odometer.covariance.parameters
+        assert uncertainty.size == 8 + (name == 'with')
+        assert np.all(np.isfinite(prediction.pose_covariances))
+    # the same poses (the covariance does not steer the learning), a wider covariance
+    ratio = np.trace(published['with'], axis1=1, axis2=2) / np.trace(published['without'],
+                                                                        axis1=1, axis2=2)
+    assert np.all(ratio[len(ratio) // 2:] >= 1.0 - 1e-12) and ratio.max() > 1.05

@@ -308,6 +308,16 @@ class OdometryConfig:
             model, model.vector(self.model_values[model.name], self.geometry), self.geometry,
             np.asarray(flat, dtype=float).reshape(size, size))
 
+    def residual_coefficient_covariance(self) -> np.ndarray | None:
+        """Return the residual model's coefficient covariance (square), None without one."""
+        if RESIDUAL_EXTENSION not in self.augmented_extensions:
+            return None
+        flat = self.values.get(f'augmented.{RESIDUAL_EXTENSION}.covariance')
+        if flat is None:
+            return None
+        size = coefficient_count()
+        return np.asarray(flat, dtype=float).reshape(size, size)
+
     def _residual_uncertainty(self) -> ResidualUncertainty | None:
         """Return the residual model's coefficient uncertainty (augmented models only)."""
         if RESIDUAL_EXTENSION not in self.augmented_extensions:

@@ -58,6 +58,7 @@ from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel, get_model, KinematicModel
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.reference import ONLINE_EXTENSIONS, rate_extensions
+from skidkin_ros.core.odometry.residual_uncertainty import RESIDUAL_EXTENSION, ResidualUncertainty
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
 from skidkin_ros.core.online.gates import _Ref
@@ -276,9 +277,19 @@ class AugmentedCalibrator(OnlineCalibrator):
     def bound_model(self) -> BoundAugmented:
         return self.model.source(self.active.k.copy())
 
+    # The file's residual-model coefficient covariance (coefficients held: it stays as loaded;
+    # set by the maker, None: none).
+    coefficient_covariance: np.ndarray | None = None
+
     def uncertainty(self) -> ParameterUncertainty | None:
+        coefficients = None
+        layout = self.model.layout
+        if self.coefficient_covariance is not None and RESIDUAL_EXTENSION in layout.extensions:
+            _, ext_k = layout.parameters(self.active.k)
+            coefficients = ResidualUncertainty.of(
+                ext_k[layout.extensions.index(RESIDUAL_EXTENSION)], self.coefficient_covariance)
         return LayoutUncertainty.of_layout(self.model, self.active.k, self.geometry,
-                                           self.covariance)
+                                           self.covariance, coefficients)
 
 
 @dataclass(frozen=True)
@@ -293,17 +304,41 @@ class LayoutUncertainty(ParameterUncertainty):
     """
 
     pairs: tuple = ()   # per parameter: (model at k + h, model at k - h, 1 / 2h)
-    # a layout whose twist reads the rate: the base model's pseudo-inverse (2 x 3 floats) that
-    # turns the state's base twist and rate back into wheel speeds and their rate; else None
+    # a layout whose twist reads the rate (or that carries coefficients): the base model's
+    # pseudo-inverse (2 x 3 floats) that turns the state's base twist and rate back into wheel
+    # speeds and their rate; else None
     wheels_of: tuple | None = None
+    # the residual model's held coefficients' uncertainty (the file's), carried after the
+    # learned parameters (their covariance is the block after the learned one); None: none
+    coefficients: ResidualUncertainty | None = None
+
+    @property
+    def size(self) -> int:
+        extra = 0 if self.coefficients is None else self.coefficients.size
+        return len(self.nonlinear[1]) + extra
 
     @classmethod
     def of_layout(cls, model: LayoutModel, k: np.ndarray, geometry: Geometry,
-                  covariance: np.ndarray) -> 'LayoutUncertainty | None':
+                  covariance: np.ndarray, coefficients: ResidualUncertainty | None = None
+                  ) -> 'LayoutUncertainty | None':
+        """Return the uncertainty of ``model`` at ``k`` (None: nothing to carry).
+
+        ``coefficients``: the residual model's held coefficients' uncertainty, carried too
+        (from the step's state: only on a base model linear in the wheel speeds).
+        """
         k = np.asarray(k, dtype=float)
         covariance = np.asarray(covariance, dtype=float)
         if k.size == 0 or not np.any(covariance):
             return None
+        linear = type(model.base).rows is not KinematicModel.rows
+        if coefficients is not None and linear:
+            size = k.size + coefficients.size
+            joint = np.zeros((size, size))
+            joint[:k.size, :k.size] = covariance
+            joint[k.size:, k.size:] = coefficients.covariance
+            covariance = joint
+        else:
+            coefficients = None
         pairs = []
         for j in range(k.size):
             step = REL_STEP * max(abs(float(k[j])), 1.0)
@@ -312,20 +347,22 @@ class LayoutUncertainty(ParameterUncertainty):
             minus[j] -= step
             pairs.append((model.source(plus), model.source(minus), 1.0 / (2.0 * step)))
         wheels_of = None
-        if model.paired:
+        if (model.paired or coefficients is not None) and linear:
             rows = model.base.rows(model.layout.parameters(k)[0], geometry)
             wheels_of = tuple(np.linalg.pinv(np.asarray(rows, dtype=float)).ravel().tolist())
         return cls(covariance, (), (model, tuple(k.tolist()), geometry, REL_STEP), tuple(pairs),
-                   wheels_of)
+                   wheels_of, coefficients)
 
     def state_jacobian(self, state) -> list[tuple[float, float, float]] | None:
         """Return d(twist)/dk at the step's source state, rate terms included (None: not used).
 
-        For a layout whose twist reads the base twist's rate (the residual model's rate terms)
-        the wheel speeds alone do not give the twist: the state's base twist and rate (at the
-        parameters in force) are turned back into the wheel speeds and their rate (the base
-        model is linear in them: the pseudo-inverse recovers them), and each perturbed model
-        takes its own base twist and rate of those. Other layouts: None (``twist_jacobian``).
+        For a layout whose twist reads the base twist's rate (the residual model's rate terms,
+        acceleration_slip) the wheel speeds alone do not give the twist: the state's base
+        twist and rate (at the parameters in force) are turned back into the wheel speeds and
+        their rate (the base model is linear in them: the pseudo-inverse recovers them), and
+        each perturbed model takes its own base twist and rate of those. The held
+        coefficients' columns follow (:meth:`ResidualUncertainty.jacobian`, the node's rule for
+        a file's coefficient covariance). Other layouts: None (:meth:`twist_jacobian`).
         """
         if self.wheels_of is None or state is None:
             return None
@@ -342,6 +379,8 @@ class LayoutUncertainty(ParameterUncertainty):
                                         minus.base.scalar_twist(left, right))
             out.append(((a[0] - b[0]) * inverse, (a[1] - b[1]) * inverse,
                         (a[2] - b[2]) * inverse))
+        if self.coefficients is not None:
+            out.extend(self.coefficients.jacobian(state))
         return out
 
     def twist_jacobian(self, vx: float, vy: float, w: float,
@@ -356,4 +395,7 @@ class LayoutUncertainty(ParameterUncertainty):
             b = minus.scalar_memoryless(left, right, 0.0)
             out.append(((a[0] - b[0]) * inverse, (a[1] - b[1]) * inverse,
                         (a[2] - b[2]) * inverse))
+        if self.coefficients is not None:
+            # the held coefficients' slopes need the step's state (state_jacobian): none here
+            out.extend([(0.0, 0.0, 0.0)] * self.coefficients.size)
         return out
