@@ -417,10 +417,12 @@ def test_a_learned_residual_model_carries_the_files_coefficient_covariance(slip_
                                                              'online.enabled': True}))
         prediction = odometer.predict(sim.wheels, reference=_reference(sim))
         published[name] = prediction.pose_covariances[:, :2, :2]
+        published[name + ' poses'] = prediction.poses
         uncertainty = odometer.covariance.parameters
         assert uncertainty.size == 8 + (name == 'with')
         assert np.all(np.isfinite(prediction.pose_covariances))
     # the same poses (the covariance does not steer the learning), a wider covariance
-    ratio = np.trace(published['with'], axis1=1, axis2=2) / np.trace(published['without'],
-                                                                        axis1=1, axis2=2)
+    assert np.array_equal(published['with poses'], published['without poses'])
+    wide = np.trace(published['with'], axis1=1, axis2=2)
+    ratio = wide / np.trace(published['without'], axis1=1, axis2=2)
     assert np.all(ratio[len(ratio) // 2:] >= 1.0 - 1e-12) and ratio.max() > 1.05
