@@ -23,6 +23,8 @@ import enum
 import math
 from typing import Any, Mapping, Sequence
 
+from skidkin_ros.core.kinematics import residual
+from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 from skidkin_ros.core.timeunits import s_to_ns
 
@@ -198,7 +200,6 @@ def residual_rate_terms(values: Mapping[str, float]) -> list[str]:
     ``values``: the residual model's parameters by name (``vx_dv``, ..., ``level``); a term
     above the model's level counts as zero, as the model has it.
     """
-    from skidkin_ros.core.kinematics import residual
     level = float(values.get('level', 0.0))
     used = []
     for out, _ in residual.OUTPUTS:
@@ -216,7 +217,6 @@ def rate_extensions(extensions: Sequence[str], values: Mapping[str, Any]) -> lis
     ``values``: flat parameters (``augmented.<extension>.<name>``); the residual model counts
     only with a rate term in use (:func:`residual_rate_terms`).
     """
-    from skidkin_ros.core.kinematics.extensions import get_extension
     out = []
     for name in extensions:
         if not get_extension(name).uses_rate:
