@@ -15,6 +15,21 @@ and given this checkout's ``ParameterUncertainty``: the parameter uncertainty's 
 after a change), for the file with a parameter
 covariance and for the same file without one (the node's default), and prints the medians of
 the paired ratios.
+
+``--augmented`` times an augmented model instead (``edd_asymmetric`` + speed_slip +
+ratio_yaw_slip, file without a parameter covariance, the drive with a speed-dependent slip and a
+ground change): online off, and online on with this checkout's learner; with ``--old CHECKOUT``
+also online on with that checkout's segment residuals and Jacobian
+(``AugmentedCalibrator._residuals`` of its ``skidkin_ros/core/online/augmented.py``, loaded beside
+this one), in the same turns. It prints the CPU per wheel sample, the learning's CPU per
+reference pose (on minus off, over the poses) and how far the old and new learned values,
+parameter covariances and poses are apart::
+
+    python -m lab.bench.online_bench --augmented --seconds 60 --repeats 3 --old /work/main
+
+``--augmented --residual``: the augmented model is ``edd_asymmetric`` + a residual model with a
+rate term (its learning segments keep every wheel step: no 50 ms blocks); no ``--old`` (the
+residual model was not learned online before).
 """
 
 from __future__ import annotations
@@ -107,6 +122,139 @@ def _compare_old(args, sim, reference) -> None:
               + ', '.join(f'{k} {v:.3f}' for k, v in ratio.items()))
 
 
+AUGMENTED = {'model': 'augmented', 'augmented.base': 'edd_asymmetric',
+             'augmented.extensions': 'speed_slip,ratio_yaw_slip',
+             'augmented.speed_slip.k': 0.25, 'augmented.ratio_yaw_slip.k': 0.2,
+             **{k: v for k, v in FILE.items()
+                if k != 'model' and not k.endswith('parameter_covariance')}}
+
+
+RESIDUAL = {**{k: v for k, v in AUGMENTED.items() if not k.startswith('augmented.')},
+            'augmented.base': 'edd_asymmetric', 'augmented.extensions': 'residual_model',
+            **{f'augmented.residual_model.{name}_{side}': sign * 3.0
+               for name in ('v', 'w', 'dv', 'dw') for side, sign in (('lo', -1.0), ('hi', 1.0))},
+            'augmented.residual_model.level': 3.0,
+            'augmented.residual_model.vx_v_abs_v': -0.25 * 9.0,
+            'augmented.residual_model.vx_dv_up': -0.05 * 3.0}
+
+
+def _old_residuals(checkout: str):
+    """Return another checkout's AugmentedCalibrator._residuals, its module loaded beside."""
+    path = pathlib.Path(checkout) / 'skidkin_ros' / 'core' / 'online' / 'augmented.py'
+    spec = importlib.util.spec_from_file_location('_old_online_augmented', path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module   # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module.AugmentedCalibrator._residuals
+
+
+# CPU seconds and calls spent in the learner's segment residuals and Jacobian (_residuals).
+_SPENT = [0.0, 0]
+
+
+@contextlib.contextmanager
+def _residuals(function):
+    """Learn with ``function`` as the augmented learner's residuals (None: this checkout's).
+
+    The residuals are timed into ``_SPENT`` (process CPU).
+    """
+    from skidkin_ros.core.online.augmented import AugmentedCalibrator
+    saved = AugmentedCalibrator._residuals
+    chosen = saved if function is None else function
+
+    def timed(self, ground, segments):
+        tic = time.process_time()
+        try:
+            return chosen(self, ground, segments)
+        finally:
+            _SPENT[0] += time.process_time() - tic
+            _SPENT[1] += 1
+    AugmentedCalibrator._residuals = timed
+    try:
+        yield
+    finally:
+        AugmentedCalibrator._residuals = saved
+
+
+def _run_learned(config: OdometryConfig, sim, reference) -> tuple[float, dict, tuple]:
+    """:func:`_run`, also returning the learned values, covariance and last pose."""
+    odometer = online_odometer(config)
+    odometer.reset()
+    rows = list(zip(reference.t_ns.tolist(), reference.x.tolist(), reference.y.tolist(),
+                    reference.yaw.tolist()))
+    j, n = 0, len(rows)
+    update, feed = odometer.update, odometer.reference_sample
+    last = None
+    tic = time.process_time()
+    for t, left, right in zip(sim.wheels.t_ns.tolist(), sim.wheels.omega_l.tolist(),
+                              sim.wheels.omega_r.tolist()):
+        while j < n and rows[j][0] <= t:
+            feed(*rows[j])
+            j += 1
+        last = update(t, left, right) or last
+    seconds = time.process_time() - tic
+    learner = odometer.learner
+    learned = ((learner.k.copy(), learner.covariance.copy()) if learner is not None
+               else (None, None))
+    return seconds, dict(odometer.counters), learned + (np.array(last.pose),)
+
+
+def _augmented(args) -> None:
+    """Time an augmented model online: off, on (this checkout), on (--old's residuals)."""
+    effects = (make_effect('speed_slip', 0.25),
+               make_effect('terrain_regime', 0.25, mode='time', switch_frac=0.5, yaw=0.15))
+    sim = simulate(SimConfig(duration_s=args.seconds, seed=1, wheel_rate_hz=1000.0,
+                             effects=effects))
+    reference = sim.truth_at(np.arange(sim.start_ns, sim.end_ns, 100_000_000))
+    flat = RESIDUAL if args.residual else AUGMENTED
+    configs = {'off': OdometryConfig.from_flat(flat),
+               'on': OdometryConfig.from_flat({**flat, 'online.enabled': True})}
+    old = _old_residuals(args.old) if args.old and not args.residual else None
+    keys = ['off', 'on new'] + (['on old'] if old is not None else [])
+    runs = {key: [] for key in keys}
+    spent = {key: [] for key in keys}
+    out = {}
+    for _ in range(args.repeats):
+        for key in keys:
+            _SPENT[:] = [0.0, 0]
+            with _residuals(old if key == 'on old' else None):
+                seconds, counts, learned = _run_learned(configs[key.split()[0]], sim,
+                                                        reference)
+            runs[key].append(seconds)
+            spent[key].append(tuple(_SPENT))
+            out[key] = (counts, learned)
+    samples, poses = len(sim.wheels), len(reference)
+    cost = {key: float(np.median(v)) / samples * 1e6 for key, v in runs.items()}
+    print(f'{samples} wheel samples at 1 kHz, {poses} reference poses at 10 Hz, '
+          f'{out["on new"][0].get("online_segments", 0)} segments; medians of {args.repeats} '
+          'turns, process CPU:')
+    print('  us per wheel sample: ' + ', '.join(f'{k} {v:.2f}' for k, v in cost.items()))
+    off = np.array(runs['off'])
+    for key in keys[1:]:
+        learning = (np.array(runs[key]) - off) / poses * 1e6
+        ratio = float(np.median(np.array(runs[key]) / off))
+        residual = np.array([t for t, _ in spent[key]])
+        calls = spent[key][0][1]
+        print(f'  {key}: online us per reference pose (on - off): '
+              f'{float(np.median(learning)):.0f}; on/off {ratio:.3f}; segment residuals and '
+              f'Jacobian: {calls} calls, {float(np.median(residual)) / calls * 1e6:.0f} us '
+              f'per call, {float(np.median(residual)) / poses * 1e6:.0f} us per reference pose')
+    if old is not None:
+        new_on, old_on = np.array(runs['on new']), np.array(runs['on old'])
+        residuals = [a[0] / b[0] for a, b in zip(spent['on new'], spent['on old'])]
+        print('  medians of the paired ratios new/old: on '
+              f'{float(np.median(new_on / old_on)):.3f}, on - off '
+              f'{float(np.median((new_on - off) / (old_on - off))):.3f}, segment residuals '
+              f'and Jacobian {float(np.median(residuals)):.3f}')
+        (k_new, cov_new, pose_new), (k_old, cov_old, pose_old) = (out['on new'][1],
+                                                                  out['on old'][1])
+        values = np.max(np.abs(k_new - k_old) / np.abs(k_old))
+        covariance = np.max(np.abs(cov_new - cov_old)) / np.max(np.abs(cov_old))
+        print(f'  new vs old: values max rel diff {values:.2e}, covariance max rel diff '
+              f'{covariance:.2e}, last pose diff {np.max(np.abs(pose_new - pose_old)):.2e} '
+              f'(m, rad); counts equal: {out["on new"][0] == out["on old"][0]}')
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seconds', type=float, default=60.0, help='drive length (s)')
@@ -114,7 +262,14 @@ def main(argv=None) -> int:
     parser.add_argument('--old', metavar='CHECKOUT',
                         help='also time the covariance propagator of this checkout (e.g. '
                              '/work/main), with and without a file parameter covariance')
+    parser.add_argument('--augmented', action='store_true',
+                        help='time an augmented model learning online (see above)')
+    parser.add_argument('--residual', action='store_true',
+                        help='with --augmented: a residual model with a rate term instead')
     args = parser.parse_args(argv)
+    if args.augmented:
+        _augmented(args)
+        return 0
     effect = make_effect('terrain_regime', 0.25, mode='time', switch_frac=0.5, yaw=0.15)
     sim = simulate(SimConfig(duration_s=args.seconds, seed=1, wheel_rate_hz=1000.0,
                              effects=(effect,)))

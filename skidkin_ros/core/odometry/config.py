@@ -19,7 +19,7 @@ import numpy as np
 from skidkin_ros.atomic import atomic_write_text
 from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME, AugmentedModel
 from skidkin_ros.core.kinematics.extensions import EXTENSIONS, ordered
-from skidkin_ros.core.kinematics.models import get_model, MODELS
+from skidkin_ros.core.kinematics.models import get_model, KinematicModel, MODELS
 from skidkin_ros.core.kinematics.residual import upgrade_covariance
 from skidkin_ros.core.kinematics.specs import check_value, Geometry, GEOMETRY_SPECS, ParamSpec
 from skidkin_ros.core.odometry.controller import ControllerGeometry
@@ -31,7 +31,8 @@ from skidkin_ros.core.odometry.noise import NOISE_SPECS, NoiseModel
 from skidkin_ros.core.odometry.params_file import (flatten, MAX_PARAMS_FILE_BYTES,  # noqa: F401
                                                    nest, params_document, parse_params_text,
                                                    read_params_document, read_params_file)
-from skidkin_ros.core.odometry.reference import ONLINE_EXTENSIONS, OnlineParams
+from skidkin_ros.core.odometry.reference import (ONLINE_EXTENSIONS, OnlineParams,
+                                                 rate_extensions)
 from skidkin_ros.core.odometry.residual_uncertainty import (coefficient_count, RESIDUAL_EXTENSION,
                                                             ResidualUncertainty)
 from skidkin_ros.core.odometry.schema import (DEFAULT_LEFT_JOINTS,  # noqa: F401
@@ -331,6 +332,16 @@ class OdometryConfig:
             model, model.vector(self.model_values[model.name], self.geometry), self.geometry,
             np.asarray(flat, dtype=float).reshape(size, size))
 
+    def residual_coefficient_covariance(self) -> np.ndarray | None:
+        """Return the residual model's coefficient covariance (square), None without one."""
+        if RESIDUAL_EXTENSION not in self.augmented_extensions:
+            return None
+        flat = self.values.get(f'augmented.{RESIDUAL_EXTENSION}.covariance')
+        if flat is None:
+            return None
+        size = coefficient_count()
+        return np.asarray(flat, dtype=float).reshape(size, size)
+
     def _residual_uncertainty(self) -> ResidualUncertainty | None:
         """Return the residual model's coefficient uncertainty (augmented models only)."""
         if RESIDUAL_EXTENSION not in self.augmented_extensions:
@@ -445,11 +456,23 @@ def _check_online(values: Mapping[str, Any]) -> None:
                   if name not in ONLINE_EXTENSIONS]
         if others:
             raise ConfigError(
-                f'online.enabled: the extension(s) {others} cannot be learned online (they need '
-                'the time since the drive started, the wheel acceleration of every sample or a '
-                'state carried between segments); online calibration learns augmented models '
+                f'online.enabled: the extension(s) {others} cannot be learned online (a '
+                'learning segment is rolled out from its start: it has no time since the drive '
+                'started (terrain_regime) and no state carried in (the lags, time_offset); the '
+                'sparse correction has nothing of its own to learn: its terms and coefficients '
+                'come from a regression over a whole drive); online calibration learns '
+                'augmented models '
                 f'built from {list(ONLINE_EXTENSIONS)}: drop the others, run the base model '
                 f'(model: {values["augmented.base"]}) or turn online.enabled off')
+        rated = rate_extensions(parse_extensions(values['augmented.extensions']), values)
+        base = get_model(values['augmented.base'])
+        if rated and type(base).rows is KinematicModel.rows:
+            raise ConfigError(
+                f'online.enabled: {rated} read the rate of the base twist, and the base model '
+                f'{base.name} is not linear in the wheel speeds: online calibration takes that '
+                "rate from the wheel speeds' rate, exact only for a linear base model; use "
+                'edd_symmetric, edd_asymmetric or full_linear as the base, a residual model '
+                'without rate terms (level below 3), or turn online.enabled off')
         # every online extension has a fitted parameter: only a bare base can have none
         model = ('' if parse_extensions(values['augmented.extensions'])
                  else values['augmented.base'])

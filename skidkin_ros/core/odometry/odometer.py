@@ -563,11 +563,16 @@ class Odometer:
         return result
 
     def _jacobian(self) -> list[tuple[float, float, float]] | None:
-        """Return d(twist)/dC of the step for a residual model's uncertainty, else None."""
+        """Return d(twist)/dC of the step from its source state, else None.
+
+        A residual model's coefficient uncertainty, or an online learner's whose twist reads
+        the rate (``state_jacobian``): their twist depends on the state, not the speeds alone.
+        """
         parameters = self.covariance.parameters
-        if not isinstance(parameters, ResidualUncertainty):
-            return None
-        return parameters.jacobian(self.integrator.step_state)
+        if isinstance(parameters, ResidualUncertainty):
+            return parameters.jacobian(self.integrator.step_state)
+        state_jacobian = getattr(parameters, 'state_jacobian', None)
+        return None if state_jacobian is None else state_jacobian(self.integrator.step_state)
 
     def _aided(self, gyro: GyroAid, result: StepResult) -> StepResult:
         """Count the gyro interval and propagate the covariance of the aided step.

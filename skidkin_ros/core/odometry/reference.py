@@ -21,18 +21,25 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 import enum
 import math
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
+from skidkin_ros.core.kinematics import residual
+from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 from skidkin_ros.core.timeunits import s_to_ns
 
-__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'OnlineParams', 'ReferenceStatus', 'base_pose']
+__all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'residual_rate_terms', 'rate_extensions',
+           'OnlineParams', 'ReferenceStatus', 'base_pose']
 
 # Extensions of an augmented model that online calibration learns (with the base model's
 # parameters): twist-stage ones that depend on the wheel speeds and the base twist only
-# (skidkin_ros.core.online.augmented says why the others are refused).
+# (skidkin_ros.core.online.augmented says why the others are refused), acceleration_slip and the
+# residual model (its gains; its coefficients held), which read the base twist's rate.
 ONLINE_EXTENSIONS: tuple[str, ...] = ('speed_slip', 'direction_asymmetry', 'lateral_skid',
-                                      'icr_offset', 'ratio_yaw_slip')
+                                      'icr_offset', 'ratio_yaw_slip', 'acceleration_slip',
+                                      'residual_model')
+# The residual model's inputs that are rates of the base twist.
+RATE_INPUTS = ('dv', 'dw')
 
 ONLINE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('time_offset', 's', 0.0, -1.0, 1.0,
@@ -185,3 +192,39 @@ def base_pose(x: float, y: float, yaw: float,
     c, s = math.cos(yaw_b), math.sin(yaw_b)
     return (x - (c * params.mount_x - s * params.mount_y),
             y - (s * params.mount_x + c * params.mount_y), yaw_b)
+
+
+def residual_rate_terms(values: Mapping[str, float]) -> list[str]:
+    """Return the residual model's non-zero coefficients on a rate term (dv, dw), by name.
+
+    ``values``: the residual model's parameters by name (``vx_dv``, ..., ``level``); a term
+    above the model's level counts as zero, as the model has it.
+    """
+    level = float(values.get('level', 0.0))
+    used = []
+    for out, _ in residual.OUTPUTS:
+        for term, term_level, _, _ in residual.TERMS:
+            name = f'{out}_{term}'
+            if (residual.TERM_INPUTS[term] in RATE_INPUTS and term_level <= level
+                    and float(values.get(name, 0.0)) != 0.0):
+                used.append(name)
+    return used
+
+
+def rate_extensions(extensions: Sequence[str], values: Mapping[str, Any]) -> list[str]:
+    """Return the extensions whose twist reads the base twist's rate, with these values.
+
+    ``values``: flat parameters (``augmented.<extension>.<name>``); the residual model counts
+    only with a rate term in use (:func:`residual_rate_terms`).
+    """
+    out = []
+    for name in extensions:
+        if not get_extension(name).uses_rate:
+            continue
+        if name == 'residual_model':
+            prefix = f'augmented.{name}.'
+            if not residual_rate_terms({key[len(prefix):]: value for key, value in
+                                        values.items() if key.startswith(prefix)}):
+                continue
+        out.append(name)
+    return out

@@ -35,9 +35,12 @@ def make_calibrator(config: OdometryConfig,
                                config.model_values[config.augmented_base],
                                config.augmented_values, config.augmented_extensions)
         augmented = LayoutModel(layout)
-        return AugmentedCalibrator(augmented, augmented.mapping(layout.vector()),
-                                   config.geometry, config.active_noise, config.online,
-                                   config['interval'], None, counters, warn)
+        learner = AugmentedCalibrator(augmented, augmented.mapping(layout.vector()),
+                                      config.geometry, config.active_noise, config.online,
+                                      config['interval'], None, counters, warn)
+        # a residual model's coefficients are held: their file covariance is carried as is
+        learner.coefficient_covariance = config.residual_coefficient_covariance()
+        return learner
     model = get_model(config.model)
     flat = config.values.get(f'models.{model.name}.parameter_covariance')
     size = len(model.params)

@@ -128,7 +128,8 @@ def _stack(segments: list[SegmentSet]) -> SegmentSet:
             row = getattr(seg, name)[0]
             out[i, :row.size] = row
         return out
-    return SegmentSet(
+    # the first set's class: a learner's own segment layout (augmented.py's pairs) is kept
+    return type(segments[0])(
         drive=np.zeros(len(segments), dtype=int),
         t_a_ns=np.concatenate([seg.t_a_ns for seg in segments]),
         t_b_ns=np.concatenate([seg.t_b_ns for seg in segments]),
