@@ -104,9 +104,11 @@ def _check(predictor, layout):
     scale = np.abs(numeric).max(axis=(0, 1))
     assert np.all(scale > 0), 'a parameter without effect checks nothing'
     np.testing.assert_allclose(exact, numeric, rtol=1e-6, atol=1e-6 * scale.max())
-    # column by column too, so a small column is not hidden by a large one
+    # column by column too, so a small column is not hidden by a large one; the floor is the
+    # differences' rounding, eps |errors| / step (a bump term few samples reach has a column
+    # of 1e-5 and differences off by some 1e-10 at a step of 1e-6, exact at 1e-3)
     for c in range(vector.size):
-        assert np.abs(exact[..., c] - numeric[..., c]).max() <= 1e-6 * scale[c] + 1e-10
+        assert np.abs(exact[..., c] - numeric[..., c]).max() <= 1e-6 * scale[c] + 1e-9
 
 
 def test_every_extension_is_covered():
