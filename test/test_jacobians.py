@@ -61,6 +61,7 @@ def _residual_values():
 # A point inside each extension's range (not its neutral value) and the parameters checked.
 POINTS = {
     'time_offset': ({'offset_s': 0.0371}, ('offset_s',)),
+    'backlash': ({'play_rad': 0.43}, ('play_rad',)),
     'first_order_lag': ({'tau_s': 0.21}, ('tau_s',)),
     'forward_lag': ({'tau_s': 0.33}, ('tau_s',)),
     'yaw_lag': ({'tau_s': 0.17}, ('tau_s',)),
@@ -148,8 +149,8 @@ def test_base_model_jacobians(predictor, model):
 
 
 def test_a_chain_of_extensions_with_an_offset(predictor):
-    names = ('time_offset', 'speed_slip', 'icr_offset', 'acceleration_slip', 'residual_model',
-             'component_lags')
+    names = ('time_offset', 'backlash', 'speed_slip', 'icr_offset', 'acceleration_slip',
+             'residual_model', 'component_lags')
     values = {n: POINTS[n][0] for n in names}
     free = {n: POINTS[n][1] or ('gain_vx', 'gain_vy', 'gain_wz') for n in names}
     layout = ParameterLayout.build('edd_symmetric', GEOM, {'alpha': 0.93, 'b_hat': 0.71},
@@ -191,3 +192,11 @@ def test_fits_with_the_exact_jacobian_land_where_finite_differences_do(predictor
     for ext, values in exact_state.ext_values.items():
         for name, value in values.items():
             assert value == pytest.approx(fd_state.ext_values[ext][name], rel=1e-3, abs=1e-5)
+
+
+def test_the_backlash_on_a_base_not_linear_in_the_wheel_speeds(predictor):
+    """ROC's twist is not linear in the wheel speeds: the play's slope goes through it too."""
+    layout = ParameterLayout.build('roc', GEOM, {'alpha': 0.9, 'beta_1': 0.6, 'beta_2': 0.4},
+                                   {'backlash': {'play_rad': 0.43}}, ('backlash',), True,
+                                   {'backlash': ('play_rad',)})
+    _check(predictor, layout)
