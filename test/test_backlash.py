@@ -71,3 +71,29 @@ def test_no_play_changes_nothing_and_a_gap_restarts_centred():
     # after a gap the state is centred again: the first interval does not move a wheel with play
     state, left, right = play_step((0.1, -0.1, 1.0, -1.0, 0.05), 0.1, 3.0, True, 1.0, -1.0)
     assert (left, right) == (0.0, 0.0) and state[:2] == (0.0, 0.0)
+
+
+def test_the_diagnosis_finds_a_backlash_where_a_lag_stood_in():
+    """A drivetrain play of 0.4 rad (the study's field effect, C204): the diagnosis adds
+    ``backlash`` with about that play (in encoder radians: the wheel's play over alpha), not the
+    lag or time offset that stand in for it without the extension, and the trace's first lead
+    is the history signal reversal_speed."""
+    from lab.studies.effects import GEOMETRY as SIM_GEOMETRY, SIM_INTERVAL, TRUE_PARAMS
+    from lab.studies.unnamed_effects import drives, SmoothEffect
+    from skidkin_ros.core.calibration.diagnosis import diagnose, DiagnosisOptions
+    from skidkin_ros.core.calibration.fitting import fit_model
+    from skidkin_ros.core.calibration.segments import cut_segments
+
+    effect = SmoothEffect('field_backlash', 0.4, {}, 'backlash', ())
+    train = drives((effect,), [3001, 3002], 60.0, 'plain')
+    evaluate = drives((effect,), [3003], 60.0, 'plain')
+    options = DiagnosisOptions(interval=SIM_INTERVAL,
+                               candidates=('time_offset', 'first_order_lag', 'backlash'))
+    base = fit_model('edd_symmetric', SIM_GEOMETRY, cut_segments(train, options.train_segments()))
+    result = diagnose(train, evaluate, SIM_GEOMETRY, {'edd_symmetric': base.values},
+                      'edd_symmetric', options)
+    assert result.extensions == ('backlash',)
+    play = result.final.ext_values['backlash']['play_rad']
+    assert play == pytest.approx(0.4 / TRUE_PARAMS['alpha'], rel=0.25)
+    assert result.steps[-1].stats_t.median < 0.7 * result.steps[1].stats_t.median
+    assert result.trace.top(1)[0][1] == 'reversal_speed'
