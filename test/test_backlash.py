@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 from skidkin_ros.core.kinematics.augmented import AugmentedModel
-from skidkin_ros.core.kinematics.backlash import PLAY_STATE, play_speeds, play_step
+from skidkin_ros.core.kinematics.backlash import play_speeds, PLAY_STATE, play_step
 from skidkin_ros.core.kinematics.specs import Geometry
 
 GEOM = Geometry(wheel_radius=0.1651, track_width=0.555)
@@ -19,8 +19,11 @@ def _steps(t_ns, max_dt_s=0.5):
 
 
 def test_a_reversal_loses_the_play_and_a_constant_period_gives_the_exact_mean():
-    """Forward 3 s, back 3 s at 2 rad/s, 20 Hz: the wheel turns play/2 less at the start
-    (it starts centred), a whole play less after the reversal, nothing else."""
+    """Forward 3 s, back 3 s at 2 rad/s, 20 Hz: the play is lost at each reversal.
+
+    The wheel turns play/2 less at the start (it starts centred), a whole play less after the
+    reversal, nothing else.
+    """
     t_ns = np.arange(120) * 50_000_000
     omega = np.where(np.arange(120) < 60, 2.0, -2.0)[None]
     dt, restart = _steps(t_ns)
@@ -74,10 +77,12 @@ def test_no_play_changes_nothing_and_a_gap_restarts_centred():
 
 
 def test_the_diagnosis_finds_a_backlash_where_a_lag_stood_in():
-    """A drivetrain play of 0.4 rad (the study's field effect, C204): the diagnosis adds
-    ``backlash`` with about that play (in encoder radians: the wheel's play over alpha), not the
-    lag or time offset that stand in for it without the extension, and the trace's first lead
-    is the history signal reversal_speed."""
+    """A drivetrain play of 0.4 rad (the study's field effect, C204) is found as a backlash.
+
+    The diagnosis adds ``backlash`` with about that play (in encoder radians: the wheel's play
+    over alpha), not the lag or time offset that stand in for it without the extension, and the
+    trace's first lead is the history signal reversal_speed.
+    """
     from lab.studies.effects import GEOMETRY as SIM_GEOMETRY, SIM_INTERVAL, TRUE_PARAMS
     from lab.studies.unnamed_effects import drives, SmoothEffect
     from skidkin_ros.core.calibration.diagnosis import diagnose, DiagnosisOptions

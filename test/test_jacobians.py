@@ -195,7 +195,7 @@ def test_fits_with_the_exact_jacobian_land_where_finite_differences_do(predictor
 
 
 def test_the_backlash_on_a_base_not_linear_in_the_wheel_speeds(predictor):
-    """ROC's twist is not linear in the wheel speeds: the play's slope goes through it too."""
+    """The play's slope goes through ROC's twist, which is not linear in the wheel speeds."""
     layout = ParameterLayout.build('roc', GEOM, {'alpha': 0.9, 'beta_1': 0.6, 'beta_2': 0.4},
                                    {'backlash': {'play_rad': 0.43}}, ('backlash',), True,
                                    {'backlash': ('play_rad',)})

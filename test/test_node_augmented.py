@@ -180,7 +180,6 @@ def test_node_runs_rate_dependent_extensions_bit_for_bit(tmp_path):
     assert np.abs(other.twists[:, 0] - expected.twists[:, 0]).max() > 0.01
 
 
-
 def test_node_runs_the_backlash_bit_for_bit(tmp_path):
     """The play's state per wheel (C203): the node and predict take it alike, sample by sample."""
     wheels = simulate(SimConfig(duration_s=12.0, seed=6)).wheels
@@ -201,6 +200,7 @@ def test_node_runs_the_backlash_bit_for_bit(tmp_path):
     other = Odometer.from_config(OdometryConfig.from_file(write_params_file(
         tmp_path / 'plain.yaml', plain, {'source': 'test'}))).predict(wheels)
     assert np.abs(other.poses[-1] - expected.poses[-1]).max() > 1e-3
+
 
 CALIBRATED = {
     'wheel_radius': 0.1651, 'track_width': 0.555, 'robot': 'sim_husky', 'model': 'edd_symmetric',

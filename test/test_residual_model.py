@@ -363,8 +363,10 @@ def test_the_field_backlash_loses_its_play_at_each_reversal_and_nothing_else():
 
 @pytest.mark.parametrize('layout', range(len(residual.LEGACY_LAYOUTS)))
 def test_c230_a_file_of_an_earlier_library_loads_with_its_covariance(layout, tmp_path):
-    """Its coefficients are read by name; its covariance (60 x 60 of the 20-term library,
-    120 x 120 of the 40-term one) is moved by name too."""
+    """Its coefficients are read by name; its covariance is moved by name too.
+
+    60 x 60 for the 20-term library, 120 x 120 for the 40-term one.
+    """
     wheels = simulate(SimConfig(duration_s=10.0, seed=4)).wheels
     legacy = [f'{out}_{term}' for out, _ in residual.OUTPUTS
               for term in residual.LEGACY_LAYOUTS[layout]]

@@ -37,7 +37,7 @@ from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from skidkin_ros.core.kinematics.backlash import PLAY_STATE, play_speeds, play_step
+from skidkin_ros.core.kinematics.backlash import play_speeds, PLAY_STATE, play_step
 from skidkin_ros.core.kinematics.extensions import get_extension, ordered
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
 from skidkin_ros.core.kinematics.specs import Geometry
