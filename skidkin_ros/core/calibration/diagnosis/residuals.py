@@ -39,8 +39,11 @@ __all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'truth_velocities', '
            'pose_residuals', 'reversal_speed', 'REVERSAL_SPAN_RAD']
 
 COMPONENTS = ('v_x', 'v_y', 'omega')
-# The rotation after a reversal over which reversal_speed's weight falls from 1 to 0 (rad).
-REVERSAL_SPAN_RAD = 1.0
+# The rotation after a reversal over which reversal_speed's weight falls from 1 to 0 (rad): the
+# plays of drivetrains are tenths of a radian; a wider window also follows the acceleration
+# that comes after most reversals (an acceleration slip's residual followed it more than
+# speeding_up at 1 rad).
+REVERSAL_SPAN_RAD = 0.5
 
 
 def reversal_speed(omega: np.ndarray, t_s: np.ndarray) -> np.ndarray:
