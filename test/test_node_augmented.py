@@ -180,6 +180,28 @@ def test_node_runs_rate_dependent_extensions_bit_for_bit(tmp_path):
     assert np.abs(other.twists[:, 0] - expected.twists[:, 0]).max() > 0.01
 
 
+def test_node_runs_the_backlash_bit_for_bit(tmp_path):
+    """The play's state per wheel (C203): the node and predict take it alike, sample by sample."""
+    wheels = simulate(SimConfig(duration_s=12.0, seed=6)).wheels
+    values = {**{k: v for k, v in AUGMENTED.items()
+                 if not k.startswith(('augmented.time_offset', 'augmented.terrain_regime'))},
+              'augmented.extensions': 'backlash, lateral_skid, first_order_lag',
+              'augmented.backlash.play_rad': 0.4}
+    path = write_params_file(tmp_path / 'backlash.yaml', values, {'source': 'test'})
+    expected = Odometer.from_config(OdometryConfig.from_file(path)).predict(wheels)
+    result = replay_through_node(wheels, params_file=path)
+    assert np.array_equal(result.t_ns, expected.t_ns)
+    for published, c in ((result.vx, 0), (result.vy, 1), (result.wz, 2)):
+        assert np.array_equal(published, expected.twists[:, c])
+    np.testing.assert_allclose(result.poses, expected.poses, rtol=0, atol=1e-12)
+    # the play matters on this drive: without it the path goes elsewhere
+    plain = dict(values, **{'augmented.extensions': 'lateral_skid, first_order_lag'})
+    del plain['augmented.backlash.play_rad']
+    other = Odometer.from_config(OdometryConfig.from_file(write_params_file(
+        tmp_path / 'plain.yaml', plain, {'source': 'test'}))).predict(wheels)
+    assert np.abs(other.poses[-1] - expected.poses[-1]).max() > 1e-3
+
+
 CALIBRATED = {
     'wheel_radius': 0.1651, 'track_width': 0.555, 'robot': 'sim_husky', 'model': 'edd_symmetric',
     'models.edd_symmetric.alpha': 0.9, 'models.edd_symmetric.b_hat': 0.85,

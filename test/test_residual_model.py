@@ -291,8 +291,32 @@ def test_the_spline_level_fits_a_saturating_yaw_slip_the_polynomials_miss():
         coef = np.linalg.lstsq(phi[:, cols], target, rcond=None)[0]
         return float(np.sqrt(np.mean((phi[:, cols] @ coef - target) ** 2)))
 
-    polynomial, spline = rms_error(max(residual.LEVELS) - 1), rms_error(max(residual.LEVELS))
+    polynomial, spline = rms_error(5), rms_error(6)
     assert spline < 0.3 * polynomial
+
+
+def test_the_bump_level_fits_a_random_smooth_function_of_speed_and_turn_rate():
+    """Gaussian bumps over (v, w), as the study's random smooth functions: v, w *= 1 + sum g.
+
+    Every product of one-signal terms (levels 1-6) leaves a bias in the region of each bump;
+    the tents of level 7 follow it.
+    """
+    rng = np.random.default_rng(5)
+    ranges = [RANGES[name] for name in residual.range_names()]
+    twist = np.zeros((4000, 3))
+    twist[:, 0] = rng.uniform(-1.0, 1.2, 4000)
+    twist[:, 2] = rng.uniform(-2.0, 2.0, 4000)
+    v, w = twist[:, 0], twist[:, 2]
+    gain = sum(a * np.exp(-0.5 * (((v - cv) / 0.35) ** 2 + ((w / 2.0 - cw) / 0.35) ** 2))
+               for a, cv, cw in ((0.25, 0.5, 0.3), (-0.2, -0.4, -0.5), (0.15, 0.2, -0.6)))
+    phi = residual.features(ranges, twist, np.zeros((4000, 3)))
+    for target in (v * gain, w * gain):
+        def rms_error(level):
+            cols = [j for j, (_, lvl, _, _) in enumerate(residual.TERMS) if lvl <= level]
+            coef = np.linalg.lstsq(phi[:, cols], target, rcond=None)[0]
+            return float(np.sqrt(np.mean((phi[:, cols] @ coef - target) ** 2)))
+
+        assert rms_error(7) < 0.5 * rms_error(6)
 
 
 def test_the_turn_fraction_terms_fit_a_forward_loss_in_tight_turns():
@@ -337,10 +361,15 @@ def test_the_field_backlash_loses_its_play_at_each_reversal_and_nothing_else():
     assert np.all(np.isfinite(out)) and not np.any(out[:, 2])
 
 
-def test_c230_a_file_of_the_earlier_20_term_library_loads_with_its_covariance(tmp_path):
-    """Its 60 coefficients are read by name; its 60 x 60 covariance is moved by name too."""
+@pytest.mark.parametrize('layout', range(len(residual.LEGACY_LAYOUTS)))
+def test_c230_a_file_of_an_earlier_library_loads_with_its_covariance(layout, tmp_path):
+    """Its coefficients are read by name; its covariance is moved by name too.
+
+    60 x 60 for the 20-term library, 120 x 120 for the 40-term one.
+    """
     wheels = simulate(SimConfig(duration_s=10.0, seed=4)).wheels
-    legacy = [f'{out}_{term}' for out, _ in residual.OUTPUTS for term in residual.LEGACY_TERMS]
+    legacy = [f'{out}_{term}' for out, _ in residual.OUTPUTS
+              for term in residual.LEGACY_LAYOUTS[layout]]
     rng = np.random.default_rng(3)
     root = rng.normal(size=(len(legacy), len(legacy))) * 1e-2
     old_cov = root @ root.T

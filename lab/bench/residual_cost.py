@@ -2,8 +2,8 @@
 
     PYTHONPATH=.:test python lab/bench/residual_cost.py
 
-Rows: the plain edd_symmetric model, the residual model (all 120 coefficients non-zero), and the
-same with the covariance of all 120 coefficients carried into the pose covariance.
+Rows: the plain edd_symmetric model, the residual model (every coefficient non-zero), and the
+same with the covariance of every coefficient carried into the pose covariance.
 """
 
 import pathlib

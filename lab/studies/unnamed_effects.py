@@ -95,8 +95,9 @@ FIELD_FAMILIES: dict[str, tuple[tuple[float, float], str]] = {
     'slope_creep': ((0.02, 0.06), 'v_y += k |v| sin(heading - slope direction)'),
 }
 ALL_FAMILIES = {**FAMILIES, **FIELD_FAMILIES}
-# Effective track of the true model (b_hat x track width): the sides' speeds from the twist.
-_TRACK_M = TRUE_PARAMS['b_hat'] * GEOMETRY.track_width
+# Effective track of the true model (its b_hat, in m: the virtual track): the sides' speeds from
+# the twist, each the ground speed of its wheels (r alpha omega_side).
+_TRACK_M = TRUE_PARAMS['b_hat']
 
 
 @dataclass(frozen=True)

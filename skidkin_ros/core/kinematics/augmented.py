@@ -9,6 +9,9 @@
 
 Per wheel sample i (stamp t_i, speeds held over [t_i, t_i+1)):
 
+0. with ``backlash`` (a wheel-stage extension), the encoder speeds become the wheels' own
+   through the drivetrain's play, a state per wheel (:mod:`.backlash`); everything below sees
+   the wheels' speeds;
 1. x_i = twist-stage extensions applied, in order, to the base twist b_i = J(k) [omega_l,
    omega_r], with the time since the drive (or the node) started and the base twist's rate
    r_i = (b_i - b_i-1) / max(t_i - t_i-1, MIN_RATE_STEP_S) (0 on the first sample, after a gap
@@ -34,6 +37,7 @@ from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from skidkin_ros.core.kinematics.backlash import play_speeds, PLAY_STATE, play_step
 from skidkin_ros.core.kinematics.extensions import get_extension, ordered
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
 from skidkin_ros.core.kinematics.specs import Geometry
@@ -59,8 +63,9 @@ class AugmentedState(NamedTuple):
     """Streaming state: first stamp (ns), twist-stage output x and body twist y (held).
 
     ``t_ns`` and ``b``: the last sample's stamp and base twist (for the rate of the next one);
-    ``r``: the base twist's rate at that sample (what the rate terms saw). A named tuple: the
-    node builds one per sample, and a tuple is the cheapest to build.
+    ``r``: the base twist's rate at that sample (what the rate terms saw); ``play``: the
+    backlash's state (:data:`~.backlash.PLAY_STATE`). A named tuple: the node builds one per
+    sample, and a tuple is the cheapest to build.
     """
 
     t0_ns: int
@@ -69,6 +74,7 @@ class AugmentedState(NamedTuple):
     t_ns: int = 0
     b: Triple = _STILL
     r: Triple = _STILL
+    play: tuple[float, float, float, float, float] = PLAY_STATE
 
 
 def twist_rates(base: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.ndarray:
@@ -126,6 +132,13 @@ class BoundAugmented:
             if ext.stage == 'dynamics':
                 return ext.time_constants(k)
         return _STILL
+
+    @functools.cached_property
+    def half_play(self) -> float | None:
+        """Return half the backlash's play (rad), None without a wheel-stage extension."""
+        if 'backlash' not in self.extensions:
+            return None
+        return 0.5 * self._param('backlash', 'play_rad')
 
     @property
     def tau_s(self) -> float:
@@ -192,6 +205,11 @@ class BoundAugmented:
               restart: bool) -> tuple[AugmentedState, Triple]:
         """Take a new sample; return the new state and the body twist published now."""
         t0 = t_ns if state is None else state.t0_ns
+        play = PLAY_STATE if state is None else state.play
+        if self.half_play is not None:
+            play, omega_l, omega_r = play_step(
+                play, self.half_play, 0.0 if state is None else (t_ns - state.t_ns) * 1e-9,
+                state is None or restart, float(omega_l), float(omega_r))
         b = self.base.scalar_twist(float(omega_l), float(omega_r))
         rate = _STILL
         if state is not None and not restart:
@@ -207,7 +225,7 @@ class BoundAugmented:
             t_v, t_y, t_w = self.taus
             y = (state.y[0] if t_v > 0.0 else x[0], state.y[1] if t_y > 0.0 else x[1],
                  state.y[2] if t_w > 0.0 else x[2])
-        return AugmentedState(t0, x, y, t_ns, b, rate), y
+        return AugmentedState(t0, x, y, t_ns, b, rate, play), y
 
     def advance(self, state: AugmentedState, dt_s: float) -> tuple[AugmentedState, Triple]:
         """Return the state after holding for dt_s and the mean twist over that interval.
@@ -231,7 +249,8 @@ class BoundAugmented:
             h1, m1 = _lag_step(x1, y1, t_y, dt_s)
             h2, m2 = _lag_step(x2, y2, t_w, dt_s)
             held, mean = (h0, h1, h2), (m0, m1, m2)
-        return AugmentedState(state.t0_ns, state.x, held, state.t_ns, state.b, state.r), mean
+        return (AugmentedState(state.t0_ns, state.x, held, state.t_ns, state.b, state.r,
+                               state.play), mean)
 
     def published(self, state: AugmentedState) -> Triple:
         """Return the body twist held at the end of an advanced interval (y; x without lag)."""
@@ -243,6 +262,9 @@ class BoundAugmented:
         """Batch form over (D, L): (published twists, mean twists over each interval)."""
         t_ns = np.asarray(t_ns, dtype=np.int64)
         t_s = (t_ns - t_ns[:, :1]) * 1e-9
+        if self.half_play is not None:
+            omega_l = play_speeds(omega_l, dt_s, restart, self.half_play)[0]
+            omega_r = play_speeds(omega_r, dt_s, restart, self.half_play)[0]
         base = np.asarray(self.base.twist(np.asarray(omega_l, dtype=float),
                                           np.asarray(omega_r, dtype=float)), dtype=float)
         # the rate only matters to an extension that reads it

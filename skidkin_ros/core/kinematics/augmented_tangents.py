@@ -18,6 +18,7 @@ import numpy as np
 from skidkin_ros.core.kinematics.augmented import (BoundAugmented, first_order_response,
                                                    lag_factors, lag_response, MIN_RATE_STEP_S,
                                                    twist_rates)
+from skidkin_ros.core.kinematics.backlash import play_speeds
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel
 from skidkin_ros.core.scratch import scratch
@@ -43,11 +44,15 @@ def interval_tangents(bound: BoundAugmented, t_ns: np.ndarray, omega_l: np.ndarr
     t_s = (t_ns - t_ns[:, :1]) * 1e-9
     omega_l = np.asarray(omega_l, dtype=float)
     omega_r = np.asarray(omega_r, dtype=float)
+    omega_l, omega_r, play = _wheel_stage(bound, omega_l, omega_r, dt_s, restart, free)
     base = np.asarray(bound.base.twist(omega_l, omega_r), dtype=float)
     d_x = base_tangents(bound.base, omega_l, omega_r, free)
+    for c, slope in play:
+        for m in range(3):
+            d_x[m][c] += slope[m]
     rate = d_rate = None
     x = base
-    live = any(i < 0 for i, _ in free)  # whether a tangent is carried in yet
+    live = any(i < 0 for i, _ in free) or bool(play)  # whether a tangent is carried in yet
     for index, (name, k) in enumerate(zip(bound.extensions, bound.values)):
         ext = get_extension(name)
         if ext.stage != 'twist':
@@ -56,6 +61,9 @@ def interval_tangents(bound: BoundAugmented, t_ns: np.ndarray, omega_l: np.ndarr
             rate = twist_rates(base, dt_s, restart)
             d_rate = [_rate_tangents(d, dt_s, restart)
                       for d in base_tangents(bound.base, omega_l, omega_r, free, 'rate')]
+            for c, slope in play:
+                for m in range(3):
+                    d_rate[m][c] += _rate_tangents(slope[m][None], dt_s, restart)[0]
         mine = [(c, j) for c, (i, j) in enumerate(free) if i == index]
         d_twist, d_by_rate, d_k = ext.partials(
             k, x, omega_l, omega_r, t_s, np.zeros(base.shape) if rate is None else rate,
@@ -105,6 +113,37 @@ def interval_tangents(bound: BoundAugmented, t_ns: np.ndarray, omega_l: np.ndarr
                                      np.zeros((1,) + gap.shape[:1]), None)[0]
             d_mean[m][c] += z * g + gap * g_by_tau
     return mean, d_mean
+
+
+def _wheel_stage(bound: BoundAugmented, omega_l: np.ndarray, omega_r: np.ndarray,
+                 dt_s: np.ndarray, restart: np.ndarray, free: Sequence[tuple[int, int]]
+                 ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, list[np.ndarray]]]]:
+    """Return the wheels' speeds after the backlash and the base twist's slope by its play.
+
+    Without a backlash the encoder speeds; the slope: (column in ``free``, d base twist /
+    d play_rad per component) when the play is free.
+    """
+    half_play = bound.half_play
+    if half_play is None:
+        return omega_l, omega_r, []
+    index = bound.extensions.index('backlash')
+    left, left_by_h = play_speeds(omega_l, dt_s, restart, half_play)
+    right, right_by_h = play_speeds(omega_r, dt_s, restart, half_play)
+    columns = [c for c, (i, _) in enumerate(free) if i == index]
+    if not columns:
+        return left, right, []
+    # d h / d play = 1/2; a linear base model maps the speeds' slope as it maps the speeds;
+    # one that is not (ROC) by its central difference along that slope
+    base = bound.base
+    if base.model.rows(base.k, base.geometry) is not None:
+        slope = np.asarray(base.twist(0.5 * left_by_h, 0.5 * right_by_h), dtype=float)
+    else:
+        step = 1e-6 * max(1.0, float(np.abs(left).max(initial=0.0)),
+                          float(np.abs(right).max(initial=0.0)))
+        up = np.asarray(base.twist(left + step * left_by_h, right + step * right_by_h))
+        down = np.asarray(base.twist(left - step * left_by_h, right - step * right_by_h))
+        slope = (up - down) / (4.0 * step)
+    return left, right, [(c, [slope[..., m] for m in range(3)]) for c in columns]
 
 
 def _free_lags(bound: BoundAugmented, free: Sequence[tuple[int, int]]

@@ -7,6 +7,9 @@ description), a formula, the signal that reveals it in the residuals, and acts a
 - ``timing``: the true motion lags the wheel stamps by an offset (``time_offset``): poses are
   published at sample stamp + offset, and a segment [t_a, t_b] of ground truth is predicted from
   the wheel samples of [t_a - offset, t_b - offset];
+- ``wheels``: the wheels' own speeds differ from the encoders' through a state the drive's
+  history sets (``backlash``: the play a motor turns through after a reversal before its wheel
+  moves, :mod:`~skidkin_ros.core.kinematics.backlash`), applied first;
 - ``twist``: a change of the body twist (v_x, v_y, omega) given the wheel speeds, the time since
   the drive started and the base twist's rate of change (its backward difference over one wheel
   sample: acceleration slip, the sparse fallback's derivative terms); slips, skid, direction,
@@ -155,7 +158,7 @@ class Extension:
         ``terms``: the library terms chosen (a library extension counts those).
         """
         count = len(terms) if self.learned else len(self.fitted) + len(self.scan)
-        return count, int(self.stage == 'dynamics')
+        return count, int(self.stage in ('dynamics', 'wheels'))
 
     def vector(self, values: Mapping[str, float], prefix: str = '') -> np.ndarray:
         """Return the parameter vector in spec order; missing values take their defaults."""
@@ -698,6 +701,16 @@ _ALL: tuple[Extension, ...] = (
         residual_view=('v_x', 'd_body_speed', False), group='lag',
         lags=('tau_v_s', None, 'tau_w_s')),
     Extension(
+        'backlash', 'Drivetrain backlash: play after a wheel reverses', 'wheels',
+        'each wheel follows its motor (the encoder) within a play: d = wheel - motor angle '
+        'stays in [-play/2, play/2]; after a reversal the motor turns through the play before '
+        'the wheel moves',
+        'motion since a wheel reversed',
+        (_spec('play_rad', 'rad', 0.0, 0.0, 3.0,
+               'angle the motor turns after a reversal before its wheel moves'),),
+        ('play_rad',), start=lambda hints: {'play_rad': 0.2},
+        residual_view=('v_x', 'reversal_speed', False)),
+    Extension(
         'speed_slip', 'Longitudinal slip growing with speed', 'twist',
         'v_x *= 1 - min(k |v_x|, 0.8)', 'v_x |v_x|',
         (_spec('k', 's/m', 0.0, 0.0, 2.0, 'slip fraction per m/s of forward speed'),),
@@ -770,8 +783,8 @@ _ALL: tuple[Extension, ...] = (
 
 EXTENSIONS: dict[str, Extension] = {ext.name: ext for ext in _ALL}
 EXTENSION_NAMES: tuple[str, ...] = tuple(EXTENSIONS)
-# Order in which extensions are applied: timing, twist stage (registry order), dynamics.
-_STAGE_ORDER = {'timing': 0, 'twist': 1, 'dynamics': 2}
+# Order in which extensions are applied: timing, wheels, twist stage (registry order), dynamics.
+_STAGE_ORDER = {'timing': 0, 'wheels': 1, 'twist': 2, 'dynamics': 3}
 
 
 def get_extension(name: str) -> Extension:

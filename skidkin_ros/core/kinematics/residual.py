@@ -19,7 +19,12 @@ richer family of smooth functions:
 5. the cubic terms v^3, w^3, v^2 w, v w^2;
 6. spline terms: each signal times a hinge max(|x| - knot, 0) of its own or the other signal's
    magnitude, knots at a third and two thirds of the range (a piecewise-linear slope: a slip
-   that starts, or saturates, at some speed or turn rate, which polynomials fit poorly).
+   that starts, or saturates, at some speed or turn rate, which polynomials fit poorly);
+7. bumps over the plane (v, w): each signal times a tent product
+   max(1 - |v - c_v| / h, 0) max(1 - |w - c_w| / h, 0), centres on a 3 x 3 grid at -h, 0, h
+   (h = BUMP_WIDTH, half the scaled range): a piecewise-bilinear surface, the two-dimensional
+   hinge (a slip confined to one region of speeds and turn rates, such as a bump of a random
+   smooth function, which no product of one-signal terms follows).
 
 Every input is first clamped to the range the model was fitted on (``<input>_lo``,
 ``<input>_hi``, stored with the coefficients) and scaled by that range's largest magnitude, so
@@ -44,10 +49,10 @@ from typing import Callable, Sequence
 import numpy as np
 
 __all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS', 'SIGN_WIDTH',
-           'TURN_WIDTH', 'KNOTS',
+           'TURN_WIDTH', 'KNOTS', 'BUMP_WIDTH', 'BUMP_CENTRES',
            'term_names', 'features',
            'scalar_features', 'correction', 'scalar_correction', 'coefficient_names',
-           'range_names', 'input_values', 'LEGACY_TERMS', 'upgrade_covariance',
+           'range_names', 'input_values', 'LEGACY_TERMS', 'LEGACY_LAYOUTS', 'upgrade_covariance',
            'TERM_GRADIENTS', 'feature_gradients', 'correction_gradient']
 
 # The state the correction is a function of: (name, unit, what it is).
@@ -64,6 +69,9 @@ SIGN_WIDTH = 0.1
 KNOTS = (1.0 / 6.0, 1.0 / 3.0, 0.5, 2.0 / 3.0, 5.0 / 6.0)
 # Added to |v| + |w| (scaled units) in the turn fraction, so that it is defined at rest.
 TURN_WIDTH = 0.05
+# Half-width of the tents of the bump terms and their centres on each scaled input.
+BUMP_WIDTH = 0.5
+BUMP_CENTRES = (-0.5, 0.0, 0.5)
 
 
 def _sign(x):
@@ -87,6 +95,40 @@ def _up(x, dx):
     if isinstance(x, np.ndarray) or isinstance(dx, np.ndarray):
         return np.where(x * dx > 0.0, dx, 0.0)
     return dx if x * dx > 0.0 else 0.0
+
+
+def _tent(x, centre: float):
+    """Return max(1 - |x - centre| / BUMP_WIDTH, 0) (on floats or arrays alike)."""
+    if isinstance(x, np.ndarray):
+        return np.maximum(1.0 - np.abs(x - centre) / BUMP_WIDTH, 0.0)
+    return max(1.0 - abs(x - centre) / BUMP_WIDTH, 0.0)
+
+
+def _tent_slope(x, centre: float):
+    """Return d _tent / dx: -sign(x - centre) / BUMP_WIDTH inside the tent, 0 outside."""
+    return np.where(np.abs(x - centre) < BUMP_WIDTH, -np.sign(x - centre) / BUMP_WIDTH, 0.0)
+
+
+def _bump_term(x: str, cv: float, cw: float) -> Callable[..., object]:
+    """Return the term x * tent(v, cv) * tent(w, cw) of the scaled inputs, x = v or w."""
+    if x == 'v':
+        return lambda p, q, a, b: p * (_tent(p, cv) * _tent(q, cw))
+    return lambda p, q, a, b: q * (_tent(p, cv) * _tent(q, cw))
+
+
+def _bump_term_gradient(x: str, cv: float, cw: float) -> Callable[..., object]:
+    """Return the gradient of :func:`_bump_term` by (p, q, a, b)."""
+    def gradient(p, q, a, b):
+        tp, tq = _tent(p, cv), _tent(q, cw)
+        sp, sq = _tent_slope(p, cv), _tent_slope(q, cw)
+        own = p if x == 'v' else q
+        return (own * sp * tq + (tp * tq if x == 'v' else 0.0),
+                own * tp * sq + (tp * tq if x == 'w' else 0.0), 0.0, 0.0)
+    return gradient
+
+
+def _bump_name(x: str, i: int, j: int) -> str:
+    return f'{x}_bump{i + 1}{j + 1}'
 
 
 def _hinge_term(x: str, knot: float) -> Callable[..., object]:
@@ -166,7 +208,10 @@ TERMS: tuple[tuple[str, int, TermFn, str], ...] = (
     ('w_v_hinge2', 6, lambda p, q, a, b: q * _hinge(p, KNOTS[3]), 'v_omega'),
 ) + tuple((f'{x}_hinge{i + 1}', 6, _hinge_term(x, knot), signal)
           for x, signal in (('v', 'body_speed'), ('w', 'yaw_rate'))
-          for i, knot in enumerate(KNOTS))
+          for i, knot in enumerate(KNOTS)) + tuple(
+    (_bump_name(x, i, j), 7, _bump_term(x, cv, cw), signal)
+    for x, signal in (('v', 'body_speed'), ('w', 'yaw_rate'))
+    for i, cv in enumerate(BUMP_CENTRES) for j, cw in enumerate(BUMP_CENTRES))
 # d term / d (p, q, a, b) of each term, by name, next to the terms: a change of a term is a
 # change of its row here too (Extension.partials of the residual model; test_extensions checks
 # every term against finite differences).
@@ -204,6 +249,9 @@ TERM_GRADIENTS: dict[str, TermFn] = {
 }
 TERM_GRADIENTS.update({f'{x}_hinge{i + 1}': _hinge_term_gradient(x, knot)
                        for x in ('v', 'w') for i, knot in enumerate(KNOTS)})
+TERM_GRADIENTS.update({_bump_name(x, i, j): _bump_term_gradient(x, cv, cw)
+                       for x in ('v', 'w') for i, cv in enumerate(BUMP_CENTRES)
+                       for j, cw in enumerate(BUMP_CENTRES)})
 LEVELS: tuple[int, ...] = tuple(sorted({level for _, level, _, _ in TERMS}))
 # Which inputs each term is a function of (for the interpretation: what the correction follows).
 TERM_INPUTS: dict[str, str] = {
@@ -213,7 +261,9 @@ TERM_INPUTS: dict[str, str] = {
     'v_abs_dv': 'dv', 'v_s2': 'turn', 'w_s2': 'turn', 'v_abs_s': 'turn', 'w_abs_s': 'turn',
     'v3': 'v', 'w3': 'w', 'v2_w': 'v*w', 'v_w2': 'v*w', 'v_w_hinge1': 'v*w', 'v_w_hinge2': 'v*w',
     'w_v_hinge1': 'v*w', 'w_v_hinge2': 'v*w',
-    **{f'{x}_hinge{i + 1}': x for x in ('v', 'w') for i in range(len(KNOTS))}}
+    **{f'{x}_hinge{i + 1}': x for x in ('v', 'w') for i in range(len(KNOTS))},
+    **{_bump_name(x, i, j): 'v*w' for x in ('v', 'w') for i in range(len(BUMP_CENTRES))
+       for j in range(len(BUMP_CENTRES))}}
 # The diagnosis trace signal that shows each input group.
 INPUT_SIGNALS: dict[str, str] = {'v': 'body_speed', 'w': 'yaw_rate', 'v*w': 'v_omega',
                                  'dv': 'd_body_speed', 'dw': 'd_yaw_rate', 'turn': 'curvature'}
@@ -373,23 +423,29 @@ def scalar_correction(coef: Sequence[float], phi: Sequence[float]) -> tuple[floa
     return out[0], out[1], out[2]
 
 
-# The library of files written before the 40-term one (same names, this order; 60 coefficients).
+# The libraries of files written before today's one (same names, these orders): the 20-term one
+# (60 coefficients) and the 40-term one (120; today's without the bumps of level 7).
 LEGACY_TERMS: tuple[str, ...] = (
     'v', 'w', 'abs_v', 'abs_w', 'v_abs_v', 'w_abs_w', 'v_w', 'v_abs_w', 'w_abs_v', 'abs_v_abs_w',
     'sign_v', 'sign_w', 'dv', 'dw', 'dv_up', 'dw_up', 'v3', 'w3', 'v2_w', 'v_w2')
+LEGACY_LAYOUTS: tuple[tuple[str, ...], ...] = (
+    LEGACY_TERMS, tuple(name for name, level, _, _ in TERMS if level <= 6))
 
 
 def upgrade_covariance(flat: Sequence[float]) -> list[float] | None:
-    """Return a legacy (60 x 60) coefficient covariance placed in today's layout, else None.
+    """Return an earlier library's coefficient covariance placed in today's layout, else None.
 
     The coefficients are read by name, so an earlier file's values load as they are (the new
-    terms default to 0); only its covariance, a flat list in the earlier order, needs moving.
+    terms default to 0); only its covariance, a flat list in the earlier order (60 x 60 or
+    120 x 120), needs moving.
     """
-    legacy = len(OUTPUTS) * len(LEGACY_TERMS)
-    if len(flat) != legacy * legacy:
-        return None
-    names = coefficient_names()
-    index = [names.index(f'{out}_{term}') for out, _ in OUTPUTS for term in LEGACY_TERMS]
-    matrix = np.zeros((len(names), len(names)))
-    matrix[np.ix_(index, index)] = np.asarray(flat, dtype=float).reshape(legacy, legacy)
-    return matrix.ravel().tolist()
+    for terms in LEGACY_LAYOUTS:
+        legacy = len(OUTPUTS) * len(terms)
+        if len(flat) != legacy * legacy:
+            continue
+        names = coefficient_names()
+        index = [names.index(f'{out}_{term}') for out, _ in OUTPUTS for term in terms]
+        matrix = np.zeros((len(names), len(names)))
+        matrix[np.ix_(index, index)] = np.asarray(flat, dtype=float).reshape(legacy, legacy)
+        return matrix.ravel().tolist()
+    return None

@@ -13,7 +13,9 @@
 4. **Signals.** At each pose: the held wheel speeds, their sum, difference, ratio and time
    derivatives, the base model's body speed and yaw rate and their rates as the integrator has
    them (backward differences over one wheel sample; the speeding-up part of the forward one),
-   curvature, v omega, direction, time in the drive, position and the IMU yaw rate: what
+   curvature, v omega, direction, time in the drive, position, the IMU yaw rate, and one signal
+   of the drive's history, ``reversal_speed`` (each wheel's speed weighted by how recently it
+   reversed: what a drivetrain's backlash follows, :func:`reversal_speed`): what
    :mod:`.tracing` correlates with the residuals.
 """
 
@@ -34,9 +36,39 @@ from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError
 
 __all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'truth_velocities', 'pose_samples',
-           'pose_residuals']
+           'pose_residuals', 'reversal_speed', 'REVERSAL_SPAN_RAD']
 
 COMPONENTS = ('v_x', 'v_y', 'omega')
+# The rotation after a reversal over which reversal_speed's weight falls from 1 to 0 (rad): the
+# plays of drivetrains are tenths of a radian; a wider window also follows the acceleration
+# that comes after most reversals (an acceleration slip's residual followed it more than
+# speeding_up at 1 rad).
+REVERSAL_SPAN_RAD = 0.5
+
+
+def reversal_speed(omega: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """Return omega max(1 - theta / REVERSAL_SPAN_RAD, 0), theta the rotation since it reversed.
+
+    theta: the wheel's rotation (rad, |omega| dt summed) since its direction last changed (a
+    standstill does not end a direction); from the drive start before any reversal. A
+    backlash loses the motion of the first part of a turn after each reversal: the residual
+    it leaves follows this signal, which no function of the present speeds is.
+    """
+    omega = np.asarray(omega, dtype=float)
+    if omega.size < 2:
+        return np.zeros(omega.shape)
+    dt = np.diff(np.asarray(t_s, dtype=float), prepend=t_s[0])
+    sign = np.sign(omega)
+    moving = sign != 0
+    # the direction held through standstills (forward fill of the last non-zero sign)
+    last = np.maximum.accumulate(np.where(moving, np.arange(sign.size), 0))
+    held = sign[last]
+    changed = np.zeros(sign.size, bool)
+    changed[1:] = (held[1:] != held[:-1]) & (held[:-1] != 0)
+    turned = np.cumsum(np.abs(omega) * dt)
+    start = np.maximum.accumulate(np.where(changed, np.arange(sign.size), 0))
+    theta = turned - turned[start]
+    return omega * np.maximum(1.0 - theta / REVERSAL_SPAN_RAD, 0.0)
 
 
 # The differentiator's operator depends on the stamps only: the lag scan and every candidate run
@@ -189,6 +221,9 @@ def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel, max_dt_s: float
         # the world heading, times the speed: what a slope does (not a function of the wheels)
         'speed_sin_heading': np.abs(v) * np.sin(poses[:, 2]),
         'speed_cos_heading': np.abs(v) * np.cos(poses[:, 2]),
+        # the drive's history: the wheels' speeds just after they reversed (a backlash)
+        'reversal_speed': 0.5 * (reversal_speed(wheels.omega_l, t_w)
+                                 + reversal_speed(wheels.omega_r, t_w))[index],
     }
     imu = drive.imu
     if imu is not None and len(imu.t_ns) > 1:
