@@ -65,7 +65,7 @@ class GroundBank:
     _changed_m = -math.inf     # reference travel at the last new ground
 
     def _reference_cov(self) -> np.ndarray:
-        sx, syaw = self.params.sigma_xy, self.params.sigma_yaw
+        sx, syaw = self.reference_sigmas()   # measured or configured (refnoise.py)
         return np.diag([2 * sx * sx, 2 * sx * sx, 2 * syaw * syaw])
 
     def _score(self, ground: Ground, seg: SegmentSet, motion_cov: np.ndarray,
