@@ -7,15 +7,14 @@ which are twice what a good lidar odometry gives: the segments are then weighed 
 reference were noisier than it is, and a change is seen later.
 
 The white noise of each pose shows in the second difference of the reference's increments
-against the wheels': between two accepted poses, the heading change of the reference minus the
-wheels' (``e_k``), and the distance it moved minus the wheels' travel (``d_k``). A model error
-(slip, a wrong parameter) changes slowly from one 0.1 s interval to the next and cancels in
-``e_k - e_{k-1}``; three poses' white noise remains, with variance ``6 sigma^2`` (the noise of
-the middle pose counts twice). The median of the last ``REF_NOISE_KEEP`` squared second
-differences over ``6 x 0.455`` (the median of a chi-square with one degree of freedom) is that
-variance, robust to the odd jump the gates let through. Distances count only while both
-intervals travel at least ``MIN_TRAVEL_SIGMAS`` of the current sigma (a reference that barely
-moves has a distance biased by its noise).
+against the wheels': between two accepted poses, the reference's displacement (x, y) less the
+wheels' travel along the reference's heading, and its heading change less the wheels'
+rotation. A model error (slip, a wrong parameter, a change of ground) changes slowly from one
+0.1 s interval to the next and cancels in the difference of two such increments; three poses'
+white noise remains, with variance ``6 sigma^2`` per axis (the middle pose counts twice). The
+median of the last ``REF_NOISE_KEEP`` squared second differences over ``6 x 0.455`` (the
+median of a chi-square with one degree of freedom) is that variance, robust to the odd jump
+the gates let through.
 
 The sigmas used (:meth:`RefNoiseLearner.reference_sigmas`) are the configured ones until
 ``REF_NOISE_MIN`` second differences are in, then the measured ones, kept within
@@ -40,11 +39,9 @@ __all__ = ['RefNoiseLearner', 'REF_NOISE_KEEP', 'REF_NOISE_MIN', 'REF_NOISE_RANG
 
 # Second differences kept (the last 30 s at 10 Hz) and needed before the measure is used.
 REF_NOISE_KEEP = 300
-REF_NOISE_MIN = 100
+REF_NOISE_MIN = 100   # (positions: two per pose, x and y)
 # The measured sigma stays within [configured / RANGE, configured * RANGE].
 REF_NOISE_RANGE = 4.0
-# Distances count while both intervals travel at least this many sigmas.
-MIN_TRAVEL_SIGMAS = 2.0
 # Recompute the medians after this many new second differences.
 REF_NOISE_EVERY = 20
 # Median of a chi-square with one degree of freedom, times 6 (three poses' noise).
@@ -55,7 +52,7 @@ class RefNoiseLearner:
     """The reference noise of :class:`OnlineCalibrator`, measured as it drives (a mixin)."""
 
     _ref_sigmas: tuple[float, float] | None = None   # measured (xy, yaw); None: configured
-    _ref_last = None          # (distance - travel, heading - rotation, travel) of the last interval
+    _ref_last = None          # (x, y, heading) of the reference's last increment less the wheels'
     _ref_new = 0              # second differences since the medians were last computed
 
     def _ref_noise_buffers(self) -> tuple[collections.deque, collections.deque]:
@@ -81,21 +78,26 @@ class RefNoiseLearner:
         super()._start_chain(t_ns, x, y, yaw)
 
     def _measure_reference(self, last: _Ref, ref: _Ref) -> None:
-        """Add the second difference of the interval last -> ref and the one before it."""
+        """Add the second differences of the interval last -> ref and the one before it."""
         motion = self._wheel_motion(last.t_ns, ref.t_ns)
         if motion is None:
             self._ref_last = None
             return
         travel, rotation = motion
-        current = (ref.path_m - last.path_m - travel, ref.yaw - last.yaw - rotation, travel)
+        dx, dy = ref.x - last.x, ref.y - last.y
+        heading = 0.5 * (last.yaw + ref.yaw)
+        c, s = math.cos(heading), math.sin(heading)
+        # the wheels' displacement along the reference's heading (travel is |v_x| dt: the sign
+        # of the reference's own displacement along its heading)
+        step = travel if dx * c + dy * s >= 0.0 else -travel
+        current = (dx - step * c, dy - step * s, ref.yaw - last.yaw - rotation)
         before, self._ref_last = self._ref_last, current
         if before is None:
             return
         xy, yaw = self._ref_noise_buffers()
-        yaw.append((current[1] - before[1]) ** 2)
-        floor = MIN_TRAVEL_SIGMAS * self.reference_sigmas()[0]
-        if min(travel, before[2]) >= floor:
-            xy.append((current[0] - before[0]) ** 2)
+        xy.append((current[0] - before[0]) ** 2)
+        xy.append((current[1] - before[1]) ** 2)
+        yaw.append((current[2] - before[2]) ** 2)
         self._ref_new += 1
         if self._ref_new >= REF_NOISE_EVERY:
             self._ref_new = 0
@@ -109,7 +111,6 @@ class RefNoiseLearner:
             if len(values) < REF_NOISE_MIN:
                 out.append(configured)
                 continue
-            # the distance's noise is one axis of the position's (the direction of travel)
             sigma = math.sqrt(float(np.median(np.fromiter(values, float))) / _MEDIAN_CHI2_1_X6)
             out.append(min(max(sigma, configured / REF_NOISE_RANGE),
                            configured * REF_NOISE_RANGE))
