@@ -15,7 +15,7 @@ FILE = {'model': 'edd_asymmetric',
 
 
 def _reference(sim, sigma_m, sigma_rad, seed=0, drift=0.0):
-    """A 10 Hz reference: the truth plus white noise (and a random-walk drift per pose)."""
+    """Return a 10 Hz reference: the truth plus white noise (and a random-walk drift per pose)."""
     t = np.arange(sim.start_ns, sim.end_ns, 100_000_000)
     truth = sim.truth_at(t)
     rng = np.random.default_rng(seed)

@@ -1,4 +1,4 @@
-"""Error budget of the online odometry on long stretches: where its excess over the true model lies.
+"""Error budget of the online odometry on long stretches: where its excess over the truth lies.
 
 For each long-stretch drive of the online study (lab.studies.online), the online odometry's
 excess over the true model, mean(ε_online) / mean(ε_true) - 1 (ε_t over 2 m increments of true
