@@ -114,3 +114,38 @@ def test_the_measured_noise_finds_the_change_sooner_than_the_default(change_driv
     change = path[np.searchsorted(t, change_drive.start_ns + int(50e9))]
     after = {k: path[np.searchsorted(t, v)] - change for k, v in found.items()}
     assert 0.0 < after['measured'] < after['held']
+
+
+def test_a_new_ground_is_not_left_for_the_one_it_refuted_on_its_first_guess():
+    """A change seen on a spin in place: the new ground's first values are far off.
+
+    Recognition scores the new ground (adapting) with its parameter uncertainty, as the change
+    detection does: without it, the ground left at the change took the window back 0.7 m after
+    it (the study's long-stretch drive 41, its file and reference), for 1.6 m (5.1 s on the old
+    ground in all after the change; 1.1 s with it, a short switch 6.7 m after the change).
+    """
+    from lab.studies import online as study
+    sim = simulate(SimConfig(duration_s=240.0, seed=41, effects=study._effects('long stretches')))
+    reference = _reference(sim, study.REF_SIGMA_M, study.REF_SIGMA_RAD, seed=41)
+    change_ns = sim.start_ns + int(120e9)
+    config = OdometryConfig.from_flat({**study.calibrated_file().values, 'online.enabled': True})
+
+    def back_on_old_ground(young):
+        odometer = online_odometer(config)
+        learner = odometer.learner
+        if not young:
+            learner._young = lambda ground: False
+        seen, step = [], learner.wheel_step
+
+        def watch(t1_ns, wheels, twist):
+            changed = step(t1_ns, wheels, twist)
+            if t1_ns > change_ns and learner.active.ident == 0 and len(learner.grounds) > 1:
+                seen.append(t1_ns)
+            return changed
+        learner.wheel_step = watch
+        odometer.predict(sim.wheels, reference=reference)
+        assert odometer.counters['online_change'] == 1
+        return len(seen)
+    # wheel samples (20 Hz) on the old ground after the change: 22 against 102
+    young, old = back_on_old_ground(young=True), back_on_old_ground(young=False)
+    assert old > 60 and young < 0.3 * old
