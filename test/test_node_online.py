@@ -101,6 +101,9 @@ def test_bad_reference_never_stops_the_odometry_and_save_calibration(tmp_path):
         values = {kv.key: kv.value for kv in status.values}
         assert values['online.state'] in ('learning', 'adapting')
         assert 'online.alpha_l.sigma' in values and 'count.reference_frame' in values
+        # the reference's noise in use (configured until measured)
+        assert float(values['online.reference_sigma_xy']) > 0.0
+        assert float(values['online.reference_sigma_yaw']) > 0.0
         assert client.wait_for_service(timeout_sec=5.0)
         for expect in (True, False):   # the second call finds the file: never overwritten
             future = client.call_async(Trigger.Request())

@@ -313,7 +313,7 @@ def _pose_nees(sim, prediction):
 def test_the_published_noise_covers_alternating_grounds_and_stays_the_files_on_one():
     """The calibrator's coverage rule on the odometry's own recent errors.
 
-    The pose NEES over the whole drive, from its start: what is left (3.3 here, with a noise-free
+    The pose NEES over the whole drive, from its start: what is left (1.5 here, with a noise-free
     reference and the simulator's own parameters as the file) is the first change, before four
     segments' errors are known.
     """
@@ -325,12 +325,13 @@ def test_the_published_noise_covers_alternating_grounds_and_stays_the_files_on_o
     assert learner.published_noise().var_x_per_m == pytest.approx(
         learner.noise.var_x_per_m * learner.noise_scale)
     nees = _pose_nees(alternating, learned)
-    # the file's noise throughout (the factor held at 1): over-confident (8.8 against 3.3)
+    # the file's noise throughout (the factor held at 1): over-confident (3.9 against 1.5; 8.8
+    # with the reference's noise held at the configured sigmas, which recognise the grounds later)
     odometer = online_odometer(_config(**{'online.enabled': True}))
     odometer.learner._segment_ended = lambda a, b: None
     files = _pose_nees(alternating, odometer.predict(alternating.wheels,
                                                      reference=_reference(alternating)))
-    assert files.mean() > 6.0 and nees.mean() < 0.5 * files.mean()
+    assert files.mean() > 3.5 and nees.mean() < 0.5 * files.mean()
     # one ground: the file's noise is kept
     plain = simulate(SimConfig(duration_s=160.0, seed=3))
     odometer, _, _ = _learned_until(plain)

@@ -74,9 +74,11 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               'information to it (relative units: 16 = a 25 % standard deviation)',
               lower_open=True),
     ParamSpec('sigma_xy', 'm', 0.02, 0.0, 100.0,
-              'standard deviation of a reference position (each pose)', lower_open=True),
+              'standard deviation of a reference position (each pose); used until the '
+              "reference's own noise is measured, then bounds it (a quarter to 4x this)",
+              lower_open=True),
     ParamSpec('sigma_yaw', 'rad', 0.005, 0.0, 10.0,
-              'standard deviation of a reference heading (each pose)', lower_open=True),
+              'standard deviation of a reference heading (each pose); the same', lower_open=True),
     ParamSpec('max_rate', 'Hz', 50.0, 0.0, 1e4,
               'reference poses closer than 1/max_rate to the last accepted one are dropped '
               '(counted reference_rate_limited)', lower_open=True),

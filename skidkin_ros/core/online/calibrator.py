@@ -74,6 +74,7 @@ from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
 from skidkin_ros.core.online.noise import NoiseLearner
+from skidkin_ros.core.online.refnoise import RefNoiseLearner
 from skidkin_ros.core.online.steps import WheelSteps
 from skidkin_ros.core.online.window import WindowSolver
 from skidkin_ros.core.timeunits import NS_PER_S
@@ -94,8 +95,8 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(ChangeLearner, NoiseLearner, ReferenceGates, GroundBank,
-                       WindowSolver):
+class OnlineCalibrator(ChangeLearner, NoiseLearner, RefNoiseLearner, ReferenceGates,
+                       GroundBank, WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by
@@ -214,6 +215,7 @@ class OnlineCalibrator(ChangeLearner, NoiseLearner, ReferenceGates, GroundBank,
                                        'last_nees': self.last_nees,
                                        'last_refusal': self.last_refusal or 'none',
                                        'noise_scale': self.noise_scale}
+        out['reference_sigma_xy'], out['reference_sigma_yaw'] = self.reference_sigmas()
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
         for name, value, sd in zip(self.model.param_names, self.active.k, sigma):
             out[f'{name}'] = float(value)

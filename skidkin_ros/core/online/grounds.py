@@ -65,7 +65,7 @@ class GroundBank:
     _changed_m = -math.inf     # reference travel at the last new ground
 
     def _reference_cov(self) -> np.ndarray:
-        sx, syaw = self.params.sigma_xy, self.params.sigma_yaw
+        sx, syaw = self.reference_sigmas()   # measured or configured (refnoise.py)
         return np.diag([2 * sx * sx, 2 * sx * sx, 2 * syaw * syaw])
 
     def _score(self, ground: Ground, seg: SegmentSet, motion_cov: np.ndarray,
@@ -140,6 +140,19 @@ class GroundBank:
             margin *= STRICT_MARGIN
         return margin
 
+    def _young(self, ground: Ground) -> bool:
+        """Tell whether a ground is scored with its parameter uncertainty (a new one, adapting).
+
+        A ground started at a change knows only its first metres: its values are still far off
+        in the directions those metres hardly observed (a spin in place tells alpha / y, not
+        alpha), while the ground it left is well known. Scored on its values alone, it lost the
+        window to the ground it left, which the change had just refuted (long-stretch seed 41:
+        back on the old ground 0.7 m after the change, for 1.6 m); with its parameter
+        uncertainty in the NEES (as the change detection scores the active ground) it is judged
+        by what it can be, not by its first guess. A learned ground's uncertainty is small.
+        """
+        return ground is self.active and self.travel_m < self._adapt_until_m
+
     def _activate(self, ground: Ground, cause: str) -> None:
         self._switched_m = self.travel_m
         self.counters[cause] += 1
@@ -169,7 +182,7 @@ class GroundBank:
         var_x, var_y, var_yaw = self.noise.step_variances(path, rot)
         motion_cov = np.diag([var_x + self.noise.var_x_const, var_y + self.noise.var_y_const,
                               var_yaw + self.noise.var_yaw_const]) + 1e-9 * np.eye(3)
-        scores = [(self._score(g, seg, motion_cov, False), g) for g in self.grounds]
+        scores = [(self._score(g, seg, motion_cov, self._young(g)), g) for g in self.grounds]
         active, residual = next((s[2], s[0]) for s, g in scores if g is self.active)
         best, ground = min(((s[2], g) for s, g in scores), key=lambda item: item[0])
         if ground is not self.active and active - best > self._switch_margin():
