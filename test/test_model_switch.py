@@ -133,3 +133,28 @@ def test_n148_an_augmented_base_the_node_was_not_given_is_refused_at_runtime(mak
     assert main(['predict', str(table), '--params', str(other), '--model', 'augmented',
                  '--out', str(tmp_path / 'o.csv')]) == 2
     assert not (tmp_path / 'o.csv').exists()
+
+
+def test_c224_predict_warns_as_the_node_does_of_a_model_the_file_does_not_hold(
+        make_rig, tmp_path, capfd):
+    """A file whose own model has no parameters: the node warns, predict says the same line."""
+    table = write_truth_csv(simulate(SimConfig(duration_s=6.0, seed=3)), tmp_path / 'd.csv')
+    for name, flat in (('roc', {**CALIBRATED, 'model': 'roc'}),
+                       ('aug', {**CALIBRATED, 'model': 'augmented',
+                                'augmented.extensions': 'time_offset'})):
+        params = write_params_file(tmp_path / f'{name}.yaml', flat)
+        capfd.readouterr()
+        make_rig(params_file=params)
+        node_line = re.search(r'model .* load a calibrated file', capfd.readouterr().err)
+        assert node_line is not None
+        assert main(['predict', str(table), '--params', str(params),
+                     '--out', str(tmp_path / f'{name}.csv')]) == 0
+        out = capfd.readouterr().out
+        assert f'warning: {params}: {node_line.group(0)}' in out
+    # a file that holds its model: no warning from either
+    params = write_params_file(tmp_path / 'ok.yaml', CALIBRATED)
+    make_rig(params_file=params)
+    assert main(['predict', str(table), '--params', str(params),
+                 '--out', str(tmp_path / 'ok.csv')]) == 0
+    captured = capfd.readouterr()
+    assert 'default parameters' not in captured.out + captured.err

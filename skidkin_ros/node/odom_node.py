@@ -85,8 +85,9 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
-from skidkin_ros.core.odometry.config import (check_model_given, missing_parameters, models_held,
-                                              OdometryConfig, switches_model)
+from skidkin_ros.core.odometry.config import (check_model_given, default_parameters_warning,
+                                              missing_parameters, models_held, OdometryConfig,
+                                              switches_model)
 from skidkin_ros.core.odometry.odometer import Estimate
 from skidkin_ros.core.online import attach_online, online_odometer
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
@@ -134,11 +135,10 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
         # Models whose parameters were given (file, command line, later at runtime): the only
         # ones `model` may switch to (the others would run their defaults, an ideal drive).
         self._models_given = set(models_held(self._parameter_overrides))
-        missing = missing_parameters(config.model, self._models_given, config.augmented_base)
-        if missing is not None:
-            self.get_logger().warning(
-                f'model {config.model!r} runs default parameters (an ideal drive): no '
-                f'{missing} parameter was given; load a calibrated file')
+        warning = default_parameters_warning(config.model, self._models_given,
+                                             config.augmented_base)
+        if warning is not None:
+            self.get_logger().warning(warning)
         self._odometer = online_odometer(config, counters=self.counters, warn=self._warn,
                                          fresh=self._mark_fresh, note=self._note_signal)
         self._last_accepted_mono_ns: int | None = None

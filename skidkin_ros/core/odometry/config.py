@@ -56,6 +56,7 @@ __all__ = [
     'augmented_given',
     'models_held',
     'missing_parameters',
+    'default_parameters_warning',
     'check_model_given',
     'switches_model',
     'implied_interval',
@@ -142,6 +143,19 @@ def missing_parameters(model: str, given: Iterable[str], base: str | None = None
     if AUGMENTED_NAME not in given:
         return 'augmented.base'
     return None if base is None or base in given else f'models.{base}.*'
+
+
+def default_parameters_warning(model: str, given: Iterable[str],
+                               base: str | None = None) -> str | None:
+    """Return the warning for a model run with default parameters (None: it has its own).
+
+    The node logs it at start-up and ``skidkin predict`` prints it, so the two say the same.
+    """
+    missing = missing_parameters(model, given, base)
+    if missing is None:
+        return None
+    return (f'model {model!r} runs default parameters (an ideal drive): no {missing} parameter '
+            'was given; load a calibrated file')
 
 
 def check_model_given(model: str, given: Iterable[str], source: str,
