@@ -232,6 +232,34 @@ def test_se3_power_is_one_logarithm_and_a_scaled_exponential():
     assert np.allclose(se3_exp_scaled(*twist, 1.0), motion)
 
 
+def test_hostile_points_leave_the_registration_byte_identical(short_drive):
+    """NaN, inf, huge and overflowing points beside a scan: the same poses, and no warning."""
+    import warnings
+
+    from skidkin_ros.adapters.lidar_register import register_frames
+
+    _, scans = short_drive
+    bad = np.array([[np.nan, 1.0, 1.0], [np.inf, 0.0, 0.0], [-np.inf, np.nan, 2.0],
+                    [1e300, 1e300, 0.0], [1e154, 1e154, 1e154], [3e153, 0.0, 0.0]])
+
+    def frames(hostile):
+        for scan in scans[:12]:
+            xyz, times = np.asarray(scan.xyz, dtype=float), scan.t_rel_s
+            if hostile:
+                xyz = np.vstack([xyz, bad])
+                times = np.concatenate([times, np.zeros(len(bad))])
+            yield dataclasses.replace(scan, xyz=xyz, t_rel_s=times)
+
+    clean = register_frames(frames(False), ICP)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        dirty = register_frames(frames(True), dataclasses.replace(ICP, voxel_size_m=None))
+        dirty_fixed = register_frames(frames(True), ICP)
+    assert set(clean.status) == {'ok'} and dirty_fixed.status == clean.status
+    assert dirty_fixed.lidar_pose.tobytes() == clean.lidar_pose.tobytes()
+    assert set(dirty.status) == {'ok'}
+
+
 def test_an_open_field_is_degenerate_and_flagged_by_icp_own_quality():
     sim = simulate(SimConfig(duration_s=4.0, seed=3, lidar=LidarConfig(azimuth_resolution_deg=1.0),
                              scene='forest'))

@@ -96,7 +96,8 @@ def _prepare(frame: FrameLike, index: int, config: IcpConfig
     # column by column: numpy's reductions over a row of 3 cost more than the arithmetic
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
-    ranges = np.sqrt(x * x + y * y + z * z)
+    with np.errstate(over='ignore', invalid='ignore'):  # beyond 1e154 m: an infinite range
+        ranges = np.sqrt(x * x + y * y + z * z)
     usable = finite & (ranges > config.min_range_m) & (ranges < config.max_range_m)
     n_usable = int(np.count_nonzero(usable))
     end = int(frame.end_ns)
