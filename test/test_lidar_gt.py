@@ -260,6 +260,34 @@ def test_hostile_points_leave_the_registration_byte_identical(short_drive):
     assert set(dirty.status) == {'ok'}
 
 
+def test_a_non_finite_icp_pose_is_one_dropped_frame_not_an_abort(short_drive, monkeypatch):
+    """kiss-icp's ICP answering NaN once (injected: no recording here makes it) drops that frame.
+
+    Before, the NaN pose went into kiss-icp's map, where Sophus aborts the process (SIGABRT).
+    """
+    from kiss_icp.registration import Registration
+
+    from skidkin_ros.adapters.lidar_register import register_frames
+
+    _, scans = short_drive
+    frames = [dataclasses.replace(s, xyz=np.asarray(s.xyz, dtype=float)) for s in scans[:10]]
+    clean = register_frames(frames, ICP)
+    real, calls = Registration.align_points_to_map, []
+
+    def align_nan_once(self, **kwargs):
+        calls.append(1)
+        return np.full((4, 4), np.nan) if len(calls) == 6 else real(self, **kwargs)
+
+    monkeypatch.setattr(Registration, 'align_points_to_map', align_nan_once)
+    faulty = register_frames(frames, ICP)
+    assert faulty.status == clean.status[:5] + ('non_finite',) + clean.status[6:]
+    assert np.all(np.isnan(faulty.lidar_pose[5])) and faulty.pose_t_ns[5] == -1
+    assert np.array_equal(faulty.lidar_pose[:5], clean.lidar_pose[:5])
+    # the frames after it register from the last good pose, near where they did without it
+    assert np.all(np.isfinite(faulty.lidar_pose[6:]))
+    assert np.max(np.abs(faulty.lidar_pose[6:, :3, 3] - clean.lidar_pose[6:, :3, 3])) < 0.05
+
+
 def test_an_open_field_is_degenerate_and_flagged_by_icp_own_quality():
     sim = simulate(SimConfig(duration_s=4.0, seed=3, lidar=LidarConfig(azimuth_resolution_deg=1.0),
                              scene='forest'))
