@@ -44,3 +44,18 @@ def test_c222_a_folder_of_tables_names_the_table_to_pass(table_folder, tmp_path,
         assert 'folder of trajectory tables' not in capsys.readouterr().err
     finally:
         (folder / 'drive.mcap').unlink()
+
+
+def test_c223_a_folder_of_recordings_and_tables_names_both(tmp_path, capsys):
+    """`skidkin simulate --out runs/a` writes runs/a/ beside runs/a_truth.csv: name them both."""
+    runs = tmp_path / 'runs'
+    runs.mkdir()
+    assert main(['simulate', '--out', str(runs / 'a'), '--duration', '4']) == 0
+    assert (runs / 'a_truth.csv').is_file()
+    capsys.readouterr()
+    out = tmp_path / 'p.yaml'
+    assert main(['calibrate', str(runs), '--ground-truth', 'none', '--out', str(out)]) == 3
+    err = capsys.readouterr().err
+    assert 'Traceback' not in err and not out.exists()
+    assert f'{runs} is not a recording: it holds recording folder(s) ({runs / "a"})' in err
+    assert f'trajectory table(s) ({runs / "a_truth.csv"}); pass one of them' in err

@@ -232,6 +232,62 @@ def test_se3_power_is_one_logarithm_and_a_scaled_exponential():
     assert np.allclose(se3_exp_scaled(*twist, 1.0), motion)
 
 
+def test_hostile_points_leave_the_registration_byte_identical(short_drive):
+    """NaN, inf, huge and overflowing points beside a scan: the same poses, and no warning."""
+    import warnings
+
+    from skidkin_ros.adapters.lidar_register import register_frames
+
+    _, scans = short_drive
+    bad = np.array([[np.nan, 1.0, 1.0], [np.inf, 0.0, 0.0], [-np.inf, np.nan, 2.0],
+                    [1e300, 1e300, 0.0], [1e154, 1e154, 1e154], [3e153, 0.0, 0.0]])
+
+    def frames(hostile):
+        for scan in scans[:12]:
+            xyz, times = np.asarray(scan.xyz, dtype=float), scan.t_rel_s
+            if hostile:
+                xyz = np.vstack([xyz, bad])
+                times = np.concatenate([times, np.zeros(len(bad))])
+            yield dataclasses.replace(scan, xyz=xyz, t_rel_s=times)
+
+    clean = register_frames(frames(False), ICP)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        dirty = register_frames(frames(True), dataclasses.replace(ICP, voxel_size_m=None))
+        dirty_fixed = register_frames(frames(True), ICP)
+    assert set(clean.status) == {'ok'} and dirty_fixed.status == clean.status
+    assert dirty_fixed.lidar_pose.tobytes() == clean.lidar_pose.tobytes()
+    assert set(dirty.status) == {'ok'}
+
+
+def test_a_non_finite_icp_pose_is_one_dropped_frame_not_an_abort(short_drive, monkeypatch):
+    """kiss-icp's ICP answering NaN once (injected: no recording here makes it) drops that frame.
+
+    Before, the NaN pose went into kiss-icp's map, where Sophus aborts the process (SIGABRT).
+    """
+    from kiss_icp.registration import Registration
+
+    from skidkin_ros.adapters.lidar_register import register_frames
+
+    _, scans = short_drive
+    frames = [dataclasses.replace(s, xyz=np.asarray(s.xyz, dtype=float)) for s in scans[:10]]
+    clean = register_frames(frames, ICP)
+    real, calls = Registration.align_points_to_map, []
+
+    def align_nan_once(self, **kwargs):
+        calls.append(1)
+        return np.full((4, 4), np.nan) if len(calls) == 6 else real(self, **kwargs)
+
+    monkeypatch.setattr(Registration, 'align_points_to_map', align_nan_once)
+    faulty = register_frames(frames, ICP)
+    assert faulty.status == clean.status[:5] + ('non_finite',) + clean.status[6:]
+    assert np.all(np.isnan(faulty.lidar_pose[5])) and faulty.pose_t_ns[5] == -1
+    assert np.array_equal(faulty.lidar_pose[:5], clean.lidar_pose[:5])
+    # the frames after it register from the last good pose, near where they did without it
+    assert np.all(np.isfinite(faulty.lidar_pose[6:]))
+    assert np.max(np.abs(faulty.lidar_pose[6:, :3, 3] - clean.lidar_pose[6:, :3, 3])) < 0.05
+
+
 def test_an_open_field_is_degenerate_and_flagged_by_icp_own_quality():
     sim = simulate(SimConfig(duration_s=4.0, seed=3, lidar=LidarConfig(azimuth_resolution_deg=1.0),
                              scene='forest'))

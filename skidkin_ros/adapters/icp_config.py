@@ -114,7 +114,8 @@ def auto_voxel_size(xyz: np.ndarray, config: IcpConfig) -> float:
 
     points = np.asarray(xyz, dtype=float).reshape(-1, 3)
     points = points[np.all(np.isfinite(points), axis=1)]
-    ranges = np.linalg.norm(points, axis=1)
+    with np.errstate(over='ignore'):  # beyond 1e154 m: an infinite range
+        ranges = np.linalg.norm(points, axis=1)
     points = points[(ranges > config.min_range_m) & (ranges < config.max_range_m)]
     if points.shape[0] < 10:
         return 1.0

@@ -63,8 +63,11 @@ class _Odometry:
         return self._kiss.last_pose
 
     def register(self, points: np.ndarray, times: np.ndarray, dt_ns: int,
-                 spread_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """Register one cloud ``dt_ns`` after the previous one; return (source, map points)."""
+                 spread_ns: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """Register one cloud ``dt_ns`` after the previous one; return (source, map points).
+
+        The map points are None when kiss-icp's pose is not finite (nothing was updated).
+        """
         kiss = self._kiss
         delta = kiss.last_delta
         if self._last_dt_ns > 0 and dt_ns > 0:
@@ -81,6 +84,10 @@ class _Odometry:
         new_pose = kiss.registration.align_points_to_map(
             points=source, voxel_map=kiss.local_map, initial_guess=initial_guess,
             max_correspondance_distance=3 * sigma, kernel=sigma)
+        if not np.all(np.isfinite(new_pose)):
+            # kept out of kiss-icp's map and motion model: Sophus aborts the process on it, and
+            # the next frame registers from the last good pose
+            return source, None
         kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
         kiss.local_map.update(frame_downsample, new_pose)
         kiss.last_delta = np.linalg.inv(kiss.last_pose) @ new_pose
@@ -96,7 +103,8 @@ def _prepare(frame: FrameLike, index: int, config: IcpConfig
     # column by column: numpy's reductions over a row of 3 cost more than the arithmetic
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
-    ranges = np.sqrt(x * x + y * y + z * z)
+    with np.errstate(over='ignore', invalid='ignore'):  # beyond 1e154 m: an infinite range
+        ranges = np.sqrt(x * x + y * y + z * z)
     usable = finite & (ranges > config.min_range_m) & (ranges < config.max_range_m)
     n_usable = int(np.count_nonzero(usable))
     end = int(frame.end_ns)
@@ -159,7 +167,7 @@ def register_frames(frames: Iterable[FrameLike], config: IcpConfig, *,
                 dt_ns = end - last_end if last_end is not None else 0
                 source, map_points = odometry.register(points, times, dt_ns, spread_ns)
                 pose = odometry.last_pose.copy()
-                if not np.all(np.isfinite(pose)):
+                if map_points is None or not np.all(np.isfinite(pose)):
                     code, pose, stamp = 'non_finite', nan_pose, -1
                 else:
                     if reference is not None:

@@ -41,7 +41,7 @@ def is_table(path: Path) -> bool:
 
 
 def _check_not_a_folder_of_tables(path: Path) -> None:
-    """Refuse a folder that holds CSV tables and no recording, naming the tables to pass.
+    """Refuse a folder that holds CSV tables and no recording, naming what to pass.
 
     A table is read from its file; its folder (``data/husky``) would otherwise be opened as a
     rosbag2 and refused with a message about metadata.yaml that does not say what to pass.
@@ -52,10 +52,27 @@ def _check_not_a_folder_of_tables(path: Path) -> None:
     if any(p.suffix in (*STORAGE_SUFFIXES, ROS1_SUFFIX) for p in entries):
         return
     tables = [p for p in entries if p.suffix.lower() in ('.csv', '.tsv') and p.is_file()]
-    if tables:
-        names = ', '.join(str(p) for p in tables[:5])
-        raise RecordingError(f'{path} is a folder of trajectory tables, not a recording: pass '
-                             f'the table file itself ({names})')
+    if not tables:
+        return
+    names = ', '.join(str(p) for p in tables[:5])
+    # `skidkin simulate --out runs/a` writes runs/a/ and runs/a_truth.csv side by side: the
+    # parent holds recordings too, and the one meant may be either.
+    recordings = [p for p in entries if p.is_dir() and _holds_recording(p)]
+    if recordings:
+        folders = ', '.join(str(p) for p in recordings[:5])
+        raise RecordingError(f'{path} is not a recording: it holds recording folder(s) '
+                             f'({folders}) and trajectory table(s) ({names}); pass one of them')
+    raise RecordingError(f'{path} is a folder of trajectory tables, not a recording: pass '
+                         f'the table file itself ({names})')
+
+
+def _holds_recording(folder: Path) -> bool:
+    """Tell whether a folder is a recording: metadata.yaml, storage files or ROS 1 bags."""
+    try:
+        return (folder / 'metadata.yaml').is_file() or any(
+            p.suffix in (*STORAGE_SUFFIXES, ROS1_SUFFIX) and p.is_file() for p in folder.iterdir())
+    except OSError:  # unreadable: not one to name
+        return False
 
 
 def extrinsic_from_xyz_rpy(values: Sequence[float]) -> np.ndarray:

@@ -11,8 +11,8 @@ from pathlib import Path
 from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
-from skidkin_ros.core.kinematics.augmented import AUGMENTED_NAME
-from skidkin_ros.core.odometry.config import check_model_given, OdometryConfig
+from skidkin_ros.core.odometry.config import (check_model_given, default_parameters_warning,
+                                              OdometryConfig)
 from skidkin_ros.core.odometry.controller import ControllerGeometry
 from skidkin_ros.core.odometry.gyro_params import GYRO_MODES
 from skidkin_ros.core.odometry.odometer import Odometer
@@ -122,8 +122,14 @@ def run(args: argparse.Namespace) -> int:
         overrides['online.enabled'] = True
     config = OdometryConfig.from_file(args.params, args.model, overrides or None)
     if args.model is not None:
-        held = config.models_in_file + ((AUGMENTED_NAME,) if config.augmented_in_file else ())
-        check_model_given(args.model, held, f'the file {args.params}')
+        check_model_given(args.model, config.held_models, f'the file {args.params}',
+                          config.augmented_base)
+    else:
+        # the file's own model: run as the node runs it, with the node's warning
+        warning = default_parameters_warning(config.model, config.held_models,
+                                             config.augmented_base)
+        if warning is not None:
+            say(f'warning: {args.params}: {warning}')
     if args.imu_mode is not None:
         config = dataclasses.replace(config, values={**config.values, 'imu.mode': args.imu_mode})
     if config.imu.mode != 'off':

@@ -85,7 +85,9 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
-from skidkin_ros.core.odometry.config import check_model_given, models_held, OdometryConfig
+from skidkin_ros.core.odometry.config import (check_model_given, default_parameters_warning,
+                                              missing_parameters, models_held, OdometryConfig,
+                                              switches_model)
 from skidkin_ros.core.odometry.odometer import Estimate
 from skidkin_ros.core.online import attach_online, online_odometer
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
@@ -133,12 +135,10 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
         # Models whose parameters were given (file, command line, later at runtime): the only
         # ones `model` may switch to (the others would run their defaults, an ideal drive).
         self._models_given = set(models_held(self._parameter_overrides))
-        if config.model not in self._models_given:
-            keys = ('augmented.base or augmented.extensions' if config.model == 'augmented'
-                    else f'models.{config.model}.*')
-            self.get_logger().warning(
-                f'model {config.model!r} runs its default parameters (an ideal drive): no '
-                f'{keys} parameter was given; load a calibrated file')
+        warning = default_parameters_warning(config.model, self._models_given,
+                                             config.augmented_base)
+        if warning is not None:
+            self.get_logger().warning(warning)
         self._odometer = online_odometer(config, counters=self.counters, warn=self._warn,
                                          fresh=self._mark_fresh, note=self._note_signal)
         self._last_accepted_mono_ns: int | None = None
@@ -211,11 +211,10 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
         given = self._models_given | set(models_held(changes))
         try:
             config = OdometryConfig.from_flat(flat)
-            if 'model' in changes and changes['model'] != self._config.model:
-                keys = ('augmented.base and augmented.extensions'
-                        if changes['model'] == 'augmented' else f'models.{changes["model"]}.*')
-                check_model_given(changes['model'], given, 'the parameters the node was given '
-                                  f'(set its {keys} parameters first)')
+            if switches_model(self._config, config):
+                missing = missing_parameters(config.model, given, config.augmented_base)
+                check_model_given(config.model, given, 'the parameters the node was given '
+                                  f'(set its {missing} parameters first)', config.augmented_base)
         except ConfigError as err:
             self.get_logger().warning(f'parameter change rejected: {err}')
             return SetParametersResult(successful=False, reason=str(err))

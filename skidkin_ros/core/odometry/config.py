@@ -56,7 +56,10 @@ __all__ = [
     'models_given',
     'augmented_given',
     'models_held',
+    'missing_parameters',
+    'default_parameters_warning',
     'check_model_given',
+    'switches_model',
     'implied_interval',
     'read_params_file',
     'read_params_document',
@@ -116,39 +119,81 @@ def models_given(names: Iterable[str]) -> tuple[str, ...]:
 
 
 def augmented_given(names: Iterable[str]) -> bool:
-    """Tell whether ``names`` set an augmented model (its base or extensions: diagnose's file)."""
-    names = set(names)
-    return 'augmented.base' in names or 'augmented.extensions' in names
+    """Tell whether ``names`` set an augmented model: its base (diagnose's file names it).
+
+    Extensions alone do not: the base would be its default, ideal_dd, not a calibrated model.
+    """
+    return 'augmented.base' in set(names)
 
 
 def models_held(names: Iterable[str]) -> tuple[str, ...]:
-    """Return the models ``names`` set, ``augmented`` included when its base or extensions are."""
+    """Return the models ``names`` set, ``augmented`` included when its base is."""
     names = set(names)
     return models_given(names) + ((AUGMENTED_NAME,) if augmented_given(names) else ())
 
 
-def check_model_given(model: str, given: Iterable[str], source: str) -> None:
+def missing_parameters(model: str, given: Iterable[str], base: str | None = None) -> str | None:
+    """Return the parameters ``model`` lacks in ``given`` to run a calibration (None: it has them).
+
+    ``given`` holds model names (:func:`models_held`). ``augmented`` needs its base named
+    (``augmented.base``) and, when ``base`` is passed, that base's parameters.
+    """
+    given = set(given)
+    if model != AUGMENTED_NAME:
+        return None if model in given else f'models.{model}.*'
+    if AUGMENTED_NAME not in given:
+        return 'augmented.base'
+    return None if base is None or base in given else f'models.{base}.*'
+
+
+def default_parameters_warning(model: str, given: Iterable[str],
+                               base: str | None = None) -> str | None:
+    """Return the warning for a model run with default parameters (None: it has its own).
+
+    The node logs it at start-up and ``skidkin predict`` prints it, so the two say the same.
+    """
+    missing = missing_parameters(model, given, base)
+    if missing is None:
+        return None
+    return (f'model {model!r} runs default parameters (an ideal drive): no {missing} parameter '
+            'was given; load a calibrated file')
+
+
+def check_model_given(model: str, given: Iterable[str], source: str,
+                      base: str | None = None) -> None:
     """Refuse to switch to a model whose parameters ``source`` does not hold.
 
     Its defaults are the ideal differential drive: run under a calibrated model's name, they
-    would look calibrated. ``augmented`` counts as given when its base or extensions were
-    (:func:`augmented_given`): without them it is ideal_dd with no extension.
+    would look calibrated. ``augmented`` counts as given when its base was
+    (:func:`augmented_given`): without it, it is ideal_dd with its extensions. Its base
+    (``base``, when passed) must be given as any model is.
     """
     given = tuple(given)
-    wanted = model
-    if model == AUGMENTED_NAME and AUGMENTED_NAME not in given:
-        raise ParameterError(
-            f'model {AUGMENTED_NAME!r} is not in {source}: no augmented.base or '
-            'augmented.extensions was given, so it would run ideal_dd with no extension (an '
-            'ideal drive), not a calibration; load the file `skidkin diagnose` writes, or '
-            f'choose one of {", ".join(m for m in given if m != AUGMENTED_NAME) or "none"}')
-    if model == AUGMENTED_NAME:
+    missing = missing_parameters(model, given, base)
+    if missing is None:
         return
-    if wanted not in given:
+    others = ', '.join(m for m in given if m != AUGMENTED_NAME) or 'none'
+    if missing == 'augmented.base':
         raise ParameterError(
-            f'model {wanted!r} is not in {source} (it holds {", ".join(given) or "none"}): its '
-            'parameters would be the defaults (an ideal drive), not a calibration; calibrate '
-            'it, load a file that holds it, or choose one of those')
+            f'model {AUGMENTED_NAME!r} is not in {source}: no augmented.base was given, so it '
+            'would run ideal_dd (its default base) with at most its extensions (an ideal '
+            'drive), not a calibration; load the file `skidkin diagnose` writes, or choose '
+            f'one of {others}')
+    if model == AUGMENTED_NAME:
+        raise ParameterError(
+            f'model {AUGMENTED_NAME!r} runs the base model {base!r}, which is not in {source} '
+            f'(it holds {others}): its parameters would be the defaults (an ideal drive), not a '
+            'calibration; set augmented.base to one of those, or calibrate it')
+    raise ParameterError(
+        f'model {model!r} is not in {source} (it holds {", ".join(given) or "none"}): its '
+        'parameters would be the defaults (an ideal drive), not a calibration; calibrate '
+        'it, load a file that holds it, or choose one of those')
+
+
+def switches_model(old: 'OdometryConfig', new: 'OdometryConfig') -> bool:
+    """Tell whether ``new`` runs another model than ``old`` (for augmented: another base too)."""
+    return new.model != old.model or (new.model == AUGMENTED_NAME
+                                      and new.augmented_base != old.augmented_base)
 
 
 def _check_integers(flat: Mapping[str, Any]) -> None:
@@ -282,8 +327,13 @@ class OdometryConfig:
     augmented_values: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     # Models whose parameters the source gave (ideal_dd needs none): the others hold defaults.
     models_in_file: tuple[str, ...] = ()
-    # Whether the source gave augmented.base or augmented.extensions (augmented_given).
+    # Whether the source gave augmented.base (augmented_given).
     augmented_in_file: bool = False
+
+    @property
+    def held_models(self) -> tuple[str, ...]:
+        """Return the models the source gave (:func:`models_held`): the ones it may run."""
+        return self.models_in_file + ((AUGMENTED_NAME,) if self.augmented_in_file else ())
 
     def __getitem__(self, name: str) -> Any:
         return self.values[name]
