@@ -154,11 +154,11 @@ class AugmentedCalibrator(OnlineCalibrator):
                               self.geometry, seg)
 
     def bound_model(self) -> BoundAugmented:
-        return self.model.source(self.active.k.copy())
+        return self.model.source(self.in_force()[0].copy())
 
     def uncertainty(self) -> ParameterUncertainty | None:
-        return LayoutUncertainty.of_layout(self.model, self.active.k, self.geometry,
-                                           self.covariance)
+        k, covariance = self.in_force()   # the active ground's, or the blend while holding
+        return LayoutUncertainty.of_layout(self.model, k, self.geometry, covariance)
 
 
 @dataclass(frozen=True)
