@@ -81,8 +81,12 @@ def test_alternating_grounds_are_blended_while_holding_and_not_after(alternating
     assert np.all(np.isfinite(prediction.poses))
 
 
-def test_the_blend_beats_holding_either_ground_on_the_worse_side(alternating, monkeypatch):
-    """Over the dropout, the blend errs less than the worse of holding one ground."""
+def test_the_blend_errs_less_than_holding_the_active_ground(alternating, monkeypatch):
+    """Gain less error over the dropout with the blend than holding the active ground.
+
+    On this drive the robot crosses from the active ground onto the other one during the
+    dropout, as it did before it (the case the blend is for).
+    """
     reference = _reference(alternating)
     truth = alternating.truth.poses
     t = (alternating.wheels.t_ns - alternating.start_ns) * 1e-9
@@ -98,8 +102,11 @@ def test_the_blend_beats_holding_either_ground_on_the_worse_side(alternating, mo
 
 @pytest.mark.parametrize('mode, cut', [('time', CUT_S), ('alternate', None)])
 def test_no_blend_after_one_change_nor_while_the_reference_comes(mode, cut, monkeypatch):
-    """One change of ground (no going back) holds the active ground; a reference never lost
-    never blends: the same poses, bit for bit, as with the blend switched off."""
+    """Hold the active ground after one change; never blend while the reference comes.
+
+    One change of ground (no going back) and a reference never lost: the same poses, bit for
+    bit, as with the blend switched off.
+    """
     sim = _drive(mode)
     odometer, prediction, _ = _run(sim, _reference(sim, cut))
     assert odometer.counters['online_hold_blend'] == 0
@@ -112,8 +119,11 @@ def test_no_blend_after_one_change_nor_while_the_reference_comes(mode, cut, monk
 
 @pytest.mark.ros
 def test_n137_the_node_blends_while_holding_as_predict_does(tmp_path, alternating):
-    """The real node, fed the alternating drive with its reference cut for 20 s, publishes the
-    poses and covariances of ``skidkin predict`` (the same blend, bit for bit)."""
+    """Publish from the real node what ``skidkin predict`` gives, the blend included.
+
+    The alternating drive with its reference cut for 20 s: the same poses and covariances,
+    bit for bit.
+    """
     from skidkin_ros.core.drive import PoseTrack
     from skidkin_ros.core.odometry.config import write_params_file
     from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion

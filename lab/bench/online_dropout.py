@@ -18,9 +18,8 @@ import argparse
 import math
 import sys
 
-import numpy as np
-
 from lab.studies import online as study
+import numpy as np
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer

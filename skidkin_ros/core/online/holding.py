@@ -159,7 +159,7 @@ class HoldingBlend:
         self._bump()
 
     def _bump(self) -> None:
-        """The parameters in force changed (not a ground's: a segment in progress stays)."""
+        """Count a change of the parameters in force (not a ground's: no straddle)."""
         in_step = self._seg_version == self.version
         self.version += 1
         if in_step:
