@@ -80,10 +80,12 @@ class HoldingBlend:
     def _accept(self, ref) -> None:
         super()._accept(ref)
         self._ref_travel = self._travel
+        self._hold_plan = None   # a pose again: the next hold plans afresh
 
     def _start_chain(self, t_ns: int, x: float, y: float, yaw: float) -> None:
         super()._start_chain(t_ns, x, y, yaw)
         self._ref_travel = self._travel
+        self._hold_plan = None
 
     # ------------------------------------------------------------------ the blend
     def _hold_plan_now(self) -> tuple | None:
@@ -133,9 +135,9 @@ class HoldingBlend:
             self._hold_plan = self._hold_plan_now() or ()
             if self._hold_plan:
                 self.counters['online_hold_blend'] += 1
-        self._due_ns = min(self._due_ns, t1_ns + int(HOLD_CHECK_S * NS_PER_S))
         if not self._hold_plan:
-            return
+            return   # the active ground holds until a pose is accepted again
+        self._due_ns = min(self._due_ns, t1_ns + int(HOLD_CHECK_S * NS_PER_S))
         grounds, pi, mu = self._hold_plan
         travel = max(self._travel - self._ref_travel, 0.0)
         weights = pi * (1.0 - math.exp(-mu * travel))
