@@ -72,6 +72,12 @@ def run_drive(case: str, seed: int, fixed: OdometryConfig) -> dict:
     base = e_full.mean()
     out = {'case': case, 'seed': seed, 'eps_t': base, 'cost': e_drop.mean() / base - 1.0,
            'blends': dropped_odometer.counters['online_hold_blend']}
+    # the published pose's NEES in the dropout run (the study's: every second after the first
+    # ten), over the drive and over the dropout's 20 s plus 10 s
+    nees = study._nees(sim, dropped.poses, dropped.pose_covariances)
+    seconds = np.arange(10.0, 10.0 + len(nees))
+    near = (seconds >= cut[0]) & (seconds < cut[1] + 10.0)
+    out['nees'], out['nees_dropout'] = float(nees.mean()), float(nees[near].mean())
     # increments starting 10 s before the cut reach into it (2 m at about 0.2 m/s)
     for name, lo, hi in (('before', 0.0, cut[0] - 10.0), ('during', cut[0] - 10.0, cut[1]),
                          ('after', cut[1], math.inf)):
@@ -97,15 +103,16 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     fixed = study.calibrated_file()
     print('| case | seed | eps_t (m) | dropout cost | of which before / during / after | '
-          'oracle | hold first ground | hold second | average model | blends |')
-    print('|' + '---|' * 10)
+          'oracle | hold first ground | hold second | average model | blends | '
+          'NEES drive / dropout + 10 s |')
+    print('|' + '---|' * 11)
     for seed in args.seeds:
         r = run_drive(args.case, seed, fixed)
         print(f"| {r['case']} | {seed} | {r['eps_t']:.4f} | {100 * r['cost']:+.1f} % | "
               f"{100 * r['before']:+.1f} / {100 * r['during']:+.1f} / {100 * r['after']:+.1f} |"
               f" {100 * r['oracle']:+.1f} % | {100 * r['hold first']:+.1f} % | "
               f"{100 * r['hold second']:+.1f} % | {100 * r['average']:+.1f} % | "
-              f"{r['blends']} |", flush=True)
+              f"{r['blends']} | {r['nees']:.2f} / {r['nees_dropout']:.2f} |", flush=True)
     return 0
 
 
