@@ -56,11 +56,11 @@ def _grounds() -> tuple[dict, dict]:
     return base, other
 
 
-def run_drive(case: str, seed: int, fixed: OdometryConfig) -> dict:
+def run_drive(case: str, seed: int, fixed: OdometryConfig, at: float = 0.75) -> dict:
     """Return the dropout's cost, where it lies, and the bounds, for one drive."""
     sim = simulate(SimConfig(duration_s=DURATION_S, seed=seed, effects=study._effects(case)))
     config = OdometryConfig.from_flat({**fixed.values, 'online.enabled': True})
-    cut = (0.75 * DURATION_S, 0.75 * DURATION_S + 20.0)
+    cut = (at * DURATION_S, at * DURATION_S + 20.0)
     full = online_odometer(config).predict(
         sim.wheels, reference=study._reference(sim, np.random.default_rng(seed)))
     dropped_odometer = online_odometer(config)
@@ -100,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--case', default='alternating', choices=study.CASES)
     parser.add_argument('--seeds', type=int, nargs='+', default=[11, 44, 45])
+    parser.add_argument('--at', type=float, default=0.75,
+                        help="the dropout's start, as a share of the drive (the study's 0.75)")
     args = parser.parse_args(argv)
     fixed = study.calibrated_file()
     print('| case | seed | eps_t (m) | dropout cost | of which before / during / after | '
@@ -107,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
           'NEES drive / dropout + 10 s |')
     print('|' + '---|' * 11)
     for seed in args.seeds:
-        r = run_drive(args.case, seed, fixed)
+        r = run_drive(args.case, seed, fixed, args.at)
         print(f"| {r['case']} | {seed} | {r['eps_t']:.4f} | {100 * r['cost']:+.1f} % | "
               f"{100 * r['before']:+.1f} / {100 * r['during']:+.1f} / {100 * r['after']:+.1f} |"
               f" {100 * r['oracle']:+.1f} % | {100 * r['hold first']:+.1f} % | "
