@@ -14,8 +14,11 @@ is ``p = pi + (delta_active - pi) exp(-mu d)`` (mu = lambda / (1 - sum pi^2): a 
 redraws its ground from pi at rate mu switches at rate lambda), and the odometry runs the
 expected parameters ``sum p_j k_j`` with the mixture's covariance ``sum p_j (Sigma_j +
 (k_j - k)(k_j - k)^T)`` (the spread between the grounds is published as uncertainty). A blend
-is used only when at least one of those switches took a remembered ground back (evidence that
-grounds alternate); a new ground that replaced the old one is a change, not an alternation.
+is used only when the robot went back to a ground it had driven on at least ``MIN_RETURNS``
+times in that path (evidence that grounds alternate: one return can be a one-off); a new ground
+that replaced the old one is a change, not an alternation. A stay shorter than
+``online.switch_window`` (the recognition flickering, e.g. a false switch back right after a
+change) is not counted as a stay.
 
 When the reference returns, the active ground's own parameters are in force again at once; the
 recognition (``grounds.py``) takes another ground within its first ``switch_window`` if another
@@ -44,6 +47,8 @@ HOLD_CHECK_S = 0.1
 HOLD_STEP = 0.02
 # Ground activations remembered (each with the reference path at which it happened).
 HISTORY = 256
+# Returns to a ground already driven on, in the last online.memory m, that make alternation.
+MIN_RETURNS = 2
 
 
 class HoldingBlend:
@@ -95,19 +100,20 @@ class HoldingBlend:
         window = self.params.memory
         now = self.travel_m
         start = max(now - window, 0.0)
-        history = list(self._history())
+        history = _dwells(list(self._history()), now, self.params.switch_window)
         shares: dict[int, float] = {}
         switches = returns = 0
-        for i, (at, ground, cause) in enumerate(history):
+        seen: set[int] = set()
+        for i, (at, ground) in enumerate(history):
             end = history[i + 1][0] if i + 1 < len(history) else now
-            if end <= start:
-                continue
-            shares[id(ground)] = shares.get(id(ground), 0.0) + end - max(at, start)
-            if at > start and cause != 'start':
+            if i and at > start:
                 switches += 1
-                returns += cause == 'online_switch'
+                returns += id(ground) in seen
+            seen.add(id(ground))
+            if end > start:
+                shares[id(ground)] = shares.get(id(ground), 0.0) + end - max(at, start)
         span = now - start
-        if returns == 0 or span <= 0.0:
+        if returns < MIN_RETURNS or span <= 0.0:
             return None
         grounds = [self.active] + [g for g in self.grounds
                                    if g is not self.active and shares.get(id(g), 0.0) > 0.0]
@@ -166,3 +172,21 @@ class HoldingBlend:
         self.version += 1
         if in_step:
             self._seg_version = self.version
+
+
+def _dwells(events: list, now: float, shortest: float) -> list[tuple[float, object]]:
+    """Return the (start, ground) of each stay on a ground, flickers of the recognition left out.
+
+    A stay shorter than ``shortest`` (``online.switch_window``: the recognition's own window
+    cannot resolve less) is not a ground the robot was on: it is dropped, and the ground before
+    it goes on (a false switch back and forth right after a change is no alternation).
+    """
+    kept: list[tuple[float, object]] = []
+    for i, (at, ground, _cause) in enumerate(events):
+        end = events[i + 1][0] if i + 1 < len(events) else now
+        if end - at < shortest and i + 1 < len(events):
+            continue
+        if kept and kept[-1][1] is ground:
+            continue
+        kept.append((at, ground))
+    return kept
