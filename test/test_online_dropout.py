@@ -1,9 +1,12 @@
 """Online calibration while the reference is missing: which ground the odometry runs."""
 
+import collections
+
 import numpy as np
 import pytest
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer
+from skidkin_ros.core.online.grounds import Ground
 from skidkin_ros.core.online.holding import HoldingBlend
 from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
@@ -146,3 +149,31 @@ def test_n137_the_node_blends_while_holding_as_predict_does(tmp_path, alternatin
     assert np.array_equal(result.pose_cov, expected.pose_covariances)
     for cause in ('online_hold_blend', 'online_switch', 'reference_accepted'):
         assert result.counters.get(cause, 0) == odometer.counters[cause]
+
+
+def test_a_flicker_of_the_recognition_is_no_alternation():
+    """Count as alternation only stays of a switch_window or more, and two returns."""
+    odometer = online_odometer(OdometryConfig.from_flat(FILE))
+    learner = odometer.learner
+    old = learner.grounds[0]
+    new = Ground(1, old.k * 0.8, old.prior.copy())
+    learner.grounds.append(new)
+
+    def plan(events, now):
+        learner.active = next(g for at, g, c in events[::-1])
+        learner._activations = collections.deque(events)
+        learner.travel_m = now
+        return learner._hold_plan_now()
+    # a change, then a false switch back and forth within 0.3 m (long-stretch seed 32)
+    assert plan([(0.0, old, 'start'), (43.2, new, 'online_change'),
+                 (44.9, old, 'online_switch'), (45.2, new, 'online_switch')], 57.2) is None
+    # one return after a long stay: a one-off, not a pattern
+    assert plan([(0.0, old, 'start'), (30.0, new, 'online_change'),
+                 (45.0, old, 'online_switch')], 57.0) is None
+    # grounds alternating every 4 m: blended, occupancy about half each
+    events = [(0.0, old, 'start'), (4.0, new, 'online_change')] + [
+        (4.0 * i, (old, new)[i % 2], 'online_switch') for i in range(2, 15)]
+    grounds, pi, mu = plan(events, 58.0)
+    assert grounds[0] is learner.active and len(grounds) == 2
+    assert pi == pytest.approx([0.5, 0.5], abs=0.1)
+    assert mu == pytest.approx((7.5 / 30.0) / 0.5, rel=0.1)
