@@ -275,21 +275,21 @@ class AugmentedCalibrator(OnlineCalibrator):
                               self.geometry, seg)
 
     def bound_model(self) -> BoundAugmented:
-        return self.model.source(self.active.k.copy())
+        return self.model.source(self.in_force()[0].copy())
 
     # The file's residual-model coefficient covariance (coefficients held: it stays as loaded;
     # set by the maker, None: none).
     coefficient_covariance: np.ndarray | None = None
 
     def uncertainty(self) -> ParameterUncertainty | None:
+        k, covariance = self.in_force()   # the active ground's, or the blend while holding
         coefficients = None
         layout = self.model.layout
         if self.coefficient_covariance is not None and RESIDUAL_EXTENSION in layout.extensions:
-            _, ext_k = layout.parameters(self.active.k)
+            _, ext_k = layout.parameters(k)
             coefficients = ResidualUncertainty.of(
                 ext_k[layout.extensions.index(RESIDUAL_EXTENSION)], self.coefficient_covariance)
-        return LayoutUncertainty.of_layout(self.model, self.active.k, self.geometry,
-                                           self.covariance, coefficients)
+        return LayoutUncertainty.of_layout(self.model, k, self.geometry, covariance, coefficients)
 
 
 @dataclass(frozen=True)

@@ -73,6 +73,7 @@ from skidkin_ros.core.online.adapt import ChangeLearner
 from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
+from skidkin_ros.core.online.holding import HoldingBlend
 from skidkin_ros.core.online.noise import NoiseLearner
 from skidkin_ros.core.online.refnoise import RefNoiseLearner
 from skidkin_ros.core.online.steps import WheelSteps
@@ -95,7 +96,7 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(ChangeLearner, NoiseLearner, RefNoiseLearner, ReferenceGates,
+class OnlineCalibrator(HoldingBlend, ChangeLearner, NoiseLearner, RefNoiseLearner, ReferenceGates,
                        GroundBank, WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
@@ -187,11 +188,11 @@ class OnlineCalibrator(ChangeLearner, NoiseLearner, RefNoiseLearner, ReferenceGa
         return np.linalg.inv(self.active.info) * np.outer(self.scale, self.scale)
 
     def bound_model(self) -> BoundModel:
-        return BoundModel(self.model, self.geometry, self.active.k.copy())
+        return BoundModel(self.model, self.geometry, self.in_force()[0].copy())
 
     def uncertainty(self) -> ParameterUncertainty | None:
-        return ParameterUncertainty.of_model(self.model, self.active.k, self.geometry,
-                                             self.covariance)
+        k, covariance = self.in_force()   # the active ground's, or the blend while holding
+        return ParameterUncertainty.of_model(self.model, k, self.geometry, covariance)
 
     def state(self, wheel_now_ns: int | None = None) -> str:
         """Return 'holding', 'adapting' or 'learning'.
@@ -214,7 +215,8 @@ class OnlineCalibrator(ChangeLearner, NoiseLearner, RefNoiseLearner, ReferenceGa
                                        'travel_m': self.travel_m, 'cusum': self.cusum,
                                        'last_nees': self.last_nees,
                                        'last_refusal': self.last_refusal or 'none',
-                                       'noise_scale': self.noise_scale}
+                                       'noise_scale': self.noise_scale,
+                                       'hold_weight': self.hold_weight()}
         out['reference_sigma_xy'], out['reference_sigma_yaw'] = self.reference_sigmas()
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
         for name, value, sd in zip(self.model.param_names, self.active.k, sigma):
@@ -275,6 +277,7 @@ class OnlineCalibrator(ChangeLearner, NoiseLearner, RefNoiseLearner, ReferenceGa
         self._due_ns = pending[0][0] if pending else NEVER_NS
         if not pending:
             self._trim_old()
+        self._hold_check(t1_ns)
         return self.version != before
 
     def _trim_old(self) -> None:

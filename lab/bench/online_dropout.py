@@ -1,0 +1,122 @@
+"""Where a 20 s reference dropout costs, and what any choice without a reference could do.
+
+For each drive of the online study (``lab.studies.online``: the reference cut for 20 s at three
+quarters of the drive, the kept poses with the same noise as without the cut), prints the
+dropout's cost (the drive's eps_t with the dropout over the eps_t without), where the extra
+error lies (increments starting before, during, and after the dropout, as shares of the
+drive's eps_t), and bounds: the run without the dropout with, for the dropout's 20 s only, the
+per-sample motion of another odometry spliced in (the true model of the ground under the robot:
+an oracle; the true model of either ground held; the true model of the two grounds' average:
+the best single choice that knows nothing of where the robot is). Run::
+
+    python -m lab.bench.online_dropout --case alternating --seeds 11 44 45
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+from lab.studies import online as study
+import numpy as np
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.online import online_odometer
+from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
+
+DURATION_S = 240.0
+
+
+def _between(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]
+
+
+def splice(poses: np.ndarray, other: np.ndarray, i0: int, i1: int) -> np.ndarray:
+    """Return ``poses`` with the per-sample motion of ``other`` in samples [i0, i1)."""
+    out = poses.copy()
+    for i in range(max(i0, 1), len(poses)):
+        src = other if i < i1 else poses
+        dx, dy, dyaw = _between(src[i - 1], src[i])
+        c, s = math.cos(out[i - 1, 2]), math.sin(out[i - 1, 2])
+        out[i] = (out[i - 1, 0] + c * dx - s * dy, out[i - 1, 1] + s * dx + c * dy,
+                  out[i - 1, 2] + dyaw)
+    return out
+
+
+def _grounds() -> tuple[dict, dict]:
+    base = dict(DEFAULT_TRUE_PARAMS)
+    ratio = (1.0 - study.SLIP) / (1.0 - study.YAW_SLIP)
+    other = {'alpha_l': base['alpha_l'] * (1 - study.SLIP),
+             'alpha_r': base['alpha_r'] * (1 - study.SLIP),
+             'x_v': base['x_v'] / (1.0 - study.YAW_SLIP), 'y_l': base['y_l'] * ratio,
+             'y_r': base['y_r'] * ratio}
+    return base, other
+
+
+def run_drive(case: str, seed: int, fixed: OdometryConfig, at: float = 0.75) -> dict:
+    """Return the dropout's cost, where it lies, and the bounds, for one drive."""
+    sim = simulate(SimConfig(duration_s=DURATION_S, seed=seed, effects=study._effects(case)))
+    config = OdometryConfig.from_flat({**fixed.values, 'online.enabled': True})
+    cut = (at * DURATION_S, at * DURATION_S + 20.0)
+    full = online_odometer(config).predict(
+        sim.wheels, reference=study._reference(sim, np.random.default_rng(seed)))
+    dropped_odometer = online_odometer(config)
+    dropped = dropped_odometer.predict(
+        sim.wheels, reference=study._reference(sim, np.random.default_rng(seed), cut))
+    e_full = study._scores(sim, full.poses)[0]
+    e_drop = study._scores(sim, dropped.poses)[0]
+    t = (sim.wheels.t_ns[:len(e_full)] - sim.start_ns) * 1e-9
+    base = e_full.mean()
+    out = {'case': case, 'seed': seed, 'eps_t': base, 'cost': e_drop.mean() / base - 1.0,
+           'blends': dropped_odometer.counters['online_hold_blend']}
+    # the published pose's NEES in the dropout run (the study's: every second after the first
+    # ten), over the drive and over the dropout's 20 s plus 10 s
+    nees = study._nees(sim, dropped.poses, dropped.pose_covariances)
+    seconds = np.arange(10.0, 10.0 + len(nees))
+    near = (seconds >= cut[0]) & (seconds < cut[1] + 10.0)
+    out['nees'], out['nees_dropout'] = float(nees.mean()), float(nees[near].mean())
+    # increments starting 10 s before the cut reach into it (2 m at about 0.2 m/s)
+    for name, lo, hi in (('before', 0.0, cut[0] - 10.0), ('during', cut[0] - 10.0, cut[1]),
+                         ('after', cut[1], math.inf)):
+        pick = (t >= lo) & (t < hi)
+        out[name] = float((e_drop[pick] - e_full[pick]).sum() / len(e_full) / base)
+    ts = (sim.wheels.t_ns - sim.start_ns) * 1e-9
+    i0, i1 = int(np.searchsorted(ts, cut[0])), int(np.searchsorted(ts, cut[1]))
+    model, geometry = get_model(study.MODEL), sim.config.geometry
+    a, b = _grounds()
+    mean = {k: 0.5 * (a[k] + b[k]) for k in a}
+    for name, pair in (('oracle', (a, b)), ('hold first', (a, a)), ('hold second', (b, b)),
+                       ('average', (mean, mean))):
+        poses = study.ground_poses(sim, tuple(model.bind(p, geometry) for p in pair),
+                                   fixed['interval'])
+        out[name] = study._scores(sim, splice(full.poses, poses, i0, i1))[0].mean() / base - 1
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--case', default='alternating', choices=study.CASES)
+    parser.add_argument('--seeds', type=int, nargs='+', default=[11, 44, 45])
+    parser.add_argument('--at', type=float, default=0.75,
+                        help="the dropout's start, as a share of the drive (the study's 0.75)")
+    args = parser.parse_args(argv)
+    fixed = study.calibrated_file()
+    print('| case | seed | eps_t (m) | dropout cost | of which before / during / after | '
+          'oracle | hold first ground | hold second | average model | blends | '
+          'NEES drive / dropout + 10 s |')
+    print('|' + '---|' * 11)
+    for seed in args.seeds:
+        r = run_drive(args.case, seed, fixed, args.at)
+        print(f"| {r['case']} | {seed} | {r['eps_t']:.4f} | {100 * r['cost']:+.1f} % | "
+              f"{100 * r['before']:+.1f} / {100 * r['during']:+.1f} / {100 * r['after']:+.1f} |"
+              f" {100 * r['oracle']:+.1f} % | {100 * r['hold first']:+.1f} % | "
+              f"{100 * r['hold second']:+.1f} % | {100 * r['average']:+.1f} % | "
+              f"{r['blends']} | {r['nees']:.2f} / {r['nees_dropout']:.2f} |", flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,179 @@
+"""Online calibration while the reference is missing: which ground the odometry runs."""
+
+import collections
+
+import numpy as np
+import pytest
+from skidkin_ros.core.odometry.config import OdometryConfig
+from skidkin_ros.core.online import online_odometer
+from skidkin_ros.core.online.grounds import Ground
+from skidkin_ros.core.online.holding import HoldingBlend
+from skidkin_ros.sim.effects import make_effect
+from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
+
+FILE = {'model': 'edd_asymmetric',
+        **{f'models.edd_asymmetric.{k}': v for k, v in DEFAULT_TRUE_PARAMS.items()},
+        'models.edd_asymmetric.noise.calibrated': True, 'online.enabled': True}
+CUT_S = (120.0, 140.0)
+
+
+def _drive(mode, seed=3):
+    if mode == 'alternate':
+        effect = make_effect('terrain_regime', 0.25, mode='alternate', period_m=4.0, yaw=0.15)
+    else:
+        effect = make_effect('terrain_regime', 0.25, mode='time', switch_frac=0.4, yaw=0.15)
+    return simulate(SimConfig(duration_s=160.0, seed=seed, effects=(effect,)))
+
+
+def _reference(sim, cut=CUT_S):
+    t = np.arange(sim.start_ns, sim.end_ns, 100_000_000)
+    if cut is not None:
+        rel = (t - sim.start_ns) * 1e-9
+        t = t[(rel < cut[0]) | (rel >= cut[1])]
+    return sim.truth_at(t)
+
+
+def _run(sim, reference, record=False):
+    """Predict with online calibration; with record, what is in force after every step."""
+    odometer = online_odometer(OdometryConfig.from_flat(FILE))
+    learner, seen = odometer.learner, []
+    if record:
+        step = learner.wheel_step
+
+        def wheel_step(t1_ns, wheels, twist):
+            changed = step(t1_ns, wheels, twist)
+            k, cov = learner.in_force()
+            seen.append(((t1_ns - sim.start_ns) * 1e-9, learner.state(t1_ns),
+                         learner.hold_weight(), k.copy(), learner.active.k.copy(),
+                         learner._blend, learner.summary(),
+                         np.stack([g.k for g in learner.grounds]), learner.covariance))
+            return changed
+        learner.wheel_step = wheel_step
+    return odometer, odometer.predict(sim.wheels, reference=reference), seen
+
+
+@pytest.fixture(scope='module')
+def alternating():
+    return _drive('alternate')
+
+
+def test_alternating_grounds_are_blended_while_holding_and_not_after(alternating):
+    odometer, prediction, seen = _run(alternating, _reference(alternating), record=True)
+    assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_switch'] >= 3   # the grounds alternated before the cut
+    holding = [s for s in seen if CUT_S[0] + 1.5 < s[0] < CUT_S[1] and s[1] == 'holding']
+    assert len(holding) > 300
+    weights = np.array([s[2] for s in holding])
+    # the active ground first, then toward the grounds' recent shares (about half each here)
+    assert weights[0] > 0.8 and 0.3 < weights[-1] < 0.7
+    assert np.all(np.diff(weights) <= 1e-12)
+    names = odometer.learner.model.param_names
+    for t, state, weight, k, active_k, blend, summary, ks, active_cov in holding[::50]:
+        # what the odometry integrates is a weighted mean of the grounds' parameters ...
+        assert blend is not None and blend[0][0] == weight
+        assert np.all(k >= ks.min(axis=0) - 1e-12) and np.all(k <= ks.max(axis=0) + 1e-12)
+        assert not np.array_equal(k, active_k)
+        # ... with the spread between them as uncertainty, wider than the active ground's
+        assert np.all(np.diag(blend[2]) > np.diag(active_cov))
+        # /diagnostics (and ~/save_calibration) keep the active ground's own values
+        assert [summary[name] for name in names] == active_k.tolist()
+        assert summary['hold_weight'] == weight
+    after = [s for s in seen if s[0] > CUT_S[1] + 0.5]
+    assert after and all(s[2] == 1.0 and s[5] is None for s in after)
+    assert all(np.array_equal(s[3], s[4]) for s in after)
+    assert np.all(np.isfinite(prediction.poses))
+
+
+def test_the_blend_errs_less_than_holding_the_active_ground(alternating, monkeypatch):
+    """Gain less error over the dropout with the blend than holding the active ground.
+
+    On this drive the robot crosses from the active ground onto the other one during the
+    dropout, as it did before it (the case the blend is for).
+    """
+    reference = _reference(alternating)
+    truth = alternating.truth.poses
+    t = (alternating.wheels.t_ns - alternating.start_ns) * 1e-9
+    i0, i1 = np.searchsorted(t, CUT_S[0]), np.searchsorted(t, CUT_S[1])
+
+    def drift(poses):   # the pose error gained over the dropout, in the start's frame
+        return float(np.hypot(*((poses[i1] - poses[i0]) - (truth[i1] - truth[i0]))[:2]))
+    blended = drift(_run(alternating, reference)[1].poses)
+    monkeypatch.setattr(HoldingBlend, '_hold_plan_now', lambda self: None)
+    held = drift(_run(alternating, reference)[1].poses)
+    assert blended < held
+
+
+@pytest.mark.parametrize('mode, cut', [('time', CUT_S), ('alternate', None)])
+def test_no_blend_after_one_change_nor_while_the_reference_comes(mode, cut, monkeypatch):
+    """Hold the active ground after one change; never blend while the reference comes.
+
+    One change of ground (no going back) and a reference never lost: the same poses, bit for
+    bit, as with the blend switched off.
+    """
+    sim = _drive(mode)
+    odometer, prediction, _ = _run(sim, _reference(sim, cut))
+    assert odometer.counters['online_hold_blend'] == 0
+    assert odometer.counters['online_change'] >= 1
+    monkeypatch.setattr(HoldingBlend, '_hold_plan_now', lambda self: None)
+    plain = _run(sim, _reference(sim, cut))[1]
+    assert np.array_equal(prediction.poses, plain.poses)
+    assert np.array_equal(prediction.pose_covariances, plain.pose_covariances)
+
+
+@pytest.mark.ros
+def test_n137_the_node_blends_while_holding_as_predict_does(tmp_path, alternating):
+    """Publish from the real node what ``skidkin predict`` gives, the blend included.
+
+    The alternating drive with its reference cut for 20 s: the same poses and covariances,
+    bit for bit.
+    """
+    from skidkin_ros.core.drive import PoseTrack
+    from skidkin_ros.core.odometry.config import write_params_file
+    from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
+    from skidkin_ros.node.replay import replay_through_node
+
+    path = write_params_file(tmp_path / 'online.yaml', {**FILE, 'robot': 'sim_husky'},
+                             {'source': 'test'})
+    reference = _reference(alternating)
+    wire_yaw = np.array([quaternion_to_yaw(*yaw_to_quaternion(float(v)))
+                         for v in reference.yaw])
+    odometer = online_odometer(OdometryConfig.from_file(path))
+    expected = odometer.predict(alternating.wheels, reference=PoseTrack(
+        reference.t_ns, reference.x, reference.y, wire_yaw))
+    assert odometer.counters['online_hold_blend'] == 1
+    result = replay_through_node(alternating.wheels, params_file=path, reference=reference,
+                                 timeout_s=300.0)
+    assert len(result) == len(alternating.wheels)
+    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
+    np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
+    assert np.array_equal(result.pose_cov, expected.pose_covariances)
+    for cause in ('online_hold_blend', 'online_switch', 'reference_accepted'):
+        assert result.counters.get(cause, 0) == odometer.counters[cause]
+
+
+def test_a_flicker_of_the_recognition_is_no_alternation():
+    """Count as alternation only stays of a switch_window or more, and two returns."""
+    odometer = online_odometer(OdometryConfig.from_flat(FILE))
+    learner = odometer.learner
+    old = learner.grounds[0]
+    new = Ground(1, old.k * 0.8, old.prior.copy())
+    learner.grounds.append(new)
+
+    def plan(events, now):
+        learner.active = next(g for at, g, c in events[::-1])
+        learner._activations = collections.deque(events)
+        learner.travel_m = now
+        return learner._hold_plan_now()
+    # a change, then a false switch back and forth within 0.3 m (long-stretch seed 32)
+    assert plan([(0.0, old, 'start'), (43.2, new, 'online_change'),
+                 (44.9, old, 'online_switch'), (45.2, new, 'online_switch')], 57.2) is None
+    # one return after a long stay: a one-off, not a pattern
+    assert plan([(0.0, old, 'start'), (30.0, new, 'online_change'),
+                 (45.0, old, 'online_switch')], 57.0) is None
+    # grounds alternating every 4 m: blended, occupancy about half each
+    events = [(0.0, old, 'start'), (4.0, new, 'online_change')] + [
+        (4.0 * i, (old, new)[i % 2], 'online_switch') for i in range(2, 15)]
+    grounds, pi, mu = plan(events, 58.0)
+    assert grounds[0] is learner.active and len(grounds) == 2
+    assert pi == pytest.approx([0.5, 0.5], abs=0.1)
+    assert mu == pytest.approx((7.5 / 30.0) / 0.5, rel=0.1)
