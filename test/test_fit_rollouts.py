@@ -106,7 +106,7 @@ def test_c213_fit_rollouts_equal_the_exact_ones_to_rounding():
 
 
 def _plan_per_drive(predictor, offset_ns):
-    """The window plan searched drive by drive (what the one search must reproduce)."""
+    """Return the window plan searched drive by drive (what the one search reproduces)."""
     width = predictor.t_ns.shape[1]
     seg = predictor.segments
     plan = {key: np.zeros(len(seg), dtype=np.int64) for key in ('first', 'a', 'b')}

@@ -133,10 +133,10 @@ def window_tangents(v_x, v_y, omega, dt_s, d_v_x, d_v_y, d_omega, a: np.ndarray,
     sums = []
     for row in ((m_xv, m_xy, m_xw), (m_yv, m_yy, m_yw), (None, None, dt)):
         total = np.zeros((columns, len(a)))
+        # summed in the order of the whole product: the yaw rate's term first
+        order = ((2, row[2]), (0, row[0]), (1, row[1]))
         for p in range(columns):
-            # summed in the order of the whole product: the yaw rate's term first
-            used = [(factor, tangents[m][p]) for m, factor in ((2, row[2]), (0, row[0]),
-                                                              (1, row[1]))
+            used = [(factor, tangents[m][p]) for m, factor in order
                     if factor is not None and moving[p][m]]
             if not used or not len(a):
                 continue
