@@ -125,25 +125,16 @@ def window_tangents(v_x, v_y, omega, dt_s, d_v_x, d_v_y, d_omega, a: np.ndarray,
     bounds = np.empty(2 * len(a), dtype=np.int64)
     bounds[0::2], bounds[1::2] = a, b
     empty = (b <= a)
-    # a direction's tangent of a component is often 0 everywhere (a base parameter that moves
-    # one component, a time offset, a residual term): its products are skipped, not summed
-    tangents = (d_v_x, d_v_y, d_omega)
-    moving = [[bool(np.any(t[p])) for t in tangents] for p in range(columns)]
-    step, term = scratch('step', (count, length)), scratch('term', (count, length))
+    step, term = scratch('step', np.shape(d_v_x)), scratch('term', np.shape(d_v_x))
     sums = []
     for row in ((m_xv, m_xy, m_xw), (m_yv, m_yy, m_yw), (None, None, dt)):
-        total = np.zeros((columns, len(a)))
-        # summed in the order of the whole product: the yaw rate's term first
-        order = ((2, row[2]), (0, row[0]), (1, row[1]))
-        for p in range(columns):
-            used = [(factor, tangents[m][p]) for m, factor in order
-                    if factor is not None and moving[p][m]]
-            if not used or not len(a):
-                continue
-            np.multiply(used[0][0], used[0][1], out=step)
-            for factor, tangent in used[1:]:
+        np.multiply(row[2], d_omega, out=step)
+        for factor, tangent in zip(row[:2], (d_v_x, d_v_y)):
+            if factor is not None:
                 step += np.multiply(factor, tangent, out=term)
-            total[p] = np.add.reduceat(step.ravel(), bounds)[0::2]
+        flat = step.reshape(columns, count * length)
+        total = (np.add.reduceat(flat, bounds, axis=1)[:, 0::2] if len(a)
+                 else np.zeros((columns, 0)))
         total[:, empty] = 0.0
         sums.append(total)
     return tuple(p.reshape(count * length) for p in poses), tuple(sums)
