@@ -3,8 +3,11 @@
 The diagnosis fits augmented models (a lag, a time offset) whose state evolves along a drive as
 it does in the node; a segment cannot then be integrated on its own from zero state.
 :class:`SegmentPredictor` runs the source over every drive once and composes each segment from
-the drive's cumulative poses. With a plain base model and no offset it computes exactly what
-:func:`skidkin_ros.core.calibration.fitting.predict_end_poses` does.
+the drive's cumulative poses. With a plain base model and no offset it computes what
+:func:`skidkin_ros.core.calibration.fitting.predict_end_poses` does, to rounding: its rollouts
+take their sines and cosines from the tangent of the half angle
+(:func:`~skidkin_ros.core.odometry.se2.sin_cos`, a few 1e-16 from numpy's sin and cos and
+several times cheaper; the fits evaluate them thousands of times).
 """
 
 from __future__ import annotations
@@ -23,6 +26,13 @@ from skidkin_ros.core.odometry.se2_tangent import (body_increment_tangent, compo
                                                    window_tangents)
 
 __all__ = ['SegmentPredictor']
+
+# The rollouts' trigonometry (:func:`~skidkin_ros.core.odometry.se2.sin_cos`): the fits need
+# the end poses to rounding, not the node's bits.
+EXACT_TRIG = False
+# How far (ns) outside its drive's stamps a window edge is searched for as it is (farther: at
+# this distance, which finds the same place); an hour.
+_KEY_MARGIN_NS = 3_600_000_000_000
 
 
 def _pad_drives(drives: Sequence[Drive], interval: str
@@ -77,6 +87,7 @@ class SegmentPredictor:
             array.setflags(write=False)
         self.step_s = np.diff(self.t_ns, axis=1) * 1e-9  # between stamps, gaps included
         self._plans: dict[int, dict[str, np.ndarray]] = {}
+        self._keys: tuple[np.ndarray, np.ndarray, int] | None = None
 
     def __len__(self) -> int:
         return len(self.segments)
@@ -93,31 +104,59 @@ class SegmentPredictor:
         cached = self._plans.get(offset_ns)
         if cached is not None:
             return cached
-        width = self.t_ns.shape[1]
         seg = self.segments
-        count = len(seg)
-        plan = {key: np.zeros(count, dtype=np.int64) for key in ('first', 'a', 'b')}
-        plan.update(first_s=np.zeros(count), last_s=np.zeros(count))
-        for d in np.unique(seg.drive):
-            rows = np.nonzero(seg.drive == d)[0]
-            stamps = self.t_ns[d, :self.sizes[d]]
-            top = stamps.size - 1
-            s_a = seg.t_a_ns[rows].astype(np.int64) - offset_ns
-            s_b = seg.t_b_ns[rows].astype(np.int64) - offset_ns
-            lo = np.searchsorted(stamps, s_a, side='right')
-            hi = np.maximum(np.searchsorted(stamps, s_b, side='left'), lo)
-            inner = hi > lo
-            a = np.clip(lo, 0, top)
-            b = np.where(inner, hi - 1, a)
-            plan['first'][rows] = np.clip(lo - 1, 0, top) + d * width
-            plan['a'][rows] = a + d * width
-            plan['b'][rows] = b + d * width
-            plan['first_s'][rows] = np.where(inner, stamps[a] - s_a, s_b - s_a) * 1e-9
-            plan['last_s'][rows] = np.where(inner, s_b - stamps[b], 0) * 1e-9
+        keys, starts, span = self._stamp_keys()
+        top = self.sizes[seg.drive] - 1
+        row = seg.drive * self.t_ns.shape[1]
+        s_a = seg.t_a_ns.astype(np.int64) - offset_ns
+        s_b = seg.t_b_ns.astype(np.int64) - offset_ns
+        # every drive's stamps in one sorted array (see _stamp_keys): one search for all
+        lo = np.searchsorted(keys, self._query_keys(seg.drive, s_a, span),
+                             side='right') - starts[seg.drive]
+        hi = np.maximum(np.searchsorted(keys, self._query_keys(seg.drive, s_b, span),
+                                        side='left') - starts[seg.drive], lo)
+        inner = hi > lo
+        a = np.clip(lo, 0, top)
+        b = np.where(inner, hi - 1, a)
+        stamps = self.t_ns.ravel()
+        plan = {'first': np.clip(lo - 1, 0, top) + row, 'a': a + row, 'b': b + row,
+                'first_s': np.where(inner, stamps[a + row] - s_a, s_b - s_a) * 1e-9,
+                'last_s': np.where(inner, s_b - stamps[b + row], 0) * 1e-9}
         if len(self._plans) > 64:
             self._plans.clear()
         self._plans[offset_ns] = plan
         return plan
+
+    def _stamp_keys(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """Return every drive's stamps as one increasing array, where each drive starts, the span.
+
+        Drive d's stamp t becomes d * span + margin + (t - its first stamp): the drives'
+        blocks are disjoint and in order, so one binary search finds a time's place in its own
+        drive's stamps (:meth:`_query_keys`), as a search in that drive alone does.
+        """
+        if self._keys is None:
+            count = len(self.sizes)
+            first = self.t_ns[:, 0]
+            local = self.t_ns - first[:, None]
+            extent = int(local.max(initial=0))
+            span = extent + 2 * _KEY_MARGIN_NS + 1
+            rows = [d * span + _KEY_MARGIN_NS + local[d, :self.sizes[d]] for d in range(count)]
+            keys = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+            starts = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
+            self._keys = (keys, starts, span)
+        keys, starts, span = self._keys
+        return keys, starts, span
+
+    def _query_keys(self, drive: np.ndarray, t_ns: np.ndarray, span: int) -> np.ndarray:
+        """Return the keys of times in their drives (:meth:`_stamp_keys`).
+
+        A time more than the margin before a drive's first stamp or after its last is moved to
+        the margin: it stays before (after) every stamp of its drive, so its place is the same.
+        """
+        local = t_ns - self.t_ns[drive, 0]
+        extent = span - 2 * _KEY_MARGIN_NS - 1
+        return drive * span + _KEY_MARGIN_NS + np.clip(local, -_KEY_MARGIN_NS,
+                                                       extent + _KEY_MARGIN_NS)
 
     def cumulative_poses(self, mean: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return the dead-reckoned pose at every stamp of every drive, flat (D * L,) each.
@@ -133,7 +172,7 @@ class SegmentPredictor:
         x, y, yaw = rollout_columns(np.ascontiguousarray(rows[:, :-1, 0]),
                                     np.ascontiguousarray(rows[:, :-1, 1]),
                                     np.ascontiguousarray(rows[:, :-1, 2]), self.step_s,
-                                    np.zeros((count, 3)))
+                                    np.zeros((count, 3)), EXACT_TRIG)
         return x.ravel(), y.ravel(), yaw.ravel()
 
     def mean_twists(self, source: Any) -> np.ndarray:
@@ -164,12 +203,12 @@ class SegmentPredictor:
         a, b = plan['a'], plan['b']
         dx, dy = cx[b] - cx[a], cy[b] - cy[a]
         cos_a, sin_a = np.cos(cyaw[a]), np.sin(cyaw[a])
-        moves = (body_increment(*mean[plan['first']].T, plan['first_s']),
+        moves = (body_increment(*mean[plan['first']].T, plan['first_s'], EXACT_TRIG),
                  (cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx, cyaw[b] - cyaw[a]),
-                 body_increment(*mean[b].T, plan['last_s']))
+                 body_increment(*mean[b].T, plan['last_s'], EXACT_TRIG))
         x, y, yaw = start[:, 0], start[:, 1], start[:, 2]
         for move in moves:
-            x, y, yaw = compose(x, y, yaw, *move)
+            x, y, yaw = compose(x, y, yaw, *move, EXACT_TRIG)
         return np.stack([x, y, yaw], axis=-1)
 
     def errors(self, source: Any, keep: np.ndarray | None = None) -> np.ndarray:
@@ -210,7 +249,8 @@ class SegmentPredictor:
             a, b, first = plan['a'], plan['b'], plan['first']
             poses, sums = window_tangents(
                 *(np.ascontiguousarray(mean[..., m]) for m in range(3)),
-                np.concatenate([self.step_s, np.zeros((count, 1))], axis=1), *d_mean, a, b)
+                np.concatenate([self.step_s, np.zeros((count, 1))], axis=1), *d_mean, a, b,
+                EXACT_TRIG)
             cx, cy, cyaw = poses
             turn, mean = sums[2], mean.reshape(-1, 3)
             d_mean = [d.reshape(columns, count * width) for d in d_mean]

@@ -93,13 +93,31 @@ def twist_rates(base: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.n
     return rate
 
 
+# The factors of the last few (steps, tau) pairs, for steps nobody writes to (a predictor's): a
+# fit's evaluation and its Jacobian at the same parameters ask for them several times.
+_LAG_FACTORS: list[tuple[np.ndarray, float, tuple[np.ndarray, np.ndarray]]] = []
+
+
 def lag_factors(dt_s, tau_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Return (d, g): the decay exp(-dt/tau) and the mean factor tau (1 - d) / dt (1 at dt=0)."""
+    """Return (d, g): the decay exp(-dt/tau) and the mean factor tau (1 - d) / dt (1 at dt=0).
+
+    For read-only steps the arrays are kept (read-only) and given again for the same tau.
+    """
     dt = np.asarray(dt_s, dtype=float)
+    kept = not dt.flags.writeable
+    if kept:
+        for known, tau, factors in _LAG_FACTORS:
+            if known is dt and tau == tau_s:
+                return factors
     ratio = dt / tau_s
     d = np.exp(-ratio)
     positive = dt > 0.0
     g = np.where(positive, -np.expm1(-ratio) / np.where(positive, ratio, 1.0), 1.0)
+    if kept:
+        d.setflags(write=False)
+        g.setflags(write=False)
+        _LAG_FACTORS.insert(0, (dt, tau_s, (d, g)))
+        del _LAG_FACTORS[8:]
     return d, g
 
 

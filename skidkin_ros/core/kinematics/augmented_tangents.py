@@ -90,10 +90,16 @@ def interval_tangents(bound: BoundAugmented, t_ns: np.ndarray, omega_l: np.ndarr
         d, g = lag_factors(dt_s, tau)
         for n, c in enumerate(columns):
             held[c] = lagged[..., n]
-            # the response is linear in its input: the tangents follow the same recursion
-            d_held = first_order_response(d_x[c] * (1.0 - d), d, dt_s, restart,
-                                          d_x[c][..., 0], d_x[c])
-            d_mean[c] = d_x[c] + (d_held - d_x[c]) * g
+            # the response is linear in its input: the tangents follow the same recursion;
+            # a direction whose input tangent is 0 everywhere keeps 0 (its recursion is skipped)
+            moving = [p for p in range(len(free)) if np.any(d_x[c][p])]
+            d_mean[c] = np.zeros(np.shape(d_x[c]))
+            if not moving:
+                continue
+            tangent = d_x[c][moving]
+            d_held = first_order_response(tangent * (1.0 - d), d, dt_s, restart,
+                                          tangent[..., 0], tangent)
+            d_mean[c][moving] = tangent + (d_held - tangent) * g
     for c, columns, tau in lags:
         # the slope by the time constant itself; at tau = 0 the one-sided one (tau -> 0+)
         tau = max(tau, 1e-12)
@@ -109,6 +115,8 @@ def interval_tangents(bound: BoundAugmented, t_ns: np.ndarray, omega_l: np.ndarr
             if y is None:
                 y = lag_response(x[..., m:m + 1], dt_s, restart, tau)[0][..., 0]
             gap = y - x[..., m]
+            if not np.any(gap):  # a component that never moves: no slope by tau
+                continue
             z = first_order_response((gap * d_by_tau)[None], d, dt_s, restart,
                                      np.zeros((1,) + gap.shape[:1]), None)[0]
             d_mean[m][c] += z * g + gap * g_by_tau

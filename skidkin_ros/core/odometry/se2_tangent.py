@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from skidkin_ros.core.odometry.se2 import _sinc_terms
+from skidkin_ros.core.odometry.se2 import _sinc_terms, sin_cos
 from skidkin_ros.core.scratch import scratch
 
 __all__ = ['sinc_slopes', 'body_increment_tangent', 'compose_tangent',
@@ -64,12 +64,12 @@ def compose_tangent(theta, dx, dy, d_x, d_y, d_theta, d_dx, d_dy, d_dtheta
             d_theta + d_dtheta)
 
 
-def _sinc_values_and_slopes(dtheta: np.ndarray) -> tuple[np.ndarray, ...]:
+def _sinc_values_and_slopes(dtheta: np.ndarray, exact: bool = True) -> tuple[np.ndarray, ...]:
     """Return sin(a)/a, (1 - cos a)/a and their slopes, from one sin and one cos of a."""
     a = np.asarray(dtheta, dtype=float)
     small = np.abs(a) < _SLOPE_SERIES_RAD
     safe = np.where(small, 1.0, a)
-    sin_t, cos_t = np.sin(safe), np.cos(safe)
+    sin_t, cos_t = sin_cos(safe, exact)
     a2 = a * a
     sinc = np.where(small, 1.0 - a2 / 6.0 + a2 * a2 / 120.0, sin_t / safe)
     cosc = np.where(small, a / 2.0 - a * a2 / 24.0 + a * a2 * a2 / 720.0, (1.0 - cos_t) / safe)
@@ -79,7 +79,8 @@ def _sinc_values_and_slopes(dtheta: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def window_tangents(v_x, v_y, omega, dt_s, d_v_x, d_v_y, d_omega, a: np.ndarray,
-                    b: np.ndarray) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+                    b: np.ndarray, exact: bool = True
+                    ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
     """Roll out from the origin; return the poses and what each window's derivative is made of.
 
     ``v_x``, ``v_y``, ``omega``, ``dt_s``: (N, L), one step between stamps i and i + 1 (the
@@ -91,18 +92,19 @@ def window_tangents(v_x, v_y, omega, dt_s, d_v_x, d_v_y, d_omega, a: np.ndarray,
     (-p_y, p_x)) and w (heading): each step's own change, turned into the world frame, plus
     the turn of the rest of the window about the step's end (p_b - p_i+1), split into a part
     summed here and one taken at the window's end. Steps before a turn the whole window and
-    drop out.
+    drop out. ``exact=False``: the cheaper trigonometry of
+    :func:`~skidkin_ros.core.odometry.se2.sin_cos` (to rounding).
     """
     dt = np.array(dt_s, dtype=float)
     dt[:, -1] = 0.0  # no step after the last stamp
     dtheta = np.asarray(omega, dtype=float) * dt
-    sinc, cosc, d_sin, d_cos = _sinc_values_and_slopes(dtheta)
+    sinc, cosc, d_sin, d_cos = _sinc_values_and_slopes(dtheta, exact)
     s, c = sinc * dt, cosc * dt
     dx, dy = v_x * s - v_y * c, v_x * c + v_y * s
     count, length = np.shape(dtheta)
     poses = [np.zeros((count, length)) for _ in range(3)]
     np.cumsum(dtheta[:, :-1], axis=1, out=poses[2][:, 1:])
-    cos_t, sin_t = np.cos(poses[2]), np.sin(poses[2])  # heading at the start of each step
+    sin_t, cos_t = sin_cos(poses[2], exact)  # heading at the start of each step
     np.cumsum((cos_t * dx - sin_t * dy)[:, :-1], axis=1, out=poses[0][:, 1:])
     np.cumsum((sin_t * dx + cos_t * dy)[:, :-1], axis=1, out=poses[1][:, 1:])
     # d (dx, dy) / d (v_x, v_y, omega) of each step, turned into the world frame: values only

@@ -37,6 +37,7 @@ from skidkin_ros.core.kinematics.extensions import FitHints
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.parallel import one_blas_thread
+from skidkin_ros.core.scratch import kept_heap
 
 __all__ = ['diagnose', 'wheel_period_s']
 
@@ -128,7 +129,7 @@ def diagnose(train: Sequence[Drive], evaluate: Sequence[Drive] | None, geometry:
     matrices are small: numpy's BLAS runs on one thread (several spin against each other on a
     loaded machine, 250 ms for a 2500 x 20 Gram matrix instead of 0.2 ms).
     """
-    with one_blas_thread():
+    with one_blas_thread(), kept_heap():
         return _diagnose(train, evaluate, geometry, base_values_by_model, base_model_name,
                          options, jobs, progress)
 

@@ -36,7 +36,7 @@ from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError
 
 __all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'truth_velocities', 'pose_samples',
-           'pose_residuals', 'reversal_speed', 'REVERSAL_SPAN_RAD']
+           'model_rollouts', 'pose_residuals', 'reversal_speed', 'REVERSAL_SPAN_RAD']
 
 COMPONENTS = ('v_x', 'v_y', 'omega')
 # The rotation after a reversal over which reversal_speed's weight falls from 1 to 0 (rad): the
@@ -123,9 +123,11 @@ def body_velocities(t_ns: np.ndarray, poses: np.ndarray, half_window_s: float
         return out, np.zeros(n, dtype=bool)
     index, operator, valid = _operator(t_ns, half_window_s)
     values = poses[index]  # (n, w, 3)
-    coef = np.einsum('niw,nwc->nic', operator, values)  # (n, 3 basis, 3 coords)
-    vx_w, vy_w, omega = coef[:, 1, 0], coef[:, 1, 1], coef[:, 1, 2]
-    yaw = coef[:, 0, 2]
+    # the fitted slopes of the three coordinates and the fitted heading: the entries of
+    # operator @ values that are used (the whole (n, 3, 3) product costs several times more)
+    slope = np.einsum('nw,nwc->nc', operator[:, 1], values)
+    vx_w, vy_w, omega = slope[:, 0], slope[:, 1], slope[:, 2]
+    yaw = np.einsum('nw,nw->n', operator[:, 0], values[:, :, 2])
     cos_y, sin_y = np.cos(yaw), np.sin(yaw)
     out[:, 0] = cos_y * vx_w + sin_y * vy_w
     out[:, 1] = -sin_y * vx_w + cos_y * vy_w
@@ -144,12 +146,17 @@ def truth_velocities(drive: Drive, half_window_s: float
 
 
 def _model_velocities(source: Any, drive: Drive, t_ns: np.ndarray,
-                      half_window_s: float, max_dt_s: float, interval: str
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Model body twists at the stamps, through the same differentiator as the ground truth."""
+                      half_window_s: float, max_dt_s: float, interval: str,
+                      poses: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Model body twists at the stamps, through the same differentiator as the ground truth.
+
+    ``poses``: the source's rollout over the drive's wheel samples, when the caller has it
+    (:func:`model_rollouts`).
+    """
     wheels = drive.wheels
-    poses = rollout_stream(source, wheels.t_ns, wheels.omega_l, wheels.omega_r,
-                           max_dt_s=max_dt_s, interval=interval)
+    if poses is None:
+        poses = rollout_stream(source, wheels.t_ns, wheels.omega_l, wheels.omega_r,
+                               max_dt_s=max_dt_s, interval=interval)
     shift = int(getattr(source, 'output_offset_ns', 0))
     at = np.asarray(t_ns, dtype=np.int64) - shift
     ref = wheels.t_ns
@@ -265,15 +272,35 @@ def pose_samples(drives: Sequence[Drive], base: BoundModel,
                        merged, np.concatenate(parts['base']), np.concatenate(parts['rate']))
 
 
+def model_rollouts(drives: Sequence[Drive], samples: PoseSamples, source: Any,
+                   options: DiagnosisOptions) -> dict[int, np.ndarray]:
+    """Return the source's poses at every wheel sample of each drive with fresh poses.
+
+    What :func:`pose_residuals` reads the model's poses from. A time offset only moves the
+    stamps they are read at, so sources that differ only by it share these (the lag scan).
+    """
+    return {int(index): rollout_stream(source, drives[index].wheels.t_ns,
+                                       drives[index].wheels.omega_l,
+                                       drives[index].wheels.omega_r,
+                                       max_dt_s=options.max_dt_s, interval=options.interval)
+            for index in np.unique(samples.drive)}
+
+
 def pose_residuals(drives: Sequence[Drive], samples: PoseSamples, source: Any,
-                   options: DiagnosisOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Return (residual (N, 3) = truth - model body twist, valid (N,)) at the fresh poses."""
+                   options: DiagnosisOptions, rollouts: dict[int, np.ndarray] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Return (residual (N, 3) = truth - model body twist, valid (N,)) at the fresh poses.
+
+    ``rollouts``: the source's :func:`model_rollouts` (equal to them, or to those of the
+    source without its time offset), when the caller has them.
+    """
     residual = np.zeros(samples.truth.shape)
     valid = samples.valid.copy()
     for index in np.unique(samples.drive):
         rows = samples.drive == index
         model, ok = _model_velocities(source, drives[index], samples.t_ns[rows],
-                                      options.smoothing_s, options.max_dt_s, options.interval)
+                                      options.smoothing_s, options.max_dt_s, options.interval,
+                                      None if rollouts is None else rollouts[int(index)])
         residual[rows] = samples.truth[rows] - model
         valid[rows] &= ok
     return residual, valid

@@ -24,8 +24,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
-from skidkin_ros.core.calibration.diagnosis.residuals import (COMPONENTS, pose_residuals,
-                                                              PoseSamples)
+from skidkin_ros.core.calibration.diagnosis.residuals import (COMPONENTS, model_rollouts,
+                                                              pose_residuals, PoseSamples)
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.augmented import AugmentedModel
@@ -95,13 +95,16 @@ def lag_scan(drives: Sequence[Drive], samples: PoseSamples, state: ModelState,
     base = base if isinstance(base, BoundModel) else base.base
     scale = np.array([1.0, 1.0, geometry.track_width / 2])
     scores: dict[float, float] = {}
+    # a time offset moves the stamps the model's poses are read at, not the poses: one rollout
+    rollouts = model_rollouts(drives, samples, AugmentedModel(base_name, ['time_offset']).bind(
+        base, {'time_offset': {'offset_s': 0.0}}), options)
 
     def cost(lag: float) -> float:
         lag = round(lag / LAG_STEP_S) * LAG_STEP_S
         if lag not in scores:
             source = AugmentedModel(base_name, ['time_offset']).bind(
                 base, {'time_offset': {'offset_s': float(lag)}})
-            residual, valid = pose_residuals(drives, samples, source, options)
+            residual, valid = pose_residuals(drives, samples, source, options, rollouts)
             scores[lag] = float(np.mean(((residual[valid] * scale) ** 2).sum(axis=1)))
         return scores[lag]
 

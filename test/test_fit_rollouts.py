@@ -1,0 +1,178 @@
+"""The diagnosis fits' cheaper rollouts compute what the exact ones do (C213, C214).
+
+C213: the fits' trigonometry from the half-angle tangent equals numpy's sin and cos to a few
+1e-16 (the node and ``skidkin predict`` keep numpy's, bit for bit); the segment windows' plan
+from one search over every drive's stamps equals a search in each drive; the Jacobian that
+skips directions whose tangent is 0 equals the one that sums them.
+C214: the lag scan reads one rollout at every offset, and the differentiator keeps the entries
+of its product that are used: both equal what they replace, bit for bit.
+"""
+
+import numpy as np
+import pytest
+from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
+from skidkin_ros.core.calibration.diagnosis.residuals import (_operator, body_velocities,
+                                                              model_rollouts, pose_residuals,
+                                                              pose_samples)
+from skidkin_ros.core.calibration.predictor import SegmentPredictor
+from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
+from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
+from skidkin_ros.core.kinematics.augmented import AugmentedModel
+from skidkin_ros.core.kinematics.models import get_model
+from skidkin_ros.core.kinematics.specs import Geometry
+from skidkin_ros.core.odometry.integrator import rollout
+from skidkin_ros.core.odometry.se2 import _sinc_terms, body_increment, rollout_columns, sin_cos
+from skidkin_ros.core.odometry.se2_tangent import window_tangents
+
+GEOM = Geometry(0.1651, 0.555)
+BASE = get_model('edd_symmetric').bind({'alpha': 0.9, 'b_hat': 0.8}, GEOM)
+
+
+def _drive(seed, n, gap=False):
+    """Random wheel speeds with a repeated stamp (and a gap); poses of another model."""
+    rng = np.random.default_rng(seed)
+    t_ns = 10**18 + seed * 10**12 + np.cumsum(rng.integers(30_000_000, 70_000_000, n))
+    t_ns[n // 3] = t_ns[n // 3 - 1]
+    if gap:
+        t_ns[n // 2:] += 2_000_000_000
+    t = (t_ns - t_ns[0]) * 1e-9
+    wl = 5 * np.sin(0.3 * t + seed) + 2 * np.sin(1.3 * t)
+    wr = 5 * np.sin(0.2 * t + 2 * seed) + 2 * np.cos(1.1 * t)
+    truth = rollout(get_model('edd_asymmetric').bind(
+        {'alpha_l': 0.85, 'alpha_r': 0.9, 'x_v': 0.05, 'y_l': 0.45, 'y_r': -0.4},
+        GEOM).twist(wl[:-1], wr[:-1]), np.diff(t_ns) * 1e-9)
+    keep = np.arange(0, n, 2)
+    return Drive(f'd{seed}', WheelSamples(t_ns, wl, wr), PoseTrack(t_ns[keep], *truth[keep].T))
+
+
+@pytest.fixture(scope='module')
+def drives():
+    # unequal lengths: the shorter drives are padded in the predictor
+    return [_drive(1, 400, gap=True), _drive(2, 150), _drive(3, 260)]
+
+
+def test_c213_half_angle_trig_equals_numpys_sin_and_cos():
+    rng = np.random.default_rng(0)
+    angles = np.concatenate([rng.uniform(-1000.0, 1000.0, 20000), rng.normal(0, 1e-3, 2000),
+                             np.pi * np.arange(-40, 41) / 2, [0.0, -0.0, 1e-300, np.pi]])
+    sin_a, cos_a = sin_cos(angles, exact=False)
+    assert np.abs(sin_a - np.sin(angles)).max() < 1e-15
+    assert np.abs(cos_a - np.cos(angles)).max() < 1e-15
+    exact = sin_cos(angles)
+    assert np.array_equal(exact[0], np.sin(angles)) and np.array_equal(exact[1], np.cos(angles))
+    steps = np.concatenate([rng.normal(0, 0.3, 5000), rng.normal(0, 2e-3, 5000)])
+    # the reference: the series of sin(a)/a and (1 - cos a)/a, in extended precision
+    wide = steps.astype(np.longdouble)
+    reference = [np.zeros_like(wide), np.zeros_like(wide)]
+    term = np.ones_like(wide)
+    for n in range(1, 30):  # term = a^(n-1) / n!
+        if n % 2:
+            reference[0] += term * (-1) ** (n // 2)
+        else:
+            reference[1] += term * (-1) ** (n // 2 - 1)
+        term = term * wide / (n + 1)
+    fast, slow = _sinc_terms(steps, exact=False), _sinc_terms(steps)
+    for value, ref in zip(fast, reference):
+        assert np.abs(value / ref - 1.0).max() < 1e-15
+    # the exact form of (1 - cos a) / a loses digits to cancellation (the tangent's has none)
+    assert np.abs(slow[0] / reference[0] - 1.0).max() < 1e-15
+    assert np.abs(slow[1] / reference[1] - 1.0).max() < 1e-9
+    assert np.array_equal(_sinc_terms(np.zeros(3), exact=False)[0], np.ones(3))
+
+
+def test_c213_fit_rollouts_equal_the_exact_ones_to_rounding():
+    rng = np.random.default_rng(1)
+    shape = (4, 3000)
+    v_x, v_y = rng.normal(1.0, 0.5, shape), rng.normal(0.0, 0.05, shape)
+    omega = rng.normal(0.0, 1.0, shape)
+    dt = rng.uniform(0.01, 0.05, shape)
+    start = rng.normal(size=(4, 3))
+    exact = rollout_columns(v_x, v_y, omega, dt, start)
+    fast = rollout_columns(v_x, v_y, omega, dt, start, exact=False)
+    for a, b in zip(exact, fast):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-11)
+    for a, b in zip(body_increment(v_x, v_y, omega, dt),
+                    body_increment(v_x, v_y, omega, dt, exact=False)):
+        # the exact form's (1 - cos a) / a is the less precise one (cancellation)
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-14)
+    tangents = [rng.normal(size=(3,) + shape) for _ in range(3)]
+    a_idx = np.array([0, 10, 3001, 5000, 7000])
+    b_idx = np.array([500, 10, 4000, 5999, 9000])
+    poses, sums = window_tangents(v_x, v_y, omega, dt, *tangents, a_idx, b_idx)
+    poses_f, sums_f = window_tangents(v_x, v_y, omega, dt, *tangents, a_idx, b_idx,
+                                      exact=False)
+    for a, b in zip(poses + sums, poses_f + sums_f):
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-10)
+
+
+def _plan_per_drive(predictor, offset_ns):
+    """Return the window plan searched drive by drive (what the one search reproduces)."""
+    width = predictor.t_ns.shape[1]
+    seg = predictor.segments
+    plan = {key: np.zeros(len(seg), dtype=np.int64) for key in ('first', 'a', 'b')}
+    plan.update(first_s=np.zeros(len(seg)), last_s=np.zeros(len(seg)))
+    for d in np.unique(seg.drive):
+        rows = np.nonzero(seg.drive == d)[0]
+        stamps = predictor.t_ns[d, :predictor.sizes[d]]
+        top = stamps.size - 1
+        s_a = seg.t_a_ns[rows].astype(np.int64) - offset_ns
+        s_b = seg.t_b_ns[rows].astype(np.int64) - offset_ns
+        lo = np.searchsorted(stamps, s_a, side='right')
+        hi = np.maximum(np.searchsorted(stamps, s_b, side='left'), lo)
+        inner = hi > lo
+        a = np.clip(lo, 0, top)
+        b = np.where(inner, hi - 1, a)
+        plan['first'][rows] = np.clip(lo - 1, 0, top) + d * width
+        plan['a'][rows] = a + d * width
+        plan['b'][rows] = b + d * width
+        plan['first_s'][rows] = np.where(inner, stamps[a] - s_a, s_b - s_a) * 1e-9
+        plan['last_s'][rows] = np.where(inner, s_b - stamps[b], 0) * 1e-9
+    return plan
+
+
+def test_c213_one_search_finds_every_window_as_a_search_per_drive_does(drives):
+    segments = cut_segments(drives, SegmentOptions(horizon_m=0.3, horizon_rad=0.3))
+    predictor = SegmentPredictor(drives, segments)
+    assert len(set(predictor.sizes.tolist())) == 3 and len(segments) > 30
+    rng = np.random.default_rng(2)
+    # offsets inside a sample interval, on a stamp, beyond the drives' ends and far beyond
+    offsets = [0, 1, -1, 35_000_000, -10**9, 10**10, -10**11, 5 * 10**12, -10**14]
+    offsets += rng.integers(-2 * 10**9, 2 * 10**9, 40).tolist()
+    for offset in offsets:
+        expected = _plan_per_drive(predictor, offset)
+        plan = predictor.plan(offset)
+        for key, value in expected.items():
+            assert np.array_equal(plan[key], value), (offset, key)
+
+
+def _samples(drives, options):
+    return pose_samples(drives, BASE, options)
+
+
+def test_c214_the_lag_scan_reads_one_rollout_at_every_offset(drives):
+    options = DiagnosisOptions()
+    samples = _samples(drives, options)
+    rollouts = model_rollouts(drives, samples, AugmentedModel(
+        'edd_symmetric', ['time_offset']).bind(BASE, {'time_offset': {'offset_s': 0.0}}),
+        options)
+    for offset in (0.0, -0.07, 0.12, 0.4):
+        source = AugmentedModel('edd_symmetric', ['time_offset']).bind(
+            BASE, {'time_offset': {'offset_s': offset}})
+        alone = pose_residuals(drives, samples, source, options)
+        shared = pose_residuals(drives, samples, source, options, rollouts)
+        assert np.array_equal(alone[0], shared[0]) and np.array_equal(alone[1], shared[1])
+        assert alone[1].sum() > 100
+
+
+def test_c214_the_differentiator_keeps_the_entries_it_uses(drives):
+    drive = drives[0]
+    t_ns, poses = drive.truth.t_ns, drive.truth.poses
+    twist, valid = body_velocities(t_ns, poses, 0.25)
+    index, operator, _ = _operator(t_ns, 0.25)
+    coef = np.einsum('niw,nwc->nic', operator, poses[index])  # the whole product
+    yaw = coef[:, 0, 2]
+    world = coef[:, 1]
+    assert np.array_equal(twist[:, 2], world[:, 2])
+    assert np.array_equal(twist[:, 0], np.cos(yaw) * world[:, 0] + np.sin(yaw) * world[:, 1])
+    assert np.array_equal(twist[:, 1], -np.sin(yaw) * world[:, 0] + np.cos(yaw) * world[:, 1])
+    assert valid.sum() > 100
