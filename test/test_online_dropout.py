@@ -202,7 +202,7 @@ def _no_choice(monkeypatch):
 
 
 def _drift(sim, poses):
-    """The pose error gained over the dropout, in metres."""
+    """Return the pose error gained over the dropout, in metres."""
     truth = sim.truth.poses
     t = (sim.wheels.t_ns - sim.start_ns) * 1e-9
     i0, i1 = np.searchsorted(t, CUT_S[0]), np.searchsorted(t, CUT_S[1])
@@ -237,13 +237,20 @@ def test_the_gyro_weighs_the_grounds_while_holding(alternating, monkeypatch):
     assert chosen < 0.8 * chain
 
 
-@pytest.mark.parametrize('mode, cut', [('time', CUT_S), ('alternate', None)])
-def test_the_gyro_changes_nothing_without_a_blend(mode, cut, monkeypatch):
-    """After one change of ground, or while the reference comes: bit for bit the chain's."""
+@pytest.mark.parametrize('mode, cut, gyro', [('time', CUT_S, True), ('alternate', None, True),
+                                             ('alternate', CUT_S, False)])
+def test_the_gyro_changes_nothing_without_a_blend_or_without_a_gyro(mode, cut, gyro,
+                                                                    monkeypatch):
+    """After one change of ground, while the reference comes, or with no gyro: bit for bit.
+
+    The same poses and covariances as the chain's blend alone (the code before the gyro's
+    weighing); the last case blends (grounds alternate, the reference is cut) with no gyro.
+    """
     sim = _drive(mode)
-    imu = _gyro(sim)
+    imu = _gyro(sim) if gyro else None
     odometer, prediction, _ = _run(sim, _reference(sim, cut), imu=imu)
     assert odometer.counters['online_hold_gyro'] == 0
+    assert odometer.counters['online_hold_blend'] == (0 if gyro else 1)
     _no_choice(monkeypatch)
     plain = _run(sim, _reference(sim, cut), imu=imu)[1]
     assert np.array_equal(prediction.poses, plain.poses)
@@ -269,3 +276,40 @@ def test_n151_a_gyro_that_stops_during_the_dropout(alternating):
     steps = np.diff(weights)
     assert len(late) > 200 and np.any(steps != 0.0)
     assert np.all(steps <= 1e-12) or np.all(steps >= -1e-12)
+
+
+@pytest.mark.ros
+def test_n152_the_node_weighs_the_grounds_by_the_gyro_as_predict_does(tmp_path, alternating):
+    """Publish from the real node (gyro fused) what ``skidkin predict`` gives while holding.
+
+    The alternating drive with its reference cut for 20 s and a biased gyro: the gyro weighs
+    the grounds in both, with the same poses and covariances.
+    """
+    from skidkin_ros.core.drive import PoseTrack, WheelSamples
+    from skidkin_ros.core.odometry.config import write_params_file
+    from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
+    from skidkin_ros.node.replay import replay_through_node
+
+    imu = _gyro(alternating)
+    keep = alternating.wheels.t_ns <= imu.t_ns[-1] - 100_000_000   # the gyro outlasts them
+    wheels = WheelSamples(alternating.wheels.t_ns[keep], alternating.wheels.omega_l[keep],
+                          alternating.wheels.omega_r[keep])
+    path = write_params_file(tmp_path / 'online.yaml',
+                             {**FILE, 'robot': 'sim_husky', 'imu.mode': 'fuse'},
+                             {'source': 'test'})
+    reference = _reference(alternating)
+    wire_yaw = np.array([quaternion_to_yaw(*yaw_to_quaternion(float(v)))
+                         for v in reference.yaw])
+    odometer = online_odometer(OdometryConfig.from_file(path))
+    expected = odometer.predict(wheels, imu=imu, reference=PoseTrack(
+        reference.t_ns, reference.x, reference.y, wire_yaw))
+    assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_gyro'] > 100
+    result = replay_through_node(wheels, params_file=path, reference=reference, imu=imu,
+                                 timeout_s=300.0)
+    assert len(result) == len(wheels)
+    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
+    np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
+    assert np.array_equal(result.pose_cov, expected.pose_covariances)
+    for cause in ('online_hold_blend', 'online_hold_gyro', 'online_switch', 'reference_accepted'):
+        assert result.counters.get(cause, 0) == odometer.counters[cause]

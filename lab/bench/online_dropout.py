@@ -141,12 +141,14 @@ def main(argv: list[str] | None = None) -> int:
           'NEES drive / dropout + 10 s |')
     print('|' + '---|' * 11)
     for seed in args.seeds:
-        r = run_drive(args.case, seed, fixed, args.at, args.gyro_bias if args.gyro else None)
+        r = run_drive(args.case, seed, fixed, args.at,
+                      args.gyro_bias if args.gyro else None)
         print(f"| {r['case']} | {seed} | {r['eps_t']:.4f} | {100 * r['cost']:+.1f} % | "
               f"{100 * r['before']:+.1f} / {100 * r['during']:+.1f} / {100 * r['after']:+.1f} |"
               f" {100 * r['oracle']:+.1f} % | {100 * r['hold first']:+.1f} % | "
               f"{100 * r['hold second']:+.1f} % | {100 * r['average']:+.1f} % | "
-              f"{r['blends']} ({r['looks']}) | {r['nees']:.2f} / {r['nees_dropout']:.2f} |", flush=True)
+              f"{r['blends']} ({r['looks']}) | {r['nees']:.2f} / {r['nees_dropout']:.2f} |",
+              flush=True)
     return 0
 
 
