@@ -1,12 +1,15 @@
 """Online calibration while the reference is missing: which ground the odometry runs."""
 
 import collections
+import dataclasses
 
 import numpy as np
 import pytest
+from skidkin_ros.core.drive import ImuSamples
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.core.online.grounds import Ground
+from skidkin_ros.core.online.gyrochoice import GyroChoice
 from skidkin_ros.core.online.holding import HoldingBlend
 from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
@@ -15,6 +18,7 @@ FILE = {'model': 'edd_asymmetric',
         **{f'models.edd_asymmetric.{k}': v for k, v in DEFAULT_TRUE_PARAMS.items()},
         'models.edd_asymmetric.noise.calibrated': True, 'online.enabled': True}
 CUT_S = (120.0, 140.0)
+GYRO_BIAS = 0.003   # rad/s, on top of the simulator's white noise
 
 
 def _drive(mode, seed=3):
@@ -33,9 +37,22 @@ def _reference(sim, cut=CUT_S):
     return sim.truth_at(t)
 
 
-def _run(sim, reference, record=False):
-    """Predict with online calibration; with record, what is in force after every step."""
-    odometer = online_odometer(OdometryConfig.from_flat(FILE))
+def _gyro(sim, stop_s=None):
+    """Return the simulator's gyro with a 0.003 rad/s bias; ``stop_s``: none from then on."""
+    imu = dataclasses.replace(sim.imu, yaw_rate=sim.imu.yaw_rate + GYRO_BIAS)
+    if stop_s is not None:
+        keep = (imu.t_ns - sim.start_ns) * 1e-9 < stop_s
+        imu = ImuSamples(imu.t_ns[keep], imu.yaw_rate[keep])
+    return imu
+
+
+def _run(sim, reference, record=False, imu=None):
+    """Predict with online calibration; with record, what is in force after every step.
+
+    ``imu``: the odometry fuses this gyro (imu.mode fuse).
+    """
+    flat = FILE if imu is None else {**FILE, 'imu.mode': 'fuse'}
+    odometer = online_odometer(OdometryConfig.from_flat(flat))
     learner, seen = odometer.learner, []
     if record:
         step = learner.wheel_step
@@ -49,7 +66,7 @@ def _run(sim, reference, record=False):
                          np.stack([g.k for g in learner.grounds]), learner.covariance))
             return changed
         learner.wheel_step = wheel_step
-    return odometer, odometer.predict(sim.wheels, reference=reference), seen
+    return odometer, odometer.predict(sim.wheels, imu=imu, reference=reference), seen
 
 
 @pytest.fixture(scope='module')
@@ -177,3 +194,122 @@ def test_a_flicker_of_the_recognition_is_no_alternation():
     assert grounds[0] is learner.active and len(grounds) == 2
     assert pi == pytest.approx([0.5, 0.5], abs=0.1)
     assert mu == pytest.approx((7.5 / 30.0) / 0.5, rel=0.1)
+
+
+def _no_choice(monkeypatch):
+    monkeypatch.setattr(GyroChoice, '_gyro_weigh',
+                        lambda self, t1_ns, plan, travel, weights: weights)
+
+
+def _drift(sim, poses):
+    """Return the pose error gained over the dropout, in metres."""
+    truth = sim.truth.poses
+    t = (sim.wheels.t_ns - sim.start_ns) * 1e-9
+    i0, i1 = np.searchsorted(t, CUT_S[0]), np.searchsorted(t, CUT_S[1])
+    return float(np.hypot(*((poses[i1] - poses[i0]) - (truth[i1] - truth[i0]))[:2]))
+
+
+def test_the_gyro_weighs_the_grounds_while_holding(alternating, monkeypatch):
+    """With a gyro, the blend follows the ground that explains the turning: less drift.
+
+    The weights leave the chain's (the looks while turning), the covariance is the mixture's
+    with them, and after the dropout the active ground's own parameters are in force again.
+    """
+    reference, imu = _reference(alternating), _gyro(alternating)
+    odometer, prediction, seen = _run(alternating, reference, record=True, imu=imu)
+    assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_gyro'] > 100
+    holding = [s for s in seen if CUT_S[0] + 1.5 < s[0] < CUT_S[1] and s[1] == 'holding']
+    weights = np.array([s[2] for s in holding])
+    # not the chain's monotone decay: the gyro moves the weights both ways, to near 0 and 1
+    assert np.any(np.diff(weights) > 0.05) and np.any(np.diff(weights) < -0.05)
+    assert weights.min() < 0.2 and weights.max() > 0.8
+    for s in holding[::50]:
+        (w, k, cov), ks, active_cov = s[5], s[7], s[8]
+        assert w.sum() == pytest.approx(1.0) and np.all(w >= 0.0)
+        assert np.all(k >= ks.min(axis=0) - 1e-12) and np.all(k <= ks.max(axis=0) + 1e-12)
+        assert np.all(np.diag(cov) >= np.diag(active_cov) * min(w.max(), 1.0) * 0.999)
+    after = [s for s in seen if s[0] > CUT_S[1] + 0.5]
+    assert after and all(s[2] == 1.0 and s[5] is None for s in after)
+    chosen = _drift(alternating, prediction.poses)
+    _no_choice(monkeypatch)
+    chain = _drift(alternating, _run(alternating, reference, imu=imu)[1].poses)
+    assert chosen < 0.8 * chain
+
+
+@pytest.mark.parametrize('mode, cut, gyro', [('time', CUT_S, True), ('alternate', None, True),
+                                             ('alternate', CUT_S, False)])
+def test_the_gyro_changes_nothing_without_a_blend_or_without_a_gyro(mode, cut, gyro,
+                                                                    monkeypatch):
+    """After one change of ground, while the reference comes, or with no gyro: bit for bit.
+
+    The same poses and covariances as the chain's blend alone (the code before the gyro's
+    weighing); the last case blends (grounds alternate, the reference is cut) with no gyro.
+    """
+    sim = _drive(mode)
+    imu = _gyro(sim) if gyro else None
+    odometer, prediction, _ = _run(sim, _reference(sim, cut), imu=imu)
+    assert odometer.counters['online_hold_gyro'] == 0
+    assert odometer.counters['online_hold_blend'] == (0 if gyro else 1)
+    _no_choice(monkeypatch)
+    plain = _run(sim, _reference(sim, cut), imu=imu)[1]
+    assert np.array_equal(prediction.poses, plain.poses)
+    assert np.array_equal(prediction.pose_covariances, plain.pose_covariances)
+
+
+def test_n151_a_gyro_that_stops_during_the_dropout(alternating):
+    """The gyro stops 5 s into the dropout: the chain alone carries the weights from there.
+
+    No error; the looks stop; from then on the weights move only toward the recent shares (the
+    chain's decay from where the gyro left them), and the drift stays finite.
+    """
+    reference = _reference(alternating)
+    stop = CUT_S[0] + 5.0
+    full, _, _ = _run(alternating, reference, imu=_gyro(alternating))
+    odometer, prediction, seen = _run(alternating, reference, record=True,
+                                      imu=_gyro(alternating, stop_s=stop))
+    assert 0 < odometer.counters['online_hold_gyro'] < full.counters['online_hold_gyro']
+    assert np.all(np.isfinite(prediction.poses))
+    late = [s for s in seen if stop + 1.0 < s[0] < CUT_S[1] and s[1] == 'holding']
+    weights = np.array([s[2] for s in late])
+    # the chain's decay from where the gyro left them: monotone, toward the recent shares
+    steps = np.diff(weights)
+    assert len(late) > 200 and np.any(steps != 0.0)
+    assert np.all(steps <= 1e-12) or np.all(steps >= -1e-12)
+
+
+@pytest.mark.ros
+def test_n152_the_node_weighs_the_grounds_by_the_gyro_as_predict_does(tmp_path, alternating):
+    """Publish from the real node (gyro fused) what ``skidkin predict`` gives while holding.
+
+    The alternating drive with its reference cut for 20 s and a biased gyro: the gyro weighs
+    the grounds in both, with the same poses and covariances.
+    """
+    from skidkin_ros.core.drive import PoseTrack, WheelSamples
+    from skidkin_ros.core.odometry.config import write_params_file
+    from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
+    from skidkin_ros.node.replay import replay_through_node
+
+    imu = _gyro(alternating)
+    keep = alternating.wheels.t_ns <= imu.t_ns[-1] - 100_000_000   # the gyro outlasts them
+    wheels = WheelSamples(alternating.wheels.t_ns[keep], alternating.wheels.omega_l[keep],
+                          alternating.wheels.omega_r[keep])
+    path = write_params_file(tmp_path / 'online.yaml',
+                             {**FILE, 'robot': 'sim_husky', 'imu.mode': 'fuse'},
+                             {'source': 'test'})
+    reference = _reference(alternating)
+    wire_yaw = np.array([quaternion_to_yaw(*yaw_to_quaternion(float(v)))
+                         for v in reference.yaw])
+    odometer = online_odometer(OdometryConfig.from_file(path))
+    expected = odometer.predict(wheels, imu=imu, reference=PoseTrack(
+        reference.t_ns, reference.x, reference.y, wire_yaw))
+    assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_gyro'] > 100
+    result = replay_through_node(wheels, params_file=path, reference=reference, imu=imu,
+                                 timeout_s=300.0)
+    assert len(result) == len(wheels)
+    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
+    np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
+    assert np.array_equal(result.pose_cov, expected.pose_covariances)
+    for cause in ('online_hold_blend', 'online_hold_gyro', 'online_switch', 'reference_accepted'):
+        assert result.counters.get(cause, 0) == odometer.counters[cause]

@@ -10,16 +10,23 @@ an oracle; the true model of either ground held; the true model of the two groun
 the best single choice that knows nothing of where the robot is). Run::
 
     python -m lab.bench.online_dropout --case alternating --seeds 11 44 45
+
+With ``--gyro``: the odometry fuses the simulator's 100 Hz gyro (its white noise, plus a
+constant bias of ``--gyro-bias`` rad/s) in both runs (``imu.mode`` fuse), and the gyro weighs
+the grounds while holding (``core/online/gyrochoice.py``); ``--no-choice`` leaves the gyro's
+weighing out (the blend of the Markov chain alone, as without a gyro), for the comparison.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 
 from lab.studies import online as study
 import numpy as np
+from skidkin_ros.core.drive import ImuSamples
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer
@@ -56,22 +63,38 @@ def _grounds() -> tuple[dict, dict]:
     return base, other
 
 
-def run_drive(case: str, seed: int, fixed: OdometryConfig, at: float = 0.75) -> dict:
-    """Return the dropout's cost, where it lies, and the bounds, for one drive."""
+def biased_gyro(imu: ImuSamples, bias: float) -> ImuSamples:
+    """Return the simulator's gyro (white noise) with a constant bias added."""
+    return dataclasses.replace(imu, yaw_rate=imu.yaw_rate + bias)
+
+
+def run_drive(case: str, seed: int, fixed: OdometryConfig, at: float = 0.75,
+              gyro_bias: float | None = None) -> dict:
+    """Return the dropout's cost, where it lies, and the bounds, for one drive.
+
+    ``gyro_bias`` (rad/s): the odometry fuses the simulator's gyro with this bias; None: no gyro.
+    """
     sim = simulate(SimConfig(duration_s=DURATION_S, seed=seed, effects=study._effects(case)))
-    config = OdometryConfig.from_flat({**fixed.values, 'online.enabled': True})
+    flat = {**fixed.values, 'online.enabled': True}
+    imu = None
+    if gyro_bias is not None:
+        flat['imu.mode'] = 'fuse'
+        imu = biased_gyro(sim.imu, gyro_bias)
+    config = OdometryConfig.from_flat(flat)
     cut = (at * DURATION_S, at * DURATION_S + 20.0)
     full = online_odometer(config).predict(
-        sim.wheels, reference=study._reference(sim, np.random.default_rng(seed)))
+        sim.wheels, imu=imu, reference=study._reference(sim, np.random.default_rng(seed)))
     dropped_odometer = online_odometer(config)
     dropped = dropped_odometer.predict(
-        sim.wheels, reference=study._reference(sim, np.random.default_rng(seed), cut))
+        sim.wheels, imu=imu,
+        reference=study._reference(sim, np.random.default_rng(seed), cut))
     e_full = study._scores(sim, full.poses)[0]
     e_drop = study._scores(sim, dropped.poses)[0]
     t = (sim.wheels.t_ns[:len(e_full)] - sim.start_ns) * 1e-9
     base = e_full.mean()
     out = {'case': case, 'seed': seed, 'eps_t': base, 'cost': e_drop.mean() / base - 1.0,
-           'blends': dropped_odometer.counters['online_hold_blend']}
+           'blends': dropped_odometer.counters['online_hold_blend'],
+           'looks': dropped_odometer.counters['online_hold_gyro']}
     # the published pose's NEES in the dropout run (the study's: every second after the first
     # ten), over the drive and over the dropout's 20 s plus 10 s
     nees = study._nees(sim, dropped.poses, dropped.pose_covariances)
@@ -102,19 +125,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seeds', type=int, nargs='+', default=[11, 44, 45])
     parser.add_argument('--at', type=float, default=0.75,
                         help="the dropout's start, as a share of the drive (the study's 0.75)")
+    parser.add_argument('--gyro', action='store_true',
+                        help='fuse the simulated gyro (imu.mode fuse) in both runs')
+    parser.add_argument('--gyro-bias', type=float, default=0.003,
+                        help="the gyro's constant bias (rad/s) with --gyro")
+    parser.add_argument('--no-choice', action='store_true',
+                        help="with --gyro: leave the gyro's weighing of the grounds out")
     args = parser.parse_args(argv)
+    if args.no_choice:
+        from skidkin_ros.core.online.gyrochoice import GyroChoice
+        GyroChoice._gyro_weigh = lambda self, t1_ns, plan, travel, weights: weights
     fixed = study.calibrated_file()
     print('| case | seed | eps_t (m) | dropout cost | of which before / during / after | '
           'oracle | hold first ground | hold second | average model | blends | '
           'NEES drive / dropout + 10 s |')
     print('|' + '---|' * 11)
     for seed in args.seeds:
-        r = run_drive(args.case, seed, fixed, args.at)
+        r = run_drive(args.case, seed, fixed, args.at,
+                      args.gyro_bias if args.gyro else None)
         print(f"| {r['case']} | {seed} | {r['eps_t']:.4f} | {100 * r['cost']:+.1f} % | "
               f"{100 * r['before']:+.1f} / {100 * r['during']:+.1f} / {100 * r['after']:+.1f} |"
               f" {100 * r['oracle']:+.1f} % | {100 * r['hold first']:+.1f} % | "
               f"{100 * r['hold second']:+.1f} % | {100 * r['average']:+.1f} % | "
-              f"{r['blends']} | {r['nees']:.2f} / {r['nees_dropout']:.2f} |", flush=True)
+              f"{r['blends']} ({r['looks']}) | {r['nees']:.2f} / {r['nees_dropout']:.2f} |",
+              flush=True)
     return 0
 
 

@@ -73,6 +73,7 @@ from skidkin_ros.core.online.adapt import ChangeLearner
 from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
+from skidkin_ros.core.online.gyrochoice import GyroChoice
 from skidkin_ros.core.online.holding import HoldingBlend
 from skidkin_ros.core.online.noise import NoiseLearner
 from skidkin_ros.core.online.refnoise import RefNoiseLearner
@@ -96,8 +97,8 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(HoldingBlend, ChangeLearner, NoiseLearner, RefNoiseLearner, ReferenceGates,
-                       GroundBank, WindowSolver):
+class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, RefNoiseLearner,
+                       ReferenceGates, GroundBank, WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by

@@ -148,6 +148,7 @@ class HoldingBlend:
         travel = max(self._travel - self._ref_travel, 0.0)
         weights = pi * (1.0 - math.exp(-mu * travel))
         weights[0] += math.exp(-mu * travel)
+        weights = self._gyro_weigh(t1_ns, self._hold_plan, travel, weights)   # gyrochoice.py
         if self._blend is not None and np.abs(weights - self._blend[0]).max() < HOLD_STEP:
             return
         ks = np.stack([g.k for g in grounds])
