@@ -149,3 +149,25 @@ def test_a_new_ground_is_not_left_for_the_one_it_refuted_on_its_first_guess():
     # wheel samples (20 Hz) on the old ground after the change: 22 against 102
     young, old = back_on_old_ground(young=True), back_on_old_ground(young=False)
     assert old > 60 and young < 0.3 * old
+
+
+def test_n149_a_pose_repeated_by_a_relay_is_no_noise_measurement():
+    """A 2 Hz reference republished at 10 Hz (each pose held for 5 messages): no measure.
+
+    Its error per message is the motion since its last update (8.5 cm rms here); the repeated
+    poses' zero differences read as a noise-free reference: measured 5 mm, the floor (weighed
+    16x more than configured). Without two new poses in a row nothing is measured: the
+    configured sigmas stay. The same drive with every pose new is measured as before.
+    """
+    sim = simulate(SimConfig(duration_s=60.0, seed=7))
+    reference = _reference(sim, 0.01, 0.003, seed=3)
+    held = (np.arange(len(reference.t_ns)) // 5) * 5
+    relayed = PoseTrack(reference.t_ns, reference.x[held], reference.y[held],
+                        reference.yaw[held])
+    odometer = _learn(sim, relayed)
+    assert odometer.counters['reference_stall'] == 0   # each hold is below the stall distance
+    learner = odometer.learner
+    assert learner.reference_sigmas() == (learner.params.sigma_xy, learner.params.sigma_yaw)
+    measured = _learn(sim, reference).learner.reference_sigmas()
+    assert measured[0] == pytest.approx(0.01, rel=0.25)
+    assert measured[1] == pytest.approx(0.003, rel=0.25)

@@ -14,7 +14,8 @@ rotation. A model error (slip, a wrong parameter, a change of ground) changes sl
 white noise remains, with variance ``6 sigma^2`` per axis (the middle pose counts twice). The
 median of the last ``REF_NOISE_KEEP`` squared second differences over ``6 x 0.455`` (the
 median of a chi-square with one degree of freedom) is that variance, robust to the odd jump
-the gates let through.
+the gates let through. A pose that repeats the last one exactly is no measurement (a relay
+republishing a slower reference's last pose): no difference is taken across it.
 
 The sigmas used (:meth:`RefNoiseLearner.reference_sigmas`) are the configured ones until
 ``REF_NOISE_MIN`` second differences are in, then the measured ones, kept within
@@ -80,7 +81,11 @@ class RefNoiseLearner:
     def _measure_reference(self, last: _Ref, ref: _Ref) -> None:
         """Add the second differences of the interval last -> ref and the one before it."""
         motion = self._wheel_motion(last.t_ns, ref.t_ns)
-        if motion is None:
+        if motion is None or (ref.x, ref.y, ref.yaw) == (last.x, last.y, last.yaw):
+            # a pose repeated exactly is no new measurement (a relay republishing the last
+            # pose of a slower reference, a frozen one below the stall distance): its error is
+            # the motion since the reference last moved, and its zero difference would read
+            # as a noise-free reference; no difference is taken across it
             self._ref_last = None
             return
         travel, rotation = motion
