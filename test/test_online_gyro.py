@@ -58,7 +58,9 @@ def test_a_good_reference_is_never_refused_by_the_gyro(drive):
     without = _learn(drive, _reference(drive), 'off')
     assert with_gyro.counters['reference_gyro'] == 0
     assert with_gyro.counters['online_segments'] == without.counters['online_segments'] > 20
-    assert with_gyro.learner.values == without.learner.values
+    # the same to 1e-5: the reference's measured heading noise (refnoise.py: the mean of the
+    # squares sees the model's small changing error) is taken against the fused rotation
+    assert with_gyro.learner.values == pytest.approx(without.learner.values, rel=1e-5)
 
 
 def test_a_reference_turning_where_the_gyro_does_not_pauses_learning(drive):
