@@ -16,8 +16,9 @@ the last ``REF_NOISE_KEEP`` squared second differences, the median over ``6 x 0.
 median of a chi-square with one degree of freedom) and the mean over 6, each square cut where
 the bound below stops, both estimate that variance; the larger is used: the median alone took a
 reference exact but for a few poses far off (an ICP snapping into a wrong minimum for a scan)
-as exact, and the cut keeps a single jump the gates let through from moving the mean far. A pose that repeats the last one exactly is no measurement (a relay
-republishing a slower reference's last pose): no difference is taken across it.
+as exact, and the cut keeps a single jump the gates let through from moving the mean far. A
+pose that repeats the last one exactly is no measurement (a relay republishing a slower
+reference's last pose): no difference is taken across it.
 
 The sigmas used (:meth:`RefNoiseLearner.reference_sigmas`) are the configured ones until
 ``REF_NOISE_MIN`` second differences are in, then the measured ones, kept within
