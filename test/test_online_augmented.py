@@ -102,13 +102,16 @@ def test_alternating_grounds_with_an_augmented_model_beat_the_fixed_file():
     assert eps['online'] < 0.7 * eps['fixed']   # 0.58 on this drive
 
 
-@pytest.mark.parametrize('extensions', ['first_order_lag', 'speed_slip,time_offset',
-                                        'terrain_regime', 'sparse_correction'])
-def test_extensions_that_need_state_or_rates_are_refused_with_the_reason(extensions):
+@pytest.mark.parametrize('extensions,reason', [
+    ('first_order_lag', 'the lags'), ('speed_slip,time_offset', 'time_offset'),
+    ('terrain_regime', 'time since the drive'), ('sparse_correction', 'nothing of its own'),
+    ('backlash,lateral_skid', "backlash's play per wheel")])
+def test_extensions_that_need_state_or_rates_are_refused_with_the_reason(extensions, reason):
     with pytest.raises(ConfigError, match='cannot be learned online') as info:
         OdometryConfig.from_flat({**AUGMENTED, 'augmented.extensions': extensions,
                                   'online.enabled': True})
     assert 'speed_slip' in str(info.value) and 'edd_asymmetric' in str(info.value)
+    assert reason in str(info.value)
 
 
 @pytest.mark.parametrize('model', ['speed_slip', 'residual model with a rate term'])

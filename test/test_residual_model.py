@@ -89,6 +89,38 @@ def test_scalar_and_batch_forms_agree_bit_for_bit_inside_and_outside_the_range()
     assert np.all(np.isfinite(batch))
 
 
+def test_a_sparse_file_takes_only_its_terms_and_equals_the_batch_form_bit_for_bit():
+    """A level-3 file, v_y left out: the per-sample form evaluates only the terms in use.
+
+    The sums are the batch form's (the same products in the same order, a term left out adds
+    0.0), and the covariance's sensitivity of the coefficients carried is the full one's rows.
+    """
+    from skidkin_ros.core.kinematics.extensions import residual_jacobian
+    rng = np.random.default_rng(5)
+    low = set(residual.term_names(3))
+    values = {name: (float(rng.normal(0.0, 0.05)) if name.split('_', 1)[1] in low
+                     and not name.startswith('vy_') else 0.0)
+              for name in residual.coefficient_names()}
+    values.update(RANGES)
+    ext = get_extension('residual_model')
+    k = ext.vector(values)
+    terms, outputs = residual.correction_plan(k)
+    assert 0 < len(terms) == len(low) < len(residual.TERMS) and outputs[1] == ()
+    wl, wr = rng.normal(0.0, 20.0, 300), rng.normal(0.0, 20.0, 300)
+    rate = rng.normal(0.0, 30.0, (300, 3))
+    base = BASE.twist(wl, wr)
+    batch = ext.apply(k, base, wl, wr, np.zeros(300), rate)
+    scalar = ext.scalar_apply()
+    kk = tuple(k.tolist())
+    index = [i for i, name in enumerate(residual.coefficient_names()) if values[name] != 0.0]
+    for i in range(300):
+        assert scalar(kk, *base[i].tolist(), wl[i], wr[i], 0.0,
+                      tuple(rate[i].tolist())) == tuple(batch[i].tolist())
+        full = residual_jacobian(kk, base[i].tolist(), rate[i].tolist())
+        assert residual_jacobian(kk, base[i].tolist(), rate[i].tolist(), index) == [
+            full[j] for j in index]
+
+
 def test_outside_the_fitted_range_the_correction_holds_its_edge_value():
     values = {'vx_v_abs_v': -0.2, 'vx_v3': 0.1, **RANGES}
     model = _model(values)

@@ -2,8 +2,9 @@
 
     PYTHONPATH=.:test python lab/bench/residual_cost.py
 
-Rows: the plain edd_symmetric model, the residual model (every coefficient non-zero), and the
-same with the covariance of every coefficient carried into the pose covariance.
+Rows: the plain edd_symmetric model, the residual model (every coefficient non-zero), the
+same with the covariance of every coefficient carried into the pose covariance, a level-3 file
+(its terms only) and a level-6 file with the covariance of its terms.
 """
 
 import pathlib
@@ -26,10 +27,19 @@ def main() -> None:
     values = {name: float(rng.normal(0.0, 0.01)) for name in names}
     values.update(files.RANGES)
     configs = {}
-    for label, cov in (('residual', [0.0] * len(names) ** 2),
-                       ('residual + covariance', files._covariance(list(names), 1e-4))):
+    # a file of level 3 (its terms only) and one of level 6 with their covariance: what a fit
+    # below the top level writes; terms whose coefficients are all 0 are not evaluated
+    level3 = {**values, **{name: 0.0 for name in names
+                           if name.split('_', 1)[1] not in residual.term_names(3)}}
+    level6 = [name for name in names if name.split('_', 1)[1] in residual.term_names(6)]
+    level6_values = {**values, **{name: 0.0 for name in names if name not in level6}}
+    for label, vals, cov in (
+            ('residual', values, [0.0] * len(names) ** 2),
+            ('residual + covariance', values, files._covariance(list(names), 1e-4)),
+            ('level 3', level3, [0.0] * len(names) ** 2),
+            ('level 6 + covariance', level6_values, files._covariance(level6, 1e-4))):
         (tmp / label).mkdir()
-        configs[label] = OdometryConfig.from_file(files._calibrated_file(tmp / label, values, cov))
+        configs[label] = OdometryConfig.from_file(files._calibrated_file(tmp / label, vals, cov))
     configs = {'plain edd_symmetric': OdometryConfig.from_flat({
         'wheel_radius': 0.1651, 'track_width': 0.555, 'robot': 'sim_husky',
         'model': 'edd_symmetric', 'interval': 'ending', 'models.edd_symmetric.alpha': 0.9,

@@ -546,10 +546,17 @@ def _residual_model_partials(k, twist, omega_l, omega_r, t_s, rate, wanted, inpu
     return _bounded_partials(twist, change, d_change_twist, d_change_rate, d_change_k)
 
 
+# the last residual model's values and their terms in use (one tuple: read and set atomically)
+_RESIDUAL_PLAN: tuple = ((), None)
+
+
 def _scalar_residual_model(k, vx, vy, w, omega_l, omega_r, t_s, rate):
+    global _RESIDUAL_PLAN
+    last = _RESIDUAL_PLAN
+    if last[0] is not k:   # the node hands the same tuple at every sample of a bound model
+        last = _RESIDUAL_PLAN = (k, residual.correction_plan(k[:_RESIDUAL_COEFS]))
     ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES]
-    phi = residual.scalar_features(ranges, vx, w, rate[0], rate[2])
-    cx, cy, cw = residual.scalar_correction(k, phi)
+    cx, cy, cw = residual.scalar_planned_correction(last[1], ranges, vx, w, rate[0], rate[2])
     cx = cx * k[_RESIDUAL_GAINS]
     cy = cy * k[_RESIDUAL_GAINS + 1]
     cw = cw * k[_RESIDUAL_GAINS + 2]
@@ -563,14 +570,25 @@ def _scalar_residual_model(k, vx, vy, w, omega_l, omega_r, t_s, rate):
     return vx + cx, vy + cy, w + cw
 
 
-def residual_jacobian(k: Sequence[float], twist: Sequence[float], rate: Sequence[float]
-                      ) -> list[tuple[float, float, float]]:
+def residual_jacobian(k: Sequence[float], twist: Sequence[float], rate: Sequence[float],
+                      index: Sequence[int] | None = None) -> list[tuple[float, float, float]]:
     """Return d(twist)/d(coefficient) of the residual model at one sample, (d vx, d vy, d w).
 
     The correction is linear in its coefficients: output o's coefficient of term j moves
     component o by the term's value times the output's gain (the bound is left out).
+    ``index``: only these coefficients (positions among the extension's), in that order.
     """
     ranges = tuple(k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES])
+    if index is not None:
+        count = len(residual.TERMS)
+        phi = residual.scalar_terms(ranges, twist[0], twist[2], rate[0], rate[2],
+                                    sorted({i % count for i in index}))
+        rows = []
+        for i in index:
+            row = [0.0, 0.0, 0.0]
+            row[i // count] = phi[i % count] * k[_RESIDUAL_GAINS + i // count]
+            rows.append((row[0], row[1], row[2]))
+        return rows
     phi = residual.scalar_features(ranges, twist[0], twist[2], rate[0], rate[2])
     zero = (0.0, 0.0, 0.0)
     out = []

@@ -51,7 +51,8 @@ import numpy as np
 __all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS', 'SIGN_WIDTH',
            'TURN_WIDTH', 'KNOTS', 'BUMP_WIDTH', 'BUMP_CENTRES',
            'term_names', 'features',
-           'scalar_features', 'correction', 'scalar_correction', 'coefficient_names',
+           'scalar_features', 'correction', 'scalar_correction', 'correction_plan',
+           'scalar_planned_correction', 'scalar_terms', 'coefficient_names',
            'range_names', 'input_values', 'LEGACY_TERMS', 'LEGACY_LAYOUTS', 'upgrade_covariance',
            'TERM_GRADIENTS', 'feature_gradients', 'correction_gradient']
 
@@ -424,6 +425,50 @@ def scalar_correction(coef: Sequence[float], phi: Sequence[float]) -> tuple[floa
 
 
 # The libraries of files written before today's one (same names, these orders): the 20-term one
+def scalar_terms(ranges: Sequence[float], v: float, w: float, dv: float, dw: float,
+                 terms: Sequence[int]) -> dict[int, float]:
+    """:func:`scalar_features` of the given terms only, by term index."""
+    p = _scaled(v, ranges[0], ranges[1])
+    q = _scaled(w, ranges[2], ranges[3])
+    a = _scaled(dv, ranges[4], ranges[5])
+    b = _scaled(dw, ranges[6], ranges[7])
+    return {j: _FUNCTIONS[j](p, q, a, b) for j in terms}
+
+
+def correction_plan(coef: Sequence[float]) -> tuple[tuple[int, ...],
+                                                    tuple[tuple[tuple[int, float], ...], ...]]:
+    """Return the terms with a non-zero coefficient and, per output, its (term, coefficient).
+
+    A file below the top level, or fitted sparse, leaves most of the library at 0: the node's
+    per-sample form (:func:`scalar_planned_correction`) evaluates only these terms.
+    """
+    count = len(TERMS)
+    outputs = tuple(tuple((j, float(coef[o * count + j])) for j in range(count)
+                          if coef[o * count + j] != 0.0) for o in range(len(OUTPUTS)))
+    return tuple(sorted({j for pairs in outputs for j, _ in pairs})), outputs
+
+
+def scalar_planned_correction(plan: tuple[tuple[int, ...],
+                                          tuple[tuple[tuple[int, float], ...], ...]],
+                              ranges: Sequence[float], v: float, w: float, dv: float, dw: float
+                              ) -> tuple[float, float, float]:
+    """:func:`scalar_correction` of :func:`scalar_features` over the terms in use only.
+
+    The same products summed in the same (library) order: a term left out adds 0.0, which
+    leaves a sum unchanged, so the result is the full sum's bit for bit (up to the sign of
+    an exact zero).
+    """
+    terms, outputs = plan
+    phi = scalar_terms(ranges, v, w, dv, dw, terms)
+    out = []
+    for pairs in outputs:
+        total = 0.0
+        for j, c in pairs:
+            total = total + phi[j] * c
+        out.append(total)
+    return out[0], out[1], out[2]
+
+
 # (60 coefficients) and the 40-term one (120; today's without the bumps of level 7).
 LEGACY_TERMS: tuple[str, ...] = (
     'v', 'w', 'abs_v', 'abs_w', 'v_abs_v', 'w_abs_w', 'v_w', 'v_abs_w', 'w_abs_v', 'abs_v_abs_w',

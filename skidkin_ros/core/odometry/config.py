@@ -508,7 +508,8 @@ def _check_online(values: Mapping[str, Any]) -> None:
             raise ConfigError(
                 f'online.enabled: the extension(s) {others} cannot be learned online (a '
                 'learning segment is rolled out from its start: it has no time since the drive '
-                'started (terrain_regime) and no state carried in (the lags, time_offset); the '
+                'started (terrain_regime) and no state carried in (the lags, time_offset, the '
+                "backlash's play per wheel); the "
                 'sparse correction has nothing of its own to learn: its terms and coefficients '
                 'come from a regression over a whole drive); online calibration learns '
                 'augmented models '

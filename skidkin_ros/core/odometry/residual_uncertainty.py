@@ -60,8 +60,7 @@ class ResidualUncertainty:
         """Return d(twist)/dC of the coefficients in use at an augmented state (None: no state)."""
         if state is None:
             return None
-        full = residual_jacobian(self.values, state.b, state.r)
-        return [full[i] for i in self.index]
+        return residual_jacobian(self.values, state.b, state.r, self.index)
 
     def pose_covariance(self, sens: Sequence[Sequence[float]]) -> tuple[float, ...]:
         """Upper triangle of S Sigma_C S^T for S given as p columns (d x, d y, d yaw)/dC_j."""

@@ -25,9 +25,9 @@ lateral_skid, icr_offset, ratio_yaw_slip), acceleration_slip, and the residual m
 gains are learned with its coefficients held (the offline regression's terms and coefficients,
 scaled to the current ground). The others need what a learning segment does not carry: the time
 since the drive started (terrain_regime), or a state carried across the segment's start (the
-lags, time_offset); the sparse correction has nothing of its own to learn (no gain; its terms
-and coefficients come from a regression over a whole drive). A configuration with one of them
-is refused with that reason.
+lags, time_offset, the backlash's play per wheel); the sparse correction has nothing of its own
+to learn (no gain; its terms and coefficients come from a regression over a whole drive). A
+configuration with one of them is refused with that reason.
 
 **acceleration_slip and the residual model's rate terms** read the base twist's rate at each
 wheel sample, which the 50 ms blocks of a learning segment lose. A layout with one in use

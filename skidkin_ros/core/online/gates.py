@@ -170,7 +170,8 @@ class ReferenceGates:
 
         Over the interval from the last pose and over the segment so far, the reference's
         heading change and the gyro's integrated yaw may differ by ``gyro_sigmas`` standard
-        deviations of their noise: the reference's heading noise at both ends (sigma_yaw), the
+        deviations of their noise: the reference's heading noise at both ends (the sigma in
+        use, :meth:`~skidkin_ros.core.online.refnoise.RefNoiseLearner.reference_sigmas`), the
         gyro's white noise (imu.arw) and bias uncertainty (imu.bias_sigma) over the time. A pose
         beyond is refused (counted reference_gyro) and the segment dropped: learning pauses
         while the reference turns where the gyro does not. JUMP_CONFIRM refusals in a row restart
@@ -189,7 +190,9 @@ class ReferenceGates:
         ref.gyro, ref.epoch = last.gyro + turn, last.epoch
         arw, bias_sigma = self.gyro_noise
         sigmas = self.params.gyro_sigmas
-        ref_var = 2.0 * self.params.sigma_yaw ** 2
+        # the reference's heading noise as the segments weigh it: measured (refnoise.py) or
+        # configured; the configured value alone refused a reference within its bounds
+        ref_var = 2.0 * self.reference_sigmas()[1] ** 2
         start = self._seg_start
         for a in (last, start):
             if a is None or a.epoch != ref.epoch or math.isnan(a.gyro):

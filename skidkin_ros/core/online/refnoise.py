@@ -11,10 +11,14 @@ against the wheels': between two accepted poses, the reference's displacement (x
 wheels' travel along the reference's heading, and its heading change less the wheels'
 rotation. A model error (slip, a wrong parameter, a change of ground) changes slowly from one
 0.1 s interval to the next and cancels in the difference of two such increments; three poses'
-white noise remains, with variance ``6 sigma^2`` per axis (the middle pose counts twice). The
-median of the last ``REF_NOISE_KEEP`` squared second differences over ``6 x 0.455`` (the
-median of a chi-square with one degree of freedom) is that variance, robust to the odd jump
-the gates let through.
+white noise remains, with variance ``6 sigma^2`` per axis (the middle pose counts twice). Of
+the last ``REF_NOISE_KEEP`` squared second differences, the median over ``6 x 0.455`` (the
+median of a chi-square with one degree of freedom) and the mean over 6, each square cut where
+the bound below stops, both estimate that variance; the larger is used: the median alone took a
+reference exact but for a few poses far off (an ICP snapping into a wrong minimum for a scan)
+as exact, and the cut keeps a single jump the gates let through from moving the mean far. A
+pose that repeats the last one exactly is no measurement (a relay republishing a slower
+reference's last pose): no difference is taken across it.
 
 The sigmas used (:meth:`RefNoiseLearner.reference_sigmas`) are the configured ones until
 ``REF_NOISE_MIN`` second differences are in, then the measured ones, kept within
@@ -80,7 +84,11 @@ class RefNoiseLearner:
     def _measure_reference(self, last: _Ref, ref: _Ref) -> None:
         """Add the second differences of the interval last -> ref and the one before it."""
         motion = self._wheel_motion(last.t_ns, ref.t_ns)
-        if motion is None:
+        if motion is None or (ref.x, ref.y, ref.yaw) == (last.x, last.y, last.yaw):
+            # a pose repeated exactly is no new measurement (a relay republishing the last
+            # pose of a slower reference, a frozen one below the stall distance): its error is
+            # the motion since the reference last moved, and its zero difference would read
+            # as a noise-free reference; no difference is taken across it
             self._ref_last = None
             return
         travel, rotation = motion
@@ -111,8 +119,23 @@ class RefNoiseLearner:
             if len(values) < REF_NOISE_MIN:
                 out.append(configured)
                 continue
-            sigma = math.sqrt(float(np.median(np.fromiter(values, float))) / _MEDIAN_CHI2_1_X6)
+            sigma = _sigma(np.fromiter(values, float), configured)
             out.append(min(max(sigma, configured / REF_NOISE_RANGE),
                            configured * REF_NOISE_RANGE))
         measured = (out[0], out[1])
         return None if measured == (params.sigma_xy, params.sigma_yaw) else measured
+
+
+def _sigma(squares: np.ndarray, configured: float) -> float:
+    """Return the noise of one pose from squared second differences (the module docstring).
+
+    The larger of two: the median's (the white noise of most poses) and the mean's with each
+    square cut where the bound stops (a few poses far off, a reference that snaps 10 cm for one
+    scan in seven: the median sees only the exact majority; weighed as if exact, those poses
+    made five false changes of ground). A single jump moves the mean by at most the bound over
+    the number kept.
+    """
+    cap = 6.0 * (configured * REF_NOISE_RANGE) ** 2
+    median = float(np.median(squares)) / _MEDIAN_CHI2_1_X6
+    mean = float(np.mean(np.minimum(squares, cap))) / 6.0
+    return math.sqrt(max(median, mean))
