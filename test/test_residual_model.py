@@ -5,7 +5,7 @@ from lab.studies.unnamed_effects import draw_effects
 import numpy as np
 import pytest
 from skidkin_ros.core.calibration.diagnosis import diagnose, DiagnosisOptions
-from skidkin_ros.core.calibration.diagnosis.regression import _ranges, blr, fit_residual_model
+from skidkin_ros.core.calibration.diagnosis.regression import blr, fit_residual_model
 from skidkin_ros.core.calibration.diagnosis.residuals import pose_samples
 from skidkin_ros.core.calibration.fitting import fit_model
 from skidkin_ros.core.calibration.segments import cut_segments
@@ -414,28 +414,3 @@ def test_a_slope_creep_nothing_explains_is_reported_as_unexplained(strength, tmp
         assert 'unexplained residual: signal heading' in page
     else:
         assert not result.unexplained and 'unexplained residual' not in text + page
-
-
-def test_c231_the_speed_range_is_the_full_training_range_the_rates_drop_their_spikes():
-    """An effect that grows with speed is largest at the fastest poses: the range keeps them.
-
-    The speeds' fitted range is their full training range (a percentile held the correction
-    flat over the fastest 0.5 %); the rates keep the 0.5 .. 99.5 percentile, so one spike of a
-    rate does not stretch the range its terms are scaled to.
-    """
-    rng = np.random.default_rng(3)
-    n = 2000
-    twist = np.zeros((n, 3))
-    twist[:, 0] = rng.uniform(-1.0, 1.0, n)
-    twist[:, 2] = rng.uniform(-1.5, 1.5, n)
-    twist[:5, 0] = [1.4, 1.45, 1.5, 1.55, 1.6]       # the fastest 0.25 %
-    rate = rng.normal(0.0, 0.5, (n, 3))
-    rate[7, 0] = 80.0                                 # one spike of the acceleration
-    ranges = dict(zip(residual.range_names(), _ranges(twist, rate)))
-    assert ranges['v_hi'] == pytest.approx(1.6)
-    assert ranges['w_lo'] == pytest.approx(twist[:, 2].min())
-    assert ranges['dv_hi'] < 3.0
-    # the correction is no longer flat over the fastest poses: a cubic of v follows them
-    phi = residual.features(list(ranges.values()), twist[:5], rate[:5])
-    cubic = phi[:, residual.term_names().index('v3')]
-    assert np.all(np.diff(cubic) > 0)

@@ -8,12 +8,9 @@ levels. It is fitted as Norlab's DRIVE fits body-frame slip, as a recipe:
    current model's twist before it, of the held wheel speeds) and the base twist's rate; the
    target is the per-pose body-velocity residual of the current model
    (:func:`~.residuals.pose_residuals`), component by component (v_x, v_y, omega).
-2. **Range.** The fitted range of the speeds (v, w) is their full range over the poses used,
-   that of the rates (dv, dw) their 0.5 .. 99.5 percentile (a rate has single-sample spikes, a
-   speed does not); the terms are computed on the inputs clamped to it and scaled to [-1, 1]
-   (outside the range the correction holds its edge value: it cannot run away where it has not
-   seen data). A percentile on the speeds cut off the fastest 0.5 %, where an effect that grows
-   with speed (a tyre radius, a side saturation) is largest, and held the correction flat there.
+2. **Range.** Each input's fitted range is its 0.5 .. 99.5 percentile over the poses used; the
+   terms are computed on the inputs clamped to it and scaled to [-1, 1] (outside the range the
+   correction holds its edge value: it cannot run away where it has not seen data).
 3. **Regression.** For each component and each library level, Bayesian linear regression with a
    Gaussian prior on the (standardised) coefficients, its precision alpha and the noise
    precision beta set by maximising the evidence (MacKay's fixed point).
@@ -52,8 +49,7 @@ __all__ = ['BLOCK_FOLDS', 'Regression', 'ResidualFit', 'blr', 'block_folds', 'fi
            'model_inputs', 'RANGE_PERCENTILES']
 
 BLOCK_FOLDS = 4
-# (speeds v, w; rates dv, dw): the percentiles bounding each input's fitted range
-RANGE_PERCENTILES = ((0.0, 100.0), (0.0, 100.0), (0.5, 99.5), (0.5, 99.5))
+RANGE_PERCENTILES = (0.5, 99.5)
 _EVIDENCE_ITERATIONS = 50
 _COEF_LIMIT = 9.9  # inside the coefficients' bounds (+-10)
 # A level must beat a simpler one by this much held-out log-likelihood per pose (nats).
@@ -172,12 +168,12 @@ class ResidualFit:
 def _ranges(twist: np.ndarray, rate: np.ndarray) -> list[float]:
     raw = residual.input_values(twist, rate)
     out = []
-    for x, percentiles in zip(raw, RANGE_PERCENTILES):
+    for x in raw:
         finite = x[np.isfinite(x)]
         if finite.size == 0:
             out += [0.0, 0.0]
             continue
-        lo, hi = np.percentile(finite, percentiles)
+        lo, hi = np.percentile(finite, RANGE_PERCENTILES)
         out += [float(min(lo, 0.0)), float(max(hi, 0.0))]
     return out
 
