@@ -267,6 +267,8 @@ class Odometer:
         block = None if covariance is None else check_covariance(covariance)
         self.integrator.restart_pose(pose)
         self.covariance.reset(pose[2])
+        if self.gyro is not None:
+            self.gyro.bias_yaw_sd = 0.0
         if block is not None:
             self.covariance.cov = self.covariance.cov + block
         self.last_published_t_ns = None
@@ -276,6 +278,8 @@ class Odometer:
         pose = check_pose(pose)
         self.integrator.reset(pose)
         self.covariance.reset(pose[2])
+        if self.gyro is not None:
+            self.gyro.bias_yaw_sd = 0.0
         self.period_s = 0.0
         self.last_published_t_ns = None
         self.pairer.clear()
