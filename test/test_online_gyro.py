@@ -1,5 +1,7 @@
 """Online calibration judged by the gyro: a reference that turns where the gyro does not pauses."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from skidkin_ros.core.drive import PoseTrack, WheelSamples
@@ -150,3 +152,28 @@ def test_n150_the_gyro_judges_the_reference_with_its_measured_heading_noise(driv
     assert with_gyro.counters['reference_gyro'] <= 10
     assert with_gyro.learner.gyro_refused_ns < drive.start_ns + int(12e9)
     assert with_gyro.counters['online_segments'] >= 0.9 * without.counters['online_segments']
+
+
+# the noise a calibration fits on the simulator (the file's defaults are far wider)
+NOISE_FITTED = {'var_x_per_m': 1.2e-4, 'var_y_per_m': 0.0, 'var_yaw_per_m': 0.0,
+                'var_yaw_per_rad': 2.2e-4, 'var_x_const': 1.3e-5}
+
+
+def test_n153_fused_heading_covariance_carries_the_residual_gyro_bias():
+    # a gyro biased by imu.bias_sigma (one prior sigma, as a calibrated gyro may be), fused, with
+    # online learning on: the bias is one error over the whole drive (heading error beta * T),
+    # so the published heading variance must grow as bias_sigma^2 T^2 for the heading's NEES to
+    # stay near 1 (summed as independent per-interval errors it was about 8).
+    sim = simulate(SimConfig(duration_s=120.0, seed=7))
+    noise = {f'models.edd_asymmetric.noise.{k}': v for k, v in NOISE_FITTED.items()}
+    config = OdometryConfig.from_flat({**FILE, **noise, 'imu.mode': 'fuse'})
+    bias = config.imu.bias_sigma
+    imu = dataclasses.replace(sim.imu, yaw_rate=sim.imu.yaw_rate + bias)
+    result = online_odometer(config).predict(sim.wheels, reference=_reference(sim), imu=imu)
+    t = (sim.wheels.t_ns - sim.start_ns) * 1e-9
+    pick = np.nonzero(t >= 20.0)[0][::20]
+    err = sim.truth.poses[pick, 2] - result.poses[pick, 2]
+    err = (err + np.pi) % (2 * np.pi) - np.pi
+    var = result.pose_covariances[pick, 5, 5]
+    assert abs(err[-1]) > 0.04   # the bias left its mark: the heading is off by beta * T
+    assert np.mean(err ** 2 / var) < 3.0

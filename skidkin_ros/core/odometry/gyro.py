@@ -145,6 +145,11 @@ class GyroAid:
         self._ahead_said = False
         self.news = ''   # what the check last said, for the odometer to report (then cleared)
         self.last_usable_ns: int | None = None
+        # the heading error a constant residual bias leaves builds up over all fused intervals
+        # (beta * T, not a sum of independent beta * dt): its standard deviation so far (rad;
+        # back to 0 with the pose's covariance) and the variance the last interval added
+        self.bias_yaw_sd = 0.0
+        self._bias_step_var = 0.0
         # calibration: a list to collect (gyro rate - learned bias, w_mid) of every covered
         # interval in motion, the filter's measurement and its model (None: not collected)
         self.record: list[tuple[float, float]] | None = None
@@ -190,6 +195,11 @@ class GyroAid:
             w = w_model   # the calibrated model: the gyro is not used at all
         else:
             w = kf.gain * w_model
+        self._bias_step_var = 0.0
+        if from_gyro and moving:
+            before = self.bias_yaw_sd
+            self.bias_yaw_sd = before + math.sqrt(max(kf.p11, 0.0)) * dt_s
+            self._bias_step_var = self.bias_yaw_sd ** 2 - before ** 2
         self.last = AidStep(status, from_gyro, w_model, dt_s)
         return vx, vy, w
 
@@ -214,16 +224,19 @@ class GyroAid:
     def yaw_step_variance(self, model_variance: float) -> float:
         """Variance of the last interval's heading increment (rad^2), by where it came from.
 
-        fuse on the gyro: white noise arw^2 dt plus the bias's P_beta dt^2; otherwise the model's
-        variance scaled by gain^2 (and by imu.adapt.yaw_noise_scale in adapt: the share of the
-        model's heading noise the gain leaves) plus the gain's (w_model dt)^2 P_gamma. (Per
-        interval: the correlation of the gain and bias errors from interval to interval is not
-        carried.)
+        fuse on the gyro: white noise arw^2 dt plus what the residual bias adds in motion,
+        (s + sqrt(P_beta) dt)^2 - s^2 with s the bias's heading error so far (the bias is one
+        error over all intervals: after T s of fused motion its heading variance is P_beta T^2,
+        not P_beta T dt); otherwise the model's variance scaled by gain^2 (and by
+        imu.adapt.yaw_noise_scale in adapt: the share of the model's heading noise the gain
+        leaves) plus the gain's (w_model dt)^2 P_gamma. (The heading's variance is right; its
+        correlation from interval to interval, and so the position's share, is not carried: a
+        straight drive's lateral variance from the bias is about 2/3 of the true one.)
         """
         last, kf = self.last, self.filter
         dt = last.dt_s
         if last.yaw_from_gyro:
-            return self.params.arw ** 2 * dt + kf.p11 * dt * dt
+            return self.params.arw ** 2 * dt + self._bias_step_var
         return (kf.gain ** 2 * self._model_share() * model_variance
                 + (last.model_yaw_rate * dt) ** 2 * kf.p00)
 

@@ -266,16 +266,22 @@ class Odometer:
         pose = check_pose(pose)
         block = None if covariance is None else check_covariance(covariance)
         self.integrator.restart_pose(pose)
-        self.covariance.reset(pose[2])
+        self._reset_covariance(pose[2])
         if block is not None:
             self.covariance.cov = self.covariance.cov + block
         self.last_published_t_ns = None
+
+    def _reset_covariance(self, yaw_rad: float) -> None:
+        """Restart the pose covariance from (almost) zero, and with it the gyro bias's share."""
+        self.covariance.reset(yaw_rad)
+        if self.gyro is not None:
+            self.gyro.bias_yaw_sd = 0.0
 
     def _restart(self, pose: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
         """Start afresh at ``pose``: held speeds, last stamp and waiting values forgotten."""
         pose = check_pose(pose)
         self.integrator.reset(pose)
-        self.covariance.reset(pose[2])
+        self._reset_covariance(pose[2])
         self.period_s = 0.0
         self.last_published_t_ns = None
         self.pairer.clear()
@@ -692,7 +698,7 @@ class Odometer:
                     gains[i] = gyro.filter.gain if gyro is not None else 1.0
                 if i in restarts:
                     self.integrator.restart_pose(check_pose(restarts[i]))
-                    self.covariance.reset(float(restarts[i][2]))
+                    self._reset_covariance(float(restarts[i][2]))
         offset_ns = self.output_offset_ns
         return Prediction(wheels.t_ns + offset_ns, poses, twists, tuple(status), offset_ns,
                           pose_covs.reshape(-1, 6, 6), covariances, gains)
