@@ -197,6 +197,23 @@ def base_rates(wheels: WheelSamples, base: BoundModel, max_dt_s: float) -> np.nd
     return twist_rates(twist, dt_s, restart)[0]
 
 
+def _speed_rate(omega: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """Return d(omega)/dt at every sample: one derivative per distinct stamp.
+
+    A stamp repeated by the publisher (dt = 0) made np.gradient divide by zero, and its inf/NaN
+    reached the traced signals; the samples of a repeated stamp share the derivative of the last
+    of them. Without repeated stamps this is np.gradient, bit for bit.
+    """
+    stamps, inverse = np.unique(t_s, return_inverse=True)
+    if len(stamps) <= 2:
+        return np.zeros(len(omega))
+    if len(stamps) == len(t_s):
+        return np.gradient(omega, t_s)
+    last = np.zeros(len(stamps), dtype=int)
+    last[inverse] = np.arange(len(t_s))   # the last sample of each stamp
+    return np.gradient(np.asarray(omega)[last], stamps)[inverse]
+
+
 def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel, max_dt_s: float
              ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
     """Return the signals at the stamps (step 4 of the module docstring), base twist, rate."""
@@ -205,10 +222,8 @@ def _signals(drive: Drive, t_ns: np.ndarray, base: BoundModel, max_dt_s: float
     wl, wr = wheels.omega_l[index], wheels.omega_r[index]
     rate = base_rates(wheels, base, max_dt_s)[index]
     t_w = wheels.t_s
-    dwl = np.interp(t_ns, wheels.t_ns, np.gradient(wheels.omega_l, t_w)
-                    if len(wheels) > 2 else np.zeros(len(wheels)))
-    dwr = np.interp(t_ns, wheels.t_ns, np.gradient(wheels.omega_r, t_w)
-                    if len(wheels) > 2 else np.zeros(len(wheels)))
+    dwl = np.interp(t_ns, wheels.t_ns, _speed_rate(wheels.omega_l, t_w))
+    dwr = np.interp(t_ns, wheels.t_ns, _speed_rate(wheels.omega_r, t_w))
     model_twist = base.twist(wl, wr)
     v, w = model_twist[:, 0], model_twist[:, 2]
     big = np.maximum(np.abs(wl), np.abs(wr))
