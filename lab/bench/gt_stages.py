@@ -147,16 +147,7 @@ def ours(bag: Path, topic: str, config: Any, new_loop: bool = True
         sigma = kiss.adaptive_threshold.get_threshold()
         initial_guess = kiss.last_pose @ guess_delta
         clock.lap('rest')
-        new_pose = kiss.registration._registration._align_points_to_map(
-            points=source_v, voxel_map=kiss.local_map._internal_map,
-            initial_guess=initial_guess, max_correspondance_distance=3 * sigma, kernel=sigma)
-        clock.lap('align')
-        kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
-        clock.lap('rest')
-        kiss.local_map._internal_map._update(down_v, new_pose)
-        clock.lap('map')
-        kiss.last_delta = np.linalg.inv(kiss.last_pose) @ new_pose
-        kiss.last_pose = new_pose
+        _align_and_map(kiss, clock, source_v, down_v, initial_guess, sigma)
         last_dt = dt_ns if dt_ns > 0 else last_dt
         pose = kiss.last_pose.copy()
         clock.lap('rest')
@@ -170,6 +161,20 @@ def ours(bag: Path, topic: str, config: Any, new_loop: bool = True
         stamps.append(stamp)
         poses.append(pose)
     return clock.spent, stamps, np.array(poses)
+
+
+def _align_and_map(kiss, clock, source_v, down_v, initial_guess, sigma) -> None:
+    """KissICP.register_frame's steps after voxelizing (align, threshold, map), per stage."""
+    new_pose = kiss.registration._registration._align_points_to_map(
+        points=source_v, voxel_map=kiss.local_map._internal_map,
+        initial_guess=initial_guess, max_correspondance_distance=3 * sigma, kernel=sigma)
+    clock.lap('align')
+    kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
+    clock.lap('rest')
+    kiss.local_map._internal_map._update(down_v, new_pose)
+    clock.lap('map')
+    kiss.last_delta = np.linalg.inv(kiss.last_pose) @ new_pose
+    kiss.last_pose = new_pose
 
 
 def kiss_pipeline(bag: Path, topic: str, threads: int) -> tuple[dict[str, float], int]:
@@ -203,16 +208,7 @@ def kiss_pipeline(bag: Path, topic: str, threads: int) -> tuple[dict[str, float]
         sigma = kiss.adaptive_threshold.get_threshold()
         initial_guess = kiss.last_pose @ kiss.last_delta
         clock.lap('rest')
-        new_pose = kiss.registration._registration._align_points_to_map(
-            points=source_v, voxel_map=kiss.local_map._internal_map,
-            initial_guess=initial_guess, max_correspondance_distance=3 * sigma, kernel=sigma)
-        clock.lap('align')
-        kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
-        clock.lap('rest')
-        kiss.local_map._internal_map._update(down_v, new_pose)
-        clock.lap('map')
-        kiss.last_delta = np.linalg.inv(kiss.last_pose) @ new_pose
-        kiss.last_pose = new_pose
+        _align_and_map(kiss, clock, source_v, down_v, initial_guess, sigma)
         clock.lap('rest')
     return clock.spent, len(dataset)
 
