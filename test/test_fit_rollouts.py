@@ -8,7 +8,8 @@ C214: the lag scan reads one rollout at every offset, and the differentiator kee
 of its product that are used: both equal what they replace, bit for bit.
 C243: the backlash's sample loop runs once for the same speeds, stamps and play (a fit's
 Jacobian after its evaluation, every fold at the start value), and again when one changes.
-C244: the residual model's level search takes each fold's rows once for all its levels.
+C244: the residual model's level search takes each fold's rows once for all its levels, and
+its correction reads the terms from one contiguous copy: both as before, bit for bit.
 """
 
 import numpy as np
@@ -270,3 +271,25 @@ def test_c244_the_residual_levels_take_each_folds_rows_once(drives):
                         phi_all[test][:, cols], y[test])
             assert fit.scores[out][level] == score
     assert any(level > 0 for level in fit.levels)  # the base model leaves a residual to fit
+
+
+def test_c244_the_correction_sums_the_terms_as_the_node_does():
+    """C phi from one contiguous copy equals the term-by-term sum of the strided terms."""
+    rng = np.random.default_rng(5)
+    count = len(residual.TERMS)
+    coef = rng.normal(0.0, 0.1, 3 * count).tolist()
+    coef[4] = 0.0
+    for shape in ((count,), (2, 300, count)):
+        phi = rng.uniform(-1.0, 1.0, shape)
+        phi[..., 7] = -0.0
+        reference = []
+        for o in range(3):
+            total = phi[..., 0] * coef[o * count]
+            for j in range(1, count):
+                total = total + phi[..., j] * coef[o * count + j]
+            reference.append(total)
+        fast = residual.correction(coef, phi)
+        assert fast.shape == shape[:-1] + (3,)
+        assert np.stack(reference, axis=-1).tobytes() == fast.tobytes()
+    sample = phi[1, 17].tolist()
+    assert residual.scalar_correction(coef, sample) == tuple(fast[1, 17].tolist())
