@@ -199,7 +199,7 @@ def test_c239_a_repeated_wheel_stamp_leaves_the_traced_signals_finite(drives):
 
 
 def _play_reference(omega, dt_s, restart, half_play):
-    """The wheel speeds sample by sample with the node's :func:`play_step` (one row a wheel)."""
+    """Return the wheel speeds sample by sample with the node's :func:`play_step`."""
     out = np.empty_like(omega)
     for r in range(omega.shape[0]):
         state = PLAY_STATE
@@ -211,8 +211,11 @@ def _play_reference(omega, dt_s, restart, half_play):
 
 
 def test_c243_the_play_loop_runs_once_for_the_same_speeds_and_play():
-    """The batch play gives the node's speeds bit for bit, again from its store for the same
-    inputs (a copy too), and recomputes when an input or the play changes."""
+    """Check the stored play: the node's speeds bit for bit, the same arrays for equal inputs.
+
+    A copy of the inputs finds the stored result; an input changed in place or another play
+    is computed again.
+    """
     rng = np.random.default_rng(4)
     shape = (3, 700)
     omega = np.cumsum(rng.normal(0.0, 0.4, shape), axis=1)
