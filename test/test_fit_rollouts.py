@@ -1,4 +1,4 @@
-"""The diagnosis fits' cheaper rollouts compute what the exact ones do (C213, C214).
+"""The diagnosis fits' cheaper rollouts compute what the exact ones do (C213, C214, C243, C244).
 
 C213: the fits' trigonometry from the half-angle tangent equals numpy's sin and cos to a few
 1e-16 (the node and ``skidkin predict`` keep numpy's, bit for bit); the segment windows' plan
@@ -6,18 +6,27 @@ from one search over every drive's stamps equals a search in each drive; the Jac
 skips directions whose tangent is 0 equals the one that sums them.
 C214: the lag scan reads one rollout at every offset, and the differentiator keeps the entries
 of its product that are used: both equal what they replace, bit for bit.
+C243: the backlash's sample loop runs once for the same speeds, stamps and play (a fit's
+Jacobian after its evaluation, every fold at the start value), and again when one changes.
+C244: the residual model's level search takes each fold's rows once for all its levels, and
+its correction reads the terms from one contiguous copy: both as before, bit for bit.
 """
 
 import numpy as np
 import pytest
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
+from skidkin_ros.core.calibration.diagnosis.regression import (_ranges, BLOCK_FOLDS, block_folds,
+                                                               blr, fit_residual_model,
+                                                               model_inputs)
 from skidkin_ros.core.calibration.diagnosis.residuals import (_operator, body_velocities,
                                                               model_rollouts, pose_residuals,
                                                               pose_samples)
 from skidkin_ros.core.calibration.predictor import SegmentPredictor
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
+from skidkin_ros.core.kinematics import backlash, residual
 from skidkin_ros.core.kinematics.augmented import AugmentedModel
+from skidkin_ros.core.kinematics.backlash import PLAY_STATE, play_step
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.integrator import rollout
@@ -187,3 +196,103 @@ def test_c239_a_repeated_wheel_stamp_leaves_the_traced_signals_finite(drives):
         # curvature is NaN by design below 0.05 m/s; every other signal is finite
         for name, values in signals.items():
             assert name == 'curvature' or np.isfinite(values).all(), name
+
+
+def _play_reference(omega, dt_s, restart, half_play):
+    """Return the wheel speeds sample by sample with the node's :func:`play_step`."""
+    out = np.empty_like(omega)
+    for r in range(omega.shape[0]):
+        state = PLAY_STATE
+        for i in range(omega.shape[1]):
+            state, left, _ = play_step(state, half_play, float(dt_s[r, i - 1]) if i else 0.0,
+                                       bool(i == 0 or restart[r, i]), float(omega[r, i]), 0.0)
+            out[r, i] = left
+    return out
+
+
+def test_c243_the_play_loop_runs_once_for_the_same_speeds_and_play():
+    """Check the stored play: the node's speeds bit for bit, the same arrays for equal inputs.
+
+    A copy of the inputs finds the stored result; an input changed in place or another play
+    is computed again.
+    """
+    rng = np.random.default_rng(4)
+    shape = (3, 700)
+    omega = np.cumsum(rng.normal(0.0, 0.4, shape), axis=1)
+    omega[:, 200:210] = 0.0
+    dt_s = rng.choice([0.0, 0.02, 0.05], shape, p=[0.05, 0.85, 0.1])
+    restart = rng.random(shape) < 0.005
+    backlash._RECENT.clear()
+    calls = []
+    real_row = backlash._row
+
+    def counted(*args):
+        calls.append(1)
+        return real_row(*args)
+    backlash._row = counted
+    try:
+        first = backlash.play_speeds(omega, dt_s, restart, 0.15)
+        assert len(calls) == shape[0]
+        assert np.array_equal(first[0], _play_reference(omega, dt_s, restart, 0.15))
+        again = backlash.play_speeds(omega.copy(), dt_s.copy(), restart.copy(), 0.15)
+        assert len(calls) == shape[0] and again[0] is first[0] and again[1] is first[1]
+        with pytest.raises(ValueError):
+            again[0][0, 0] = 1.0  # what is handed out again cannot be changed by a caller
+        omega[1, 300] += 0.5  # the same array, changed in place: computed again
+        moved = backlash.play_speeds(omega, dt_s, restart, 0.15)
+        assert len(calls) == 2 * shape[0]
+        assert np.array_equal(moved[0], _play_reference(omega, dt_s, restart, 0.15))
+        other = backlash.play_speeds(omega, dt_s, restart, 0.2)
+        assert len(calls) == 3 * shape[0]
+        assert np.array_equal(other[0], _play_reference(omega, dt_s, restart, 0.2))
+        assert not np.array_equal(other[0], moved[0])
+    finally:
+        backlash._row = real_row
+        backlash._RECENT.clear()
+
+
+def test_c244_the_residual_levels_take_each_folds_rows_once(drives):
+    """The level scores equal those of the rows taken again for every level, bit for bit."""
+    options = DiagnosisOptions(interval='ending')
+    samples = pose_samples(drives, BASE, options)
+    fit = fit_residual_model(drives, samples, BASE, options)
+    target, valid = pose_residuals(drives, samples, BASE, options)
+    twist, rate = model_inputs(drives, samples, BASE, options)
+    ok = valid & np.all(np.isfinite(target), axis=1) & np.all(np.isfinite(twist), axis=1)
+    rows = np.nonzero(ok & np.all(np.isfinite(rate), axis=1))[0]
+    phi_all = residual.features(_ranges(twist[rows], rate[rows]), twist[rows], rate[rows])
+    folds = block_folds(samples.drive[rows], samples.t_ns[rows])
+    for c, (out, _) in enumerate(residual.OUTPUTS):
+        y = target[rows, c]
+        for level in residual.LEVELS:
+            cols = [j for j, (_, lvl, _, _) in enumerate(residual.TERMS) if lvl <= level]
+            score = 0.0
+            for fold in range(BLOCK_FOLDS):
+                test = folds == fold
+                if test.any() and not test.all():
+                    score += blr(phi_all[~test][:, cols], y[~test]).log_likelihood(
+                        phi_all[test][:, cols], y[test])
+            assert fit.scores[out][level] == score
+    assert any(level > 0 for level in fit.levels)  # the base model leaves a residual to fit
+
+
+def test_c244_the_correction_sums_the_terms_as_the_node_does():
+    """C phi from one contiguous copy equals the term-by-term sum of the strided terms."""
+    rng = np.random.default_rng(5)
+    count = len(residual.TERMS)
+    coef = rng.normal(0.0, 0.1, 3 * count).tolist()
+    coef[4] = 0.0
+    for shape in ((count,), (2, 300, count)):
+        phi = rng.uniform(-1.0, 1.0, shape)
+        phi[..., 7] = -0.0
+        reference = []
+        for o in range(3):
+            total = phi[..., 0] * coef[o * count]
+            for j in range(1, count):
+                total = total + phi[..., j] * coef[o * count + j]
+            reference.append(total)
+        fast = residual.correction(coef, phi)
+        assert fast.shape == shape[:-1] + (3,)
+        assert np.stack(reference, axis=-1).tobytes() == fast.tobytes()
+    sample = phi[1, 17].tolist()
+    assert residual.scalar_correction(coef, sample) == tuple(fast[1, 17].tolist())

@@ -64,14 +64,18 @@ def play_step(state: tuple[float, float, float, float, float], half_play: float,
 
 
 def _row(omega: list, dt_s: list, restart: list, h: float) -> tuple[list, list]:
-    """:func:`play_step` along one row on plain floats, with the slope by h (forward mode)."""
+    """:func:`play_step` along one row on plain floats, with the slope by h (forward mode).
+
+    ``restart``: with the first sample marked; ``dt_s``: the step that ends at each sample
+    (its first entry unused).
+    """
     speed, speed_by_h = [], []
+    put, put_by_h = speed.append, speed_by_h.append
     d = d_by_h = last_s = u_prev = 0.0
-    for i, u in enumerate(omega):
-        if i == 0 or restart[i]:
+    for u, step, again in zip(omega, dt_s, restart):
+        if again:
             d, d_by_h, last_s = 0.0, 0.0, 0.0
-        elif dt_s[i - 1] > 0.0:
-            step = dt_s[i - 1]
+        elif step > 0.0:
             free = d - u_prev * step
             if free < -h:
                 d, d_by_h = -h, -1.0
@@ -87,18 +91,27 @@ def _row(omega: list, dt_s: list, restart: list, h: float) -> tuple[list, list]:
         else:
             gap, gap_by_h = 0.0, 0.0
         if not gap > 0.0:
-            speed.append(u)
-            speed_by_h.append(0.0)
+            put(u)
+            put_by_h(0.0)
         else:
             travel = abs(u) * last_s
             if travel > gap:
-                speed.append(u * (1.0 - gap / travel))
-                speed_by_h.append(-u * gap_by_h / travel)
+                put(u * (1.0 - gap / travel))
+                put_by_h(-u * gap_by_h / travel)
             else:
-                speed.append(0.0)
-                speed_by_h.append(0.0)
+                put(0.0)
+                put_by_h(0.0)
         u_prev = u
     return speed, speed_by_h
+
+
+# The last few results of play_speeds with copies of their inputs: a fit asks for the same
+# speeds at the same play again (its Jacobian after its evaluation, every fold at the start
+# value). Comparing the inputs costs a pass over them, the loop a microsecond a sample.
+_RECENT: list[tuple[float, np.ndarray, np.ndarray, np.ndarray,
+                    tuple[np.ndarray, np.ndarray]]] = []
+_RECENT_SIZE = 8
+_RECENT_BYTES = 64 << 20  # what the kept inputs and results may take in all
 
 
 def play_speeds(omega: np.ndarray, dt_s: np.ndarray, restart: np.ndarray, half_play: float
@@ -108,14 +121,37 @@ def play_speeds(omega: np.ndarray, dt_s: np.ndarray, restart: np.ndarray, half_p
     ``dt_s[:, i]``: the step from sample i to i + 1 (0 across a gap or at a repeated stamp);
     ``restart[:, i]``: sample i starts afresh. :func:`play_step`'s operations row by row on
     plain floats (a sample loop: on floats it costs about a microsecond a sample, a tenth of
-    the same loop on arrays of a few rows).
+    the same loop on arrays of a few rows). The same arrays at the same play give the same
+    (read-only) result arrays again, without the loop.
     """
-    omega = np.asarray(omega, dtype=float)
-    out = np.empty_like(omega)
-    out_by_h = np.empty_like(omega)
-    dt_rows = np.asarray(dt_s, dtype=float).tolist()
-    restart_rows = np.asarray(restart, bool).tolist()
     h = float(half_play)
-    for r, row in enumerate(omega.tolist()):
-        out[r], out_by_h[r] = _row(row, dt_rows[r], restart_rows[r], h)
-    return out, out_by_h
+    values = np.asarray(omega, dtype=float)
+    steps = np.asarray(dt_s, dtype=float)
+    starts = np.asarray(restart, dtype=bool)
+    for known_h, known_omega, known_dt, known_restart, known in _RECENT:
+        if (known_h == h and np.array_equal(known_omega, values)
+                and np.array_equal(known_dt, steps) and np.array_equal(known_restart, starts)):
+            return known
+    out = np.empty_like(values)
+    out_by_h = np.empty_like(values)
+    # the step that ends at each sample, and the restarts with every row's first sample
+    ending = np.zeros(values.shape)
+    ending[:, 1:] = steps[:, :values.shape[1] - 1]
+    again = starts.copy()
+    again[:, :1] = True
+    ending_rows, again_rows = ending.tolist(), again.tolist()
+    for r, row in enumerate(values.tolist()):
+        out[r], out_by_h[r] = _row(row, ending_rows[r], again_rows[r], h)
+    out.flags.writeable = False
+    out_by_h.flags.writeable = False
+    result = (out, out_by_h)
+    _RECENT.insert(0, (h, values.copy(), steps.copy(), starts.copy(), result))
+    del _RECENT[_RECENT_SIZE:]
+    while _RECENT and sum(_kept_bytes(entry) for entry in _RECENT) > _RECENT_BYTES:
+        _RECENT.pop()
+    return result
+
+
+def _kept_bytes(entry: tuple) -> int:
+    _, omega, dt_s, restart, (out, out_by_h) = entry
+    return omega.nbytes + dt_s.nbytes + restart.nbytes + out.nbytes + out_by_h.nbytes

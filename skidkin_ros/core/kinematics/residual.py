@@ -401,15 +401,22 @@ def scalar_features(ranges: Sequence[float], v: float, w: float, dv: float, dw: 
 
 
 def correction(coef: Sequence[float], phi: np.ndarray) -> np.ndarray:
-    """Return C phi (..., 3): each output's terms summed in library order (no BLAS)."""
+    """Return C phi (..., 3): each output's terms summed in library order (no BLAS).
+
+    The terms are read from one contiguous copy, term by term (a strided term is slower to
+    read), and summed in place: the same operations in the same order.
+    """
     count = len(TERMS)
-    out = []
+    columns = np.ascontiguousarray(np.moveaxis(np.asarray(phi, dtype=float), -1, 0))
+    out = np.empty(columns.shape[1:] + (len(OUTPUTS),))
+    part = np.empty(columns.shape[1:])
     for o in range(len(OUTPUTS)):
-        total = phi[..., 0] * coef[o * count]
+        total = np.multiply(columns[0], coef[o * count], out=np.empty(part.shape))
         for j in range(1, count):
-            total = total + phi[..., j] * coef[o * count + j]
-        out.append(total)
-    return np.stack(out, axis=-1)
+            np.multiply(columns[j], coef[o * count + j], out=part)
+            np.add(total, part, out=total)
+        out[..., o] = total
+    return out
 
 
 def scalar_correction(coef: Sequence[float], phi: Sequence[float]) -> tuple[float, float, float]:

@@ -68,7 +68,8 @@ class Regression:
     def predict(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the predictive mean and variance at the rows of ``phi``."""
         mean = phi @ self.mean
-        var = 1.0 / self.beta + np.einsum('ni,ij,nj->n', phi, self.cov, phi)
+        # phi S phi^T's diagonal through one product (a 3-operand einsum is 15x slower)
+        var = 1.0 / self.beta + np.einsum('ij,ij->i', phi @ self.cov, phi)
         return mean, var
 
     def log_likelihood(self, phi: np.ndarray, y: np.ndarray) -> float:
@@ -216,20 +217,21 @@ def fit_residual_model(drives: Sequence[Drive], samples: PoseSamples, source: Tw
     levels = []
     scores: dict[str, dict[int, float]] = {}
     errors = []
+    split = [(folds == fold, phi_all[folds != fold], phi_all[folds == fold])
+             for fold in range(BLOCK_FOLDS)]  # each fold's rows, taken once for every level
     for c, (out, _) in enumerate(residual.OUTPUTS):
         y = target[rows, c]
         score = {0: 0.0}
         for level in residual.LEVELS:
             score[level] = 0.0
-        for fold in range(BLOCK_FOLDS):
-            test = folds == fold
+        for test, phi_train, phi_test in split:
             if not test.any() or test.all():
                 continue
             score[0] += _null_log_likelihood(y[~test], y[test])
             for level in residual.LEVELS:
                 cols = [j for j, (_, lvl, _, _) in enumerate(residual.TERMS) if lvl <= level]
-                fit = blr(phi_all[~test][:, cols], y[~test])
-                score[level] += fit.log_likelihood(phi_all[test][:, cols], y[test])
+                fit = blr(phi_train[:, cols], y[~test])
+                score[level] += fit.log_likelihood(phi_test[:, cols], y[test])
         top = max(score.values())
         # the simplest level within LEVEL_TIE_NATS per pose of the best (a tie is no gain)
         best = min(level for level in score if score[level] >= top - LEVEL_TIE_NATS * y.size)

@@ -178,6 +178,7 @@ class _Rounds:
         self.progress = progress
         self.folds = tuple(range(self.options.folds))
         self.training_gain: dict[str, float] = {}
+        self.training_loss: dict[str, float] = {}  # of the last group's candidates
 
     def held_out(self, values: Mapping[int, Any]) -> np.ndarray:
         """Assemble the per-segment held-out losses from the fold results."""
@@ -189,11 +190,25 @@ class _Rounds:
 
     def _fork(self, state: ModelState, keys: Sequence[tuple[str | None, int | None]],
               round_index: int) -> dict[tuple[str | None, int | None], tuple[Any, float]]:
+        """Run the tasks ``keys``; a candidate's training loss is taken in its worker too."""
         progress = self.progress
         on_done = (None if progress is None
                    else lambda done, total: progress(round_index, done, total))
         tasks: list[Task] = [(state, name, fold) for name, fold in keys]
-        return dict(zip(keys, fork_map(self.fitter.task, tasks, self.jobs, on_done)))
+        results = {}
+        for key, (value, seconds, loss) in zip(keys, fork_map(self._task, tasks, self.jobs,
+                                                              on_done)):
+            results[key] = (value, seconds)
+            if loss is not None:
+                self.training_loss[key[0]] = loss
+        return results
+
+    def _task(self, task: Task) -> tuple[Any, float, float | None]:
+        """Run one task; a candidate fitted on all segments also gets its training loss."""
+        value, seconds = self.fitter.task(task)
+        _, name, fold = task
+        loss = self._training_loss(value) if fold is None and name is not None else None
+        return value, seconds, loss
 
     def _training_loss(self, state: ModelState) -> float:
         fitter = self.fitter
@@ -210,17 +225,19 @@ class _Rounds:
         gain are cross-validated (a candidate that does not fit the data it was fitted on cannot
         generalise better). The others get no fold results; :meth:`outcome` notes why.
         """
-        # The grid-searched candidates are the longest: started first, they finish with the rest.
+        # The grid-searched candidates are the longest: started first, they finish with the rest;
+        # the current model's folds need no screening and fill the gaps at the end.
         by_cost = sorted(names, key=lambda n: not get_extension(split_variant(n)[0]).scan)
-        results = self._fork(state, [(name, None) for name in by_cost], round_index)
+        keys = [(name, None) for name in by_cost]
+        keys += [(None, fold) for fold in self.folds] if with_null else []
+        results = self._fork(state, keys, round_index)
         null_loss = self._training_loss(state)
         for name in by_cost:
-            loss = self._training_loss(results[name, None][0])
+            loss = self.training_loss[name]
             self.training_gain[name] = 1.0 - loss / null_loss if null_loss > 0 else 0.0
         threshold = SCREEN_FRACTION * self.options.min_relative_gain
         promising = [n for n in by_cost if self.training_gain[n] > threshold]
-        keys = [(None, fold) for fold in self.folds] if with_null else []
-        keys += [(name, fold) for name in promising for fold in self.folds]
+        keys = [(name, fold) for name in promising for fold in self.folds]
         results.update(self._fork(state, keys, round_index))
         return results
 
