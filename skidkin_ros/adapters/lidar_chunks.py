@@ -49,13 +49,15 @@ from skidkin_ros.adapters.icp_selfcheck import (check_samples, finer_than_refere
                                                 is_automatic, plan_samples, reference_config,
                                                 SelfCheckOptions)
 from skidkin_ros.adapters.lidar_cache import bag_identity, CACHE_VERSION, chunk_key  # noqa: F401
+from skidkin_ros.adapters.lidar_calm import (calm_seams, calm_windows, nominal_seams,
+                                             seams_placed_note)
 from skidkin_ros.adapters.lidar_gt import GroundTruth, guarded_truth, IcpConfig
 from skidkin_ros.adapters.lidar_plan import (ChunkOptions, ChunkOutcome, ChunkTask,  # noqa: F401
                                              plan_chunks)
 from skidkin_ros.adapters.lidar_pool import Progress, run_chunk, run_chunks  # noqa: F401
 from skidkin_ros.adapters.lidar_seams import join_chunks, Joined  # noqa: F401
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
-from skidkin_ros.core.timeunits import NS_PER_S
+from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 
 __all__ = ['CACHE_VERSION', 'ChunkOptions', 'ChunkTask', 'bag_identity', 'bag_ground_truth',
            'join_chunks', 'plan_chunks', 'run_chunk']
@@ -98,8 +100,12 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     period_ns = max(int(np.median(np.diff(ends))) if ends.size > 1 else 100_000_000, 1)
     n_frames = sum(s.count for s in rec.summary(time_ranges=False) if s.topic == topic)
     first_receive = int(first[0].receive_ns)
+    span_ns = max(n_frames - 1, 0) * period_ns
+    nominal = nominal_seams(first_receive, period_ns, n_frames, s_to_ns(options.chunk_s))
+    seams = calm_seams(nominal, wheels, s_to_ns(options.overlap_s), s_to_ns(options.chunk_s),
+                       period_ns, first_receive + span_ns)
     plan = _Plan(str(path), topic, first_receive, period_ns, n_frames, int(first[0].end_ns),
-                 options)
+                 options, tuple(seams))
     tasks = plan.tasks(config)
     samples: list[tuple[tuple[int, int | None], ChunkTask]] = []
     reference = reference_config(config)
@@ -113,11 +119,12 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     if config.stride > 1:
         # one scan in K is a rung of the check too: the reference registers every scan
         reference = replace(reference, stride=1)
-    span_ns = max(n_frames - 1, 0) * period_ns
     if (check.enabled and automatic and reference != config
             and span_ns >= (check.window_s + check.warmup_s) * NS_PER_S):
         windows = plan_samples([t.stop_ns for t in tasks], first_receive, first_receive + span_ns,
                                check)
+        windows = calm_windows(windows, wheels, s_to_ns(check.window_s + check.warmup_s),
+                               s_to_ns(check.warmup_s), period_ns, first_receive)
         grid = tasks[0].grid if reference.stride > 1 else None
         samples = [(window, ChunkTask(str(path), topic, _SAMPLE_INDEX + k, window[0],
                                       window[1], None, reference, grid))
@@ -148,6 +155,7 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     notes = list(dict.fromkeys(joined.notes)) + notes
     if len(tasks) > 1:
         notes.append(joined.seams_note(len(tasks), options))
+        notes.append(seams_placed_note(nominal, seams, first_receive, wheels))
     cached = sum(1 for o in outcomes if o.cached)
     if cached:
         notes.append(f'ground truth: {cached} of {len(tasks)} chunk(s) read from the cache '
@@ -167,10 +175,12 @@ class _Plan:
     n_frames: int
     first_end_ns: int
     options: ChunkOptions
+    seams_ns: tuple[int, ...]
 
     def tasks(self, config: IcpConfig) -> list[ChunkTask]:
         return plan_chunks(self.bag, self.topic, self.first_receive_ns, self.period_ns,
-                           self.n_frames, self.first_end_ns, config, self.options)
+                           self.n_frames, self.first_end_ns, config, self.options,
+                           self.seams_ns)
 
     def frames(self, n_tasks: int) -> int:
         """Return the frames all chunks read: the recording and every warm-up."""
