@@ -197,7 +197,9 @@ def _notes(stderr: str) -> dict[str, Any]:
             'seams_cut': (int(tested.group(2)) if tested else 0)
             + (int(untested.group(1)) if untested else 0), 'self_check': check,
             'check_note': next((line.strip() for line in stderr.splitlines()
-                                if 'self-check' in line), '')}
+                                if 'self-check' in line), ''),
+            'seams_note': ' '.join(line.strip() for line in stderr.splitlines()
+                                   if 'chunk seams' in line or 'tried again' in line)}
 
 
 def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: float = 20.0,
