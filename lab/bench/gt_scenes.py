@@ -197,14 +197,16 @@ def _notes(stderr: str) -> dict[str, Any]:
             'seams_cut': (int(tested.group(2)) if tested else 0)
             + (int(untested.group(1)) if untested else 0), 'self_check': check,
             'check_note': next((line.strip() for line in stderr.splitlines()
-                                if 'self-check' in line), '')}
+                                if 'self-check' in line), ''),
+            'seams_note': ' '.join(line.strip() for line in stderr.splitlines()
+                                   if 'chunk seams' in line or 'tried again' in line)}
 
 
 def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: float = 20.0,
               jobs_list: Sequence[int] = (2, 1), repeat: int = 1,
               before: bool = True,
               variants: Sequence[tuple[str, Sequence[str]]] = (),
-              old: Path | None = None) -> dict[str, Any]:
+              old: Path | None = None, kiss_run: bool = True) -> dict[str, Any]:
     """Simulate one scene, run every contender on its bag, score and time them.
 
     Contenders: ``kiss``, ``before`` (unless ``before`` is False) and ``after_jN`` for every N
@@ -222,15 +224,20 @@ def run_scene(scene: str, duration_s: float, seed: int, work: Path, chunk_s: flo
     bag, _ = write_bag(sim, work / f'{scene}_{int(duration_s)}s')
     result: dict[str, Any] = {'scene': scene, 'duration_s': duration_s, 'seed': seed,
                               'load_before': load_average()}
-    env = dict(os.environ, kiss_icp_out_dir=str(work / f'kiss_{scene}'))
-    seconds, cpu_s, code, err = _median_timed(
-        [_tool('kiss_icp_pipeline'), '--topic', '/points', str(bag)], repeat, env=env, cwd=work)
-    if code != 0:
-        return {**result, 'error': f'kiss_icp_pipeline exited {code}: {err[-800:]}'}
-    kiss = score(gt_bench.kiss_track(work / f'kiss_{scene}', bag), sim, valid_only=False)
-    kiss.update(seconds=seconds, cpu_s=cpu_s)
-    kiss['consistent'] = bool(abs(kiss['path_ratio'] - 1) <= 0.1 and kiss['p95_1s_cm'] <= 50)
-    result['kiss'] = kiss
+    if kiss_run:
+        env = dict(os.environ, kiss_icp_out_dir=str(work / f'kiss_{scene}'))
+        seconds, cpu_s, code, err = _median_timed(
+            [_tool('kiss_icp_pipeline'), '--topic', '/points', str(bag)], repeat, env=env,
+            cwd=work)
+        if code != 0:
+            return {**result, 'error': f'kiss_icp_pipeline exited {code}: {err[-800:]}'}
+        kiss = score(gt_bench.kiss_track(work / f'kiss_{scene}', bag), sim, valid_only=False)
+        kiss.update(seconds=seconds, cpu_s=cpu_s)
+        kiss['consistent'] = bool(abs(kiss['path_ratio'] - 1) <= 0.1
+                                  and kiss['p95_1s_cm'] <= 50)
+        result['kiss'] = kiss
+    else:  # --no-kiss: ours (and --old) only; no ratio to kiss-icp
+        kiss = {'seconds': math.nan, 'cpu_s': math.nan}
     chunks = ['--chunk-s', f'{chunk_s:g}']
     runs = [('before', ['--no-icp-check', '--jobs', str(jobs_list[0]), *chunks])] if before else []
     runs += [(f'after_j{n}', ['--jobs', str(n), *chunks]) for n in jobs_list]
@@ -281,7 +288,8 @@ def table(results: Sequence[dict[str, Any]]) -> str:
              '| seams cut/tested | path 1 s / true | 1 s cm / mrad | check |',
              '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for res in results:
-        names = ['kiss'] + [k for k in res if k == 'before' or k.startswith(('after_j', 'old_j'))]
+        names = (['kiss'] if 'kiss' in res else []) + [
+            k for k in res if k == 'before' or k.startswith(('after_j', 'old_j'))]
         for name in names:
             row = res.get(name)
             if not row or 'error' in row:
@@ -322,6 +330,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--old', type=Path, metavar='DIR',
                         help='also run the skidkin_ros found in DIR (e.g. /work/main, or a '
                         '`git archive` of an older commit) with every --jobs-list N, as old_jN')
+    parser.add_argument('--no-kiss', action='store_true',
+                        help='skip plain kiss_icp_pipeline (compare ours with --old only)')
     parser.add_argument('--json', type=Path, help='also write the results here')
     args = parser.parse_args(argv)
     variants = []
@@ -339,7 +349,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f'  {scene}: {args.duration:g} s', flush=True)
             results.append(run_scene(scene, args.duration, args.seed, Path(tmp), args.chunk_s,
                                      args.jobs_list, args.repeat, not args.no_before,
-                                     variants, args.old))
+                                     variants, args.old, not args.no_kiss))
     print(table(results))
     print(json.dumps(results, indent=1, default=float))
     if args.json:

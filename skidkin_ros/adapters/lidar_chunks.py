@@ -4,9 +4,11 @@ The calibrator uses ground-truth increments over 2 m segments and never a global
 map, so a long recording can be registered in pieces, each from scratch, on as many cores or
 machines as there are. Recipe (:func:`bag_ground_truth`):
 
-1. **Plan** (:func:`plan_chunks`): seams every ``chunk_s`` of bag time from the first cloud.
-   Chunk k registers from ``overlap_s`` before its seam (a warm-up: kiss-icp's map and motion
-   model are empty at the start) to the next seam; the last chunk is open-ended.
+1. **Plan** (:func:`plan_chunks`): seams every ``chunk_s`` of bag time from the first cloud,
+   each moved (within a quarter chunk) to where the wheels turn least over its warm-up
+   (:mod:`~skidkin_ros.adapters.lidar_calm`; without wheels, where they are). Chunk k
+   registers from ``overlap_s`` before its seam (a warm-up: kiss-icp's map and motion model are
+   empty at the start) to the next seam; the last chunk is open-ended.
 2. **Run**: each chunk is one task, :func:`run_chunk`, that opens the recording itself. Tasks
    run on ``jobs`` local processes (forkserver; ``jobs`` 1: here), or on a Dask cluster when a
    scheduler address is given. kiss-icp runs with one thread in every chunk, so a chunk's
@@ -25,7 +27,9 @@ machines as there are. Recipe (:func:`bag_ground_truth`):
    translation, ``seam_abs_rad`` + 10 % in rotation: loose enough for two registrations' own
    noise, a few cm per frame on sparse outdoor scans, tight enough for a chunk that started
    wrong). A seam that fails, or has no common frame, is cut: the first pose after it is
-   flagged 'seam', so no segment crosses it.
+   flagged 'seam', so no segment crosses it. Before it is cut, the chunk after it is registered
+   once more from an earlier start (:func:`retry_cut_seams`: a warm-up three times as long),
+   and that registration is kept where its seam then passes.
 5. **Failures**: a chunk whose task fails (an unreadable part of the recording, a worker that
    died) is named in the notes and its frames get no ground truth; the other chunks are kept,
    and the chunk after it starts behind a cut seam. When every chunk fails, DataError.
@@ -41,7 +45,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 import os
 from pathlib import Path
-from typing import Any, Union
+from typing import Any, Callable, Union
 
 import numpy as np
 
@@ -49,16 +53,18 @@ from skidkin_ros.adapters.icp_selfcheck import (check_samples, finer_than_refere
                                                 is_automatic, plan_samples, reference_config,
                                                 SelfCheckOptions)
 from skidkin_ros.adapters.lidar_cache import bag_identity, CACHE_VERSION, chunk_key  # noqa: F401
+from skidkin_ros.adapters.lidar_calm import (calm_seams, calm_windows, nominal_seams,
+                                             seams_placed_note)
 from skidkin_ros.adapters.lidar_gt import GroundTruth, guarded_truth, IcpConfig
 from skidkin_ros.adapters.lidar_plan import (ChunkOptions, ChunkOutcome, ChunkTask,  # noqa: F401
                                              plan_chunks)
 from skidkin_ros.adapters.lidar_pool import Progress, run_chunk, run_chunks  # noqa: F401
 from skidkin_ros.adapters.lidar_seams import join_chunks, Joined  # noqa: F401
 from skidkin_ros.core.drive import ImuSamples, WheelSamples
-from skidkin_ros.core.timeunits import NS_PER_S
+from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 
 __all__ = ['CACHE_VERSION', 'ChunkOptions', 'ChunkTask', 'bag_identity', 'bag_ground_truth',
-           'join_chunks', 'plan_chunks', 'run_chunk']
+           'join_chunks', 'plan_chunks', 'retry_cut_seams', 'run_chunk']
 
 # Frames read to learn the lidar's period before planning.
 _PERIOD_FRAMES = 11
@@ -98,8 +104,12 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     period_ns = max(int(np.median(np.diff(ends))) if ends.size > 1 else 100_000_000, 1)
     n_frames = sum(s.count for s in rec.summary(time_ranges=False) if s.topic == topic)
     first_receive = int(first[0].receive_ns)
+    span_ns = max(n_frames - 1, 0) * period_ns
+    nominal = nominal_seams(first_receive, period_ns, n_frames, s_to_ns(options.chunk_s))
+    seams = calm_seams(nominal, wheels, s_to_ns(options.overlap_s), s_to_ns(options.chunk_s),
+                       period_ns, first_receive + span_ns)
     plan = _Plan(str(path), topic, first_receive, period_ns, n_frames, int(first[0].end_ns),
-                 options)
+                 options, tuple(seams))
     tasks = plan.tasks(config)
     samples: list[tuple[tuple[int, int | None], ChunkTask]] = []
     reference = reference_config(config)
@@ -113,11 +123,12 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     if config.stride > 1:
         # one scan in K is a rung of the check too: the reference registers every scan
         reference = replace(reference, stride=1)
-    span_ns = max(n_frames - 1, 0) * period_ns
     if (check.enabled and automatic and reference != config
             and span_ns >= (check.window_s + check.warmup_s) * NS_PER_S):
         windows = plan_samples([t.stop_ns for t in tasks], first_receive, first_receive + span_ns,
                                check)
+        windows = calm_windows(windows, wheels, s_to_ns(check.window_s + check.warmup_s),
+                               s_to_ns(check.warmup_s), period_ns, first_receive)
         grid = tasks[0].grid if reference.stride > 1 else None
         samples = [(window, ChunkTask(str(path), topic, _SAMPLE_INDEX + k, window[0],
                                       window[1], None, reference, grid))
@@ -130,6 +141,14 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
                           identity=identity, total_frames=plan.frames(len(tasks)) + sample_frames,
                           on_progress=on_progress)
     outcomes, sampled = outcomes[:len(tasks)], outcomes[len(tasks):]
+
+    def rerun(retry: list[ChunkTask]) -> list[ChunkOutcome]:
+        return run_chunks(retry, options, cache_dir=cache, identity=identity,
+                          total_frames=sum(plan.retry_frames(t) for t in retry),
+                          on_progress=on_progress)
+
+    retry_notes: list[str] = []
+    outcomes = retry_cut_seams(outcomes, options, rerun, retry_notes)
     if samples:
         choice = check_samples([o.registration for o in outcomes],
                                [(window, o.registration) for (window, _), o in
@@ -140,6 +159,8 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
             tasks = plan.tasks(config)
             outcomes = run_chunks(tasks, options, cache_dir=cache, identity=identity,
                                   total_frames=plan.frames(len(tasks)), on_progress=on_progress)
+            retry_notes.clear()
+            outcomes = retry_cut_seams(outcomes, options, rerun, retry_notes)
     elif check.enabled and not notes:
         notes.append('kiss-icp settings not self-checked: ' + (
             'they were set explicitly' if not automatic or reference == config
@@ -148,6 +169,8 @@ def bag_ground_truth(rec: Any, path: Union[str, os.PathLike], topic: str,
     notes = list(dict.fromkeys(joined.notes)) + notes
     if len(tasks) > 1:
         notes.append(joined.seams_note(len(tasks), options))
+        notes.append(seams_placed_note(nominal, seams, first_receive, wheels))
+        notes.extend(retry_notes)
     cached = sum(1 for o in outcomes if o.cached)
     if cached:
         notes.append(f'ground truth: {cached} of {len(tasks)} chunk(s) read from the cache '
@@ -167,12 +190,58 @@ class _Plan:
     n_frames: int
     first_end_ns: int
     options: ChunkOptions
+    seams_ns: tuple[int, ...]
 
     def tasks(self, config: IcpConfig) -> list[ChunkTask]:
         return plan_chunks(self.bag, self.topic, self.first_receive_ns, self.period_ns,
-                           self.n_frames, self.first_end_ns, config, self.options)
+                           self.n_frames, self.first_end_ns, config, self.options,
+                           self.seams_ns)
+
+    def retry_frames(self, task: ChunkTask) -> int:
+        """Return about how many frames a retried chunk reads (its window; open: a chunk)."""
+        span = (s_to_ns(self.options.chunk_s) if task.stop_ns is None or task.start_ns is None
+                else task.stop_ns - task.start_ns)
+        return int(span // self.period_ns)
 
     def frames(self, n_tasks: int) -> int:
         """Return the frames all chunks read: the recording and every warm-up."""
         warmup = int(self.options.overlap_s * NS_PER_S / self.period_ns)
         return self.n_frames + warmup * (n_tasks - 1)
+
+
+# A chunk after a cut seam is registered again with a warm-up this many times as long.
+_RETRY_WARMUPS = 3
+
+
+def retry_cut_seams(outcomes: list[ChunkOutcome], options: ChunkOptions,
+                    rerun: Callable[[list[ChunkTask]], list[ChunkOutcome]],
+                    notes: list[str]) -> list[ChunkOutcome]:
+    """Register the chunk after each seam that failed its test again from an earlier start.
+
+    A chunk that started where its registration went wrong (a spin the wheels did not show, a
+    scan the map could not hold) gets a warm-up ``_RETRY_WARMUPS`` times as long, same seam and
+    end; its new registration replaces the old one only where its seam then passes. The rule
+    reads the registrations only, so it is the same for any number of processes.
+    """
+    joined = join_chunks(outcomes, options)
+    if not joined.failed_chunks:
+        return outcomes
+    overlap_ns = s_to_ns(options.overlap_s)
+    retry = [replace(outcomes[i].task, start_ns=int(outcomes[i].task.seam_ns)
+                     - _RETRY_WARMUPS * overlap_ns)
+             for i in joined.failed_chunks if outcomes[i].task.seam_ns is not None]
+    trial = list(outcomes)
+    for outcome in rerun(retry):
+        if outcome.registration is not None:
+            trial[outcome.task.index] = outcome
+    after = join_chunks(trial, options)
+    kept = list(outcomes)
+    joined_again = []
+    for task in retry:
+        if trial[task.index] is not outcomes[task.index] and task.index not in after.failed_chunks:
+            kept[task.index] = trial[task.index]
+            joined_again.append(task.index)
+    notes.append(f'{len(retry)} cut seam(s) tried again with the chunk after it started '
+                 f'{_RETRY_WARMUPS * options.overlap_s:g} s before its seam: '
+                 f'{len(joined_again)} joined')
+    return kept

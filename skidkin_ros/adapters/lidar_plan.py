@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
+from typing import Sequence
 
 from skidkin_ros.adapters.lidar_gt import FrameGrid, IcpConfig, Registration
 from skidkin_ros.core.timeunits import s_to_ns
@@ -74,22 +75,29 @@ class ChunkOutcome:
 
 
 def plan_chunks(bag: str, topic: str, first_receive_ns: int, period_ns: int, n_frames: int,
-                first_end_ns: int, config: IcpConfig, options: ChunkOptions) -> list[ChunkTask]:
+                first_end_ns: int, config: IcpConfig, options: ChunkOptions,
+                seams_ns: Sequence[int] | None = None) -> list[ChunkTask]:
     """Cut the recording's lidar into chunks (see the module docstring, step 1).
 
     The number of chunks comes from the frame count and period; the last chunk is open-ended,
-    so nothing is lost when the estimate is short.
+    so nothing is lost when the estimate is short. ``seams_ns``: where chunks 1, 2, ... begin
+    (:func:`skidkin_ros.adapters.lidar_calm.calm_seams`); None: every ``chunk_s`` from the
+    first cloud.
     """
     chunk_ns = s_to_ns(options.chunk_s)
     overlap_ns = s_to_ns(options.overlap_s)
-    span_ns = max(int(n_frames), 1) * max(int(period_ns), 1)
-    count = max(1, int(math.ceil(span_ns / chunk_ns - 0.25)))
+    if seams_ns is None:
+        span_ns = max(int(n_frames), 1) * max(int(period_ns), 1)
+        count = max(1, int(math.ceil(span_ns / chunk_ns - 0.25)))
+        seams_ns = [first_receive_ns + k * chunk_ns for k in range(1, count)]
+    seams = [None] + [int(s) for s in seams_ns]
+    if any(b <= a for a, b in zip(seams[1:], seams[2:])):
+        raise ParameterError(f'chunk seams must increase, got {seams[1:]}')
     grid = (FrameGrid.for_frames(first_end_ns, period_ns, config.stride)
             if config.stride > 1 else None)
     tasks = []
-    for k in range(count):
-        seam = first_receive_ns + k * chunk_ns if k else None
+    for k, seam in enumerate(seams):
         start = seam - overlap_ns if seam is not None else None
-        stop = first_receive_ns + (k + 1) * chunk_ns if k < count - 1 else None
+        stop = seams[k + 1] if k + 1 < len(seams) else None
         tasks.append(ChunkTask(str(bag), topic, k, start, stop, seam, config, grid))
     return tasks

@@ -25,9 +25,10 @@ class Joined:
     """The joined registration, the frames that start behind a cut seam, and what happened.
 
     ``seams_tested``: seams whose overlap was compared; ``seams_failed``: those of them that
-    disagreed (cut); ``seams_untested``: seams cut without a test (after a failed chunk, or no
-    frame registered by both chunks). ``seams_cut`` is their sum (a cut seam with no frame after
-    it is not counted: there is nothing to cut).
+    disagreed (cut), ``failed_chunks`` the indices of the chunks after them; ``seams_untested``:
+    seams cut without a test (after a failed chunk, or no frame registered by both chunks).
+    ``seams_cut`` is their sum (a cut seam with no frame after it is not counted: there is
+    nothing to cut).
     """
 
     registration: Registration
@@ -36,6 +37,7 @@ class Joined:
     seams_tested: int = 0
     seams_failed: int = 0
     seams_untested: int = 0
+    failed_chunks: tuple[int, ...] = ()
 
     @property
     def seams_cut(self) -> int:
@@ -84,6 +86,7 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
     cut: list[int] = []
     notes: list[str] = []
     tested = failed = untested = 0
+    failed_chunks: list[int] = []
     offset = 0
     previous: Registration | None = None  # the previous chunk, poses in the joined frame
     window_ns = s_to_ns(options.overlap_s / 2)
@@ -119,6 +122,7 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
                 cut.append(offset + int(np.count_nonzero(own[:first_own[0]])))
                 if anchored:
                     failed += 1
+                    failed_chunks.append(task.index)
                 else:
                     untested += 1
         previous = Registration(reg.end_ns, reg.status, reg.pose_t_ns, poses,
@@ -128,7 +132,8 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
         offset += len(part)
     if not parts:
         raise DataError('every lidar chunk failed; no ground truth: ' + '; '.join(notes))
-    return Joined(_concatenate(parts), cut, notes, tested, failed, untested)
+    return Joined(_concatenate(parts), cut, notes, tested, failed, untested,
+                  tuple(failed_chunks))
 
 
 def _continue_from(parts: Sequence[Registration], reg: Registration,
