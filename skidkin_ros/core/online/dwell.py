@@ -1,0 +1,108 @@
+"""Online calibration while holding: how long the robot stays on each ground (a dwell model).
+
+The Markov chain of ``holding.py`` forgets how long the robot has been on the ground it was on
+when the reference was lost: it gives the last ground the same chance to end in the next metre
+whether the robot entered it a metre ago or has been on it longer than any stay seen before.
+Where the stays have a typical length, that is wrong both ways. This module replaces the chain
+by a semi-Markov one in distance, learned from the reference before the loss:
+
+* each ground's stay lengths (metres of reference path between two recognised switches, the
+  stays that ended in the last ``online.memory`` m; a ground with fewer than ``MIN_STAYS`` uses
+  the stays of all grounds), as a kernel density (a normal kernel of the larger of
+  ``online.switch_window``, the recognition's own resolution, and Silverman's width), mixed
+  with ``MEMORYLESS`` of an exponential of the same mean (a stay longer than any seen still
+  ends; a few stays are not the whole distribution);
+* which ground follows which (the switches counted, plus ``PRIOR`` on every other ground);
+* the metres already spent on the last ground when the last pose was accepted.
+
+From these the probability of each ground after d more metres follows from the renewal
+equations (the first stay's remaining length, then whole stays), on a grid of ``STEP_M`` up to
+``REACH_M`` (beyond it: the last column, the chain's long-run shares). Computed once per loss
+of the reference (about a millisecond), read by interpolation at every look of the blend.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ['MIN_STAYS', 'MEMORYLESS', 'occupancy', 'weights_at']
+
+# Grid step and reach (m of wheel travel since the last pose) of the occupancy table.
+STEP_M = 0.1
+REACH_M = 50.0
+# Share of the stay-length law given to a memoryless (exponential) law of the same mean.
+MEMORYLESS = 0.1
+# Completed stays a ground needs for its own length law (fewer: the stays of all grounds).
+MIN_STAYS = 2
+# Switches added to every transition between two different grounds (a prior).
+PRIOR = 0.5
+
+
+def _length_law(lengths: Sequence[float], width_min: float, size: int) -> np.ndarray:
+    """Return P(stay length in cell m) for m = 0..size-1 (cell m: ((m - 1/2) STEP, (m + 1/2) STEP])."""
+    lengths = np.asarray(lengths, dtype=float)
+    sd = float(lengths.std()) if lengths.size > 1 else 0.0
+    width = max(width_min, 1.06 * sd * lengths.size ** -0.2)
+    x = np.arange(size) * STEP_M
+    density = np.exp(-0.5 * ((x[:, None] - lengths[None, :]) / width) ** 2).sum(axis=1)
+    density[0] = 0.0
+    density /= density.sum()
+    mean = max(float(lengths.mean()), STEP_M)
+    memoryless = np.exp(-x / mean)
+    memoryless[0] = 0.0
+    memoryless /= memoryless.sum()
+    return (1.0 - MEMORYLESS) * density + MEMORYLESS * memoryless
+
+
+def occupancy(stays: Sequence[tuple[int, float]], switches: Sequence[tuple[int, int]],
+              count: int, elapsed_m: float, width_min: float) -> np.ndarray | None:
+    """Return P (count, n) of each ground on the grid of wheel travel 0, STEP_M, ... REACH_M.
+
+    ``stays``: (ground, length m) of the completed stays; ``switches``: (from, to) of the
+    switches seen; ground 0 is the one the robot was on at the loss, for ``elapsed_m`` m.
+    None where no stay was completed.
+    """
+    if not stays:
+        return None
+    n = int(round(REACH_M / STEP_M)) + 1
+    m0 = int(round(max(elapsed_m, 0.0) / STEP_M))
+    size = n + m0 + 1
+    pooled = [length for _, length in stays]
+    laws = []
+    for j in range(count):
+        own = [length for g, length in stays if g == j]
+        laws.append(_length_law(own if len(own) >= MIN_STAYS else pooled, width_min, size))
+    survive = [1.0 - np.cumsum(h) for h in laws]
+    moves = np.full((count, count), PRIOR)
+    np.fill_diagonal(moves, 0.0)
+    for a, b in switches:
+        if a != b:
+            moves[a, b] += 1.0
+    moves /= moves.sum(axis=1, keepdims=True)
+    left = max(float(survive[0][m0]), 1e-12)
+    first_exit = laws[0][m0:m0 + n] / left        # the current stay ends in cell m
+    first_exit[0] = 0.0
+    still = np.clip(survive[0][m0:m0 + n] / left, 0.0, 1.0)
+    entries = np.zeros((count, n))
+    for m in range(1, n):
+        exits = np.array([laws[j][1:m + 1] @ entries[j, m - 1::-1] for j in range(count)])
+        exits[0] += first_exit[m]
+        entries[:, m] = exits @ moves
+    table = np.empty((count, n))
+    for j in range(count):
+        table[j] = np.convolve(entries[j], np.clip(survive[j][:n], 0.0, 1.0))[:n]
+    table[0] += still
+    return table / table.sum(axis=0, keepdims=True)
+
+
+def weights_at(table: np.ndarray, travel_m: float) -> np.ndarray:
+    """Return the grounds' probabilities after ``travel_m`` m (linear between grid points)."""
+    x = max(travel_m, 0.0) / STEP_M
+    i = min(int(math.floor(x)), table.shape[1] - 1)
+    if i + 1 >= table.shape[1]:
+        return table[:, -1].copy()
+    f = x - i
+    return (1.0 - f) * table[:, i] + f * table[:, i + 1]
