@@ -160,13 +160,15 @@ def test_n137_the_node_blends_while_holding_as_predict_does(tmp_path, alternatin
     expected = odometer.predict(alternating.wheels, reference=PoseTrack(
         reference.t_ns, reference.x, reference.y, wire_yaw))
     assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_dwell'] == 1   # the dwell model weighs the grounds
     result = replay_through_node(alternating.wheels, params_file=path, reference=reference,
                                  timeout_s=300.0)
     assert len(result) == len(alternating.wheels)
     assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
     np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
     assert np.array_equal(result.pose_cov, expected.pose_covariances)
-    for cause in ('online_hold_blend', 'online_switch', 'reference_accepted'):
+    for cause in ('online_hold_blend', 'online_hold_dwell', 'online_switch',
+                  'reference_accepted'):
         assert result.counters.get(cause, 0) == odometer.counters[cause]
 
 
@@ -220,6 +222,7 @@ def test_the_gyro_weighs_the_grounds_while_holding(alternating, monkeypatch):
     reference, imu = _reference(alternating), _gyro(alternating)
     odometer, prediction, seen = _run(alternating, reference, record=True, imu=imu)
     assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_dwell'] == 0   # the gyro's forward filter instead
     assert odometer.counters['online_hold_gyro'] > 100
     holding = [s for s in seen if CUT_S[0] + 1.5 < s[0] < CUT_S[1] and s[1] == 'holding']
     weights = np.array([s[2] for s in holding])
@@ -306,6 +309,7 @@ def test_n152_the_node_weighs_the_grounds_by_the_gyro_as_predict_does(tmp_path, 
     expected = odometer.predict(wheels, imu=imu, reference=PoseTrack(
         reference.t_ns, reference.x, reference.y, wire_yaw))
     assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_dwell'] == 0   # the gyro's forward filter instead
     assert odometer.counters['online_hold_gyro'] > 100
     result = replay_through_node(wheels, params_file=path, reference=reference, imu=imu,
                                  timeout_s=300.0)
@@ -352,12 +356,12 @@ def test_the_dwell_model_while_holding(alternating, monkeypatch):
     """
     reference = _reference(alternating)
     odometer, prediction, seen = _run(alternating, reference, record=True)
-    assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_blend'] == odometer.counters['online_hold_dwell'] == 1
     holding = [s for s in seen if CUT_S[0] + 1.5 < s[0] < CUT_S[1] and s[1] == 'holding']
     weights = np.array([s[2] for s in holding])
     assert np.any(np.diff(weights) > 0.02) and np.any(np.diff(weights) < -0.02)
     for s in holding[::50]:
-        (w, k, cov), ks = s[5], s[7]
+        (w, k, _), ks = s[5], s[7]
         assert w.sum() == pytest.approx(1.0) and np.all(w >= 0.0)
         assert np.all(k >= ks.min(axis=0) - 1e-12) and np.all(k <= ks.max(axis=0) + 1e-12)
     after = [s for s in seen if s[0] > CUT_S[1] + 0.5]

@@ -42,7 +42,7 @@ PRIOR = 0.5
 
 
 def _length_law(lengths: Sequence[float], width_min: float, size: int) -> np.ndarray:
-    """Return P(stay length in cell m) for m = 0..size-1 (cell m: ((m - 1/2) STEP, (m + 1/2) STEP])."""
+    """Return P(stay length in cell m), m = 0..size-1 (cell m: within STEP_M / 2 of m STEP_M)."""
     lengths = np.asarray(lengths, dtype=float)
     sd = float(lengths.std()) if lengths.size > 1 else 0.0
     width = max(width_min, 1.06 * sd * lengths.size ** -0.2)

@@ -169,6 +169,8 @@ class HoldingBlend:
                 if self.gyro_turn is None or self.gyro_turn(last, t1_ns) is None:
                     # no gyro (with one, gyrochoice.py's forward filter carries the chain on)
                     self._hold_dwell = self._dwell_plan(self._hold_plan[0])
+                    if self._hold_dwell is not None:
+                        self.counters['online_hold_dwell'] += 1
         if not self._hold_plan:
             return   # the active ground holds until a pose is accepted again
         self._due_ns = min(self._due_ns, t1_ns + int(HOLD_CHECK_S * NS_PER_S))
