@@ -23,6 +23,9 @@ With ``--spread F`` (alternating only): each stretch of ground lasts a length dr
 within the study's 4 m (1 +- F), a new draw per drive seed (``terrain_regime`` period_spread),
 instead of exactly 4 m: a holding rule that learned "every 4 m" gains nothing there.
 ``--no-dwell`` runs the holding blend without its dwell model (the Markov chain alone).
+``--wheel-signals`` runs no odometry: per drive, how well each wheel signal tells the ground
+under the robot (the area under the ROC curve against the terrain regime's mask; 0.5: not
+at all).
 """
 
 from __future__ import annotations
@@ -154,6 +157,25 @@ def run_drive(case: str, seed: int, fixed: OdometryConfig, at: float = 0.75,
     return out
 
 
+def wheel_signals(case: str, seed: int, spread: float = 0.0) -> dict:
+    """Return the area under the ROC curve of wheel signals against the ground, per signal."""
+    from scipy import stats
+
+    sim = simulate(SimConfig(duration_s=DURATION_S, seed=seed,
+                             effects=effects(case, seed, spread)))
+    trace = sim.trace
+    on = np.interp(sim.wheels.t_ns, trace.t_ns, trace.masks['terrain_regime'].astype(float)) > 0.5
+    left, right = np.asarray(sim.wheels.omega_l), np.asarray(sim.wheels.omega_r)
+    cmd_l = np.interp(sim.wheels.t_ns, trace.t_ns, trace.cmd_l)
+    cmd_r = np.interp(sim.wheels.t_ns, trace.t_ns, trace.cmd_r)
+    signals = {'mean speed': np.abs(left + right) / 2, 'speed difference': right - left,
+               'speed - commanded': (left + right - cmd_l - cmd_r) / 2,
+               'difference - commanded': (right - left) - (cmd_r - cmd_l)}
+    pairs = float(on.sum()) * float((~on).sum())
+    return {name: float(stats.mannwhitneyu(v[on], v[~on]).statistic / pairs)
+            for name, v in signals.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--case', default='alternating', choices=study.CASES)
@@ -172,7 +194,14 @@ def main(argv: list[str] | None = None) -> int:
                         help='alternating: stretch lengths drawn within 4 m (1 +- SPREAD)')
     parser.add_argument('--no-dwell', action='store_true',
                         help="leave the holding blend's dwell model out (the Markov chain alone)")
+    parser.add_argument('--wheel-signals', action='store_true',
+                        help='no odometry: how well wheel signals tell the grounds apart (AUC)')
     args = parser.parse_args(argv)
+    if args.wheel_signals:
+        for seed in args.seeds:
+            auc = wheel_signals(args.case, seed, args.spread)
+            print(f'seed {seed}: AUC ' + ', '.join(f'{k} {v:.3f}' for k, v in auc.items()))
+        return 0
     if args.no_dwell:
         from skidkin_ros.core.online import holding
         holding.HoldingBlend._dwell_plan = lambda self, grounds: None

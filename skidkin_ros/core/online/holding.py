@@ -20,6 +20,10 @@ that replaced the old one is a change, not an alternation. A stay shorter than
 ``online.switch_window`` (the recognition flickering, e.g. a false switch back right after a
 change) is not counted as a stay.
 
+Without a gyro, where stays have been completed, the chain's weights are replaced by those of
+a semi-Markov chain in wheel travel that knows how long the robot has been on the last ground
+and how long stays lasted (``dwell.py``); with a gyro, ``gyrochoice.py`` weighs the chain's.
+
 When the reference returns, the active ground's own parameters are in force again at once; the
 recognition (``grounds.py``) takes another ground within its first ``switch_window`` if another
 explains the reference better. The ground learned, its window and what ``~/save_calibration``
