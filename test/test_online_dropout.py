@@ -345,6 +345,13 @@ def test_the_dwell_model_follows_the_stays_seen():
     wide = dwell.weights_at(dwell.occupancy(spread, switches, 2, 1.0, 0.5), 2.0)
     assert 0.2 < wide[0] < 0.6
     assert dwell.occupancy([], [], 2, 3.0, 0.5) is None
+    # the dwell laws are used only where they predict the stays (left out) better than a
+    # memoryless law: regular stays yes; stays of no typical length or a single one, no
+    assert dwell.lengths_explained(stays, 0.5)
+    irregular = [(j % 2, length) for j, length in enumerate((0.6, 5.2, 1.1, 9.0, 2.0, 0.9, 3.9,
+                                                             12.5))]
+    assert not dwell.lengths_explained(irregular, 0.5)
+    assert not dwell.lengths_explained([(0, 4.0)], 0.5)
 
 
 def test_the_dwell_model_while_holding(alternating, monkeypatch):

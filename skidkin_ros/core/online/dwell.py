@@ -15,6 +15,10 @@ by a semi-Markov one in distance, learned from the reference before the loss:
 * which ground follows which (the switches counted, plus ``PRIOR`` on every other ground);
 * the metres already spent on the last ground when the last pose was accepted.
 
+It is used only where the stay-length laws predict the stays seen, each left out in turn,
+better than a memoryless law of the same mean (``lengths_explained``): on stays of no typical
+length a few of them read as more regular than they are, and the chain is kept there.
+
 From these the probability of each ground after d more metres follows from the renewal
 equations (the first stay's remaining length, then whole stays), on a grid of ``STEP_M`` up to
 ``REACH_M`` (beyond it: the last column, the chain's long-run shares). Computed once per loss
@@ -28,7 +32,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ['MIN_STAYS', 'MEMORYLESS', 'occupancy', 'weights_at']
+__all__ = ['MIN_STAYS', 'MEMORYLESS', 'lengths_explained', 'occupancy', 'weights_at']
 
 # Grid step and reach (m of wheel travel since the last pose) of the occupancy table.
 STEP_M = 0.1
@@ -57,6 +61,36 @@ def _length_law(lengths: Sequence[float], width_min: float, size: int) -> np.nda
     return (1.0 - MEMORYLESS) * density + MEMORYLESS * memoryless
 
 
+def _own(stays: Sequence[tuple[int, float]], j: int) -> list[float]:
+    """Return ground j's stay lengths, or all grounds' where it has fewer than MIN_STAYS."""
+    own = [length for g, length in stays if g == j]
+    return own if len(own) >= MIN_STAYS else [length for _, length in stays]
+
+
+def lengths_explained(stays: Sequence[tuple[int, float]], width_min: float) -> bool:
+    """Tell whether the stay-length laws predict each stay, left out, better than memoryless.
+
+    Leave-one-out: each completed stay's log density under its ground's law built from the
+    other stays, against an exponential law of their mean length; summed over the stays.
+    """
+    size = max(int(round(REACH_M / STEP_M)),
+               int(math.ceil(max(length for _, length in stays) / STEP_M))) + 2
+    gain = 0.0
+    for i, (g, length) in enumerate(stays):
+        rest = list(stays[:i]) + list(stays[i + 1:])
+        if not rest:
+            return False
+        lengths = _own(rest, g)
+        cell = min(int(round(length / STEP_M)), size - 1)
+        law = _length_law(lengths, width_min, size)
+        mean = max(float(np.mean(lengths)), STEP_M)
+        memoryless = np.exp(-np.arange(size) * STEP_M / mean)
+        memoryless[0] = 0.0
+        memoryless /= memoryless.sum()
+        gain += math.log(max(law[cell], 1e-300)) - math.log(max(memoryless[cell], 1e-300))
+    return gain > 0.0
+
+
 def occupancy(stays: Sequence[tuple[int, float]], switches: Sequence[tuple[int, int]],
               count: int, elapsed_m: float, width_min: float) -> np.ndarray | None:
     """Return P (count, n) of each ground on the grid of wheel travel 0, STEP_M, ... REACH_M.
@@ -70,11 +104,7 @@ def occupancy(stays: Sequence[tuple[int, float]], switches: Sequence[tuple[int, 
     n = int(round(REACH_M / STEP_M)) + 1
     m0 = int(round(max(elapsed_m, 0.0) / STEP_M))
     size = n + m0 + 1
-    pooled = [length for _, length in stays]
-    laws = []
-    for j in range(count):
-        own = [length for g, length in stays if g == j]
-        laws.append(_length_law(own if len(own) >= MIN_STAYS else pooled, width_min, size))
+    laws = [_length_law(_own(stays, j), width_min, size) for j in range(count)]
     survive = [1.0 - np.cumsum(h) for h in laws]
     moves = np.full((count, count), PRIOR)
     np.fill_diagonal(moves, 0.0)

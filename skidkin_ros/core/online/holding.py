@@ -149,6 +149,8 @@ class HoldingBlend:
                 stays.append((index[id(ground)], end - at))
                 if id(after) in index:
                     switches.append((index[id(ground)], index[id(after)]))
+        if not stays or not dwell.lengths_explained(stays, self.params.switch_window):
+            return None   # no stay, or stays of no typical length: the Markov chain
         return dwell.occupancy(stays, switches, len(grounds), self._ref_travel - history[-1][0],
                                self.params.switch_window)
 
