@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from skidkin_ros.core.drive import ImuSamples
 from skidkin_ros.core.odometry.config import OdometryConfig
-from skidkin_ros.core.online import online_odometer
+from skidkin_ros.core.online import dwell, online_odometer
 from skidkin_ros.core.online.grounds import Ground
 from skidkin_ros.core.online.gyrochoice import GyroChoice
 from skidkin_ros.core.online.holding import HoldingBlend
@@ -74,7 +74,9 @@ def alternating():
     return _drive('alternate')
 
 
-def test_alternating_grounds_are_blended_while_holding_and_not_after(alternating):
+def test_alternating_grounds_are_blended_while_holding_and_not_after(alternating, monkeypatch):
+    """The Markov chain's blend (the dwell model left out: its own tests are below)."""
+    monkeypatch.setattr(HoldingBlend, '_dwell_plan', lambda self, grounds: None)
     odometer, prediction, seen = _run(alternating, _reference(alternating), record=True)
     assert odometer.counters['online_hold_blend'] == 1
     assert odometer.counters['online_switch'] >= 3   # the grounds alternated before the cut
@@ -158,13 +160,15 @@ def test_n137_the_node_blends_while_holding_as_predict_does(tmp_path, alternatin
     expected = odometer.predict(alternating.wheels, reference=PoseTrack(
         reference.t_ns, reference.x, reference.y, wire_yaw))
     assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_dwell'] == 1   # the dwell model weighs the grounds
     result = replay_through_node(alternating.wheels, params_file=path, reference=reference,
                                  timeout_s=300.0)
     assert len(result) == len(alternating.wheels)
     assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
     np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
     assert np.array_equal(result.pose_cov, expected.pose_covariances)
-    for cause in ('online_hold_blend', 'online_switch', 'reference_accepted'):
+    for cause in ('online_hold_blend', 'online_hold_dwell', 'online_switch',
+                  'reference_accepted'):
         assert result.counters.get(cause, 0) == odometer.counters[cause]
 
 
@@ -218,6 +222,7 @@ def test_the_gyro_weighs_the_grounds_while_holding(alternating, monkeypatch):
     reference, imu = _reference(alternating), _gyro(alternating)
     odometer, prediction, seen = _run(alternating, reference, record=True, imu=imu)
     assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_dwell'] == 0   # the gyro's forward filter instead
     assert odometer.counters['online_hold_gyro'] > 100
     holding = [s for s in seen if CUT_S[0] + 1.5 < s[0] < CUT_S[1] and s[1] == 'holding']
     weights = np.array([s[2] for s in holding])
@@ -304,6 +309,7 @@ def test_n152_the_node_weighs_the_grounds_by_the_gyro_as_predict_does(tmp_path, 
     expected = odometer.predict(wheels, imu=imu, reference=PoseTrack(
         reference.t_ns, reference.x, reference.y, wire_yaw))
     assert odometer.counters['online_hold_blend'] == 1
+    assert odometer.counters['online_hold_dwell'] == 0   # the gyro's forward filter instead
     assert odometer.counters['online_hold_gyro'] > 100
     result = replay_through_node(wheels, params_file=path, reference=reference, imu=imu,
                                  timeout_s=300.0)
@@ -313,3 +319,93 @@ def test_n152_the_node_weighs_the_grounds_by_the_gyro_as_predict_does(tmp_path, 
     assert np.array_equal(result.pose_cov, expected.pose_covariances)
     for cause in ('online_hold_blend', 'online_hold_gyro', 'online_switch', 'reference_accepted'):
         assert result.counters.get(cause, 0) == odometer.counters[cause]
+
+
+def test_the_dwell_model_follows_the_stays_seen():
+    """Stays of about 4 m, 3 m spent on the last one: the other ground next, then back."""
+    stays = [(j % 2, length) for j, length in enumerate((4.0, 4.2, 3.8, 4.1, 3.9, 4.0))]
+    switches = [(j % 2, 1 - j % 2) for j in range(6)]
+    table = dwell.occupancy(stays, switches, 2, 3.0, 0.5)
+    assert np.all(table >= 0.0) and np.allclose(table.sum(axis=0), 1.0)
+    at = {d: dwell.weights_at(table, d)[0] for d in (0.0, 0.3, 2.0, 5.5, 1e3)}
+    assert at[0.0] == pytest.approx(1.0) and at[0.3] > 0.8
+    assert at[2.0] < 0.2     # left the last ground about 1 m in, on the other for about 4 m
+    assert at[5.5] > 0.7     # back on the last ground
+    assert 0.3 < at[1e3] < 0.7   # far on: the shares
+    # just entered the last ground: it holds for the first metres
+    fresh = dwell.occupancy(stays, switches, 2, 0.0, 0.5)
+    assert dwell.weights_at(fresh, 2.5)[0] > 0.8
+    # long stays on ground 0, short ones on ground 1: the long-run shares follow the lengths
+    uneven = [(j % 2, (6.0, 2.0)[j % 2] + 0.1 * j) for j in range(8)]
+    far = dwell.occupancy(uneven, switches, 2, 1.0, 0.5)[0, -150:].mean()   # 35-50 m
+    assert far == pytest.approx(6.3 / (6.3 + 2.4), abs=0.04)
+    # stays of any length (spread widely): less sure than the regular ones, 1 + 2 m in
+    assert dwell.weights_at(dwell.occupancy(stays, switches, 2, 1.0, 0.5), 2.0)[0] > 0.85
+    spread = [(j % 2, length) for j, length in enumerate((1.2, 6.5, 2.8, 5.1, 3.6, 7.0, 1.9))]
+    wide = dwell.weights_at(dwell.occupancy(spread, switches, 2, 1.0, 0.5), 2.0)
+    assert 0.2 < wide[0] < 0.6
+    assert dwell.occupancy([], [], 2, 3.0, 0.5) is None
+    # the dwell laws are used only where they predict the stays (left out) better than a
+    # memoryless law: regular stays yes; stays of no typical length or a single one, no
+    assert dwell.lengths_explained(stays, 0.5)
+    irregular = [(j % 2, length) for j, length in enumerate((0.6, 5.2, 1.1, 9.0, 2.0, 0.9, 3.9,
+                                                             12.5))]
+    assert not dwell.lengths_explained(irregular, 0.5)
+    assert not dwell.lengths_explained([(0, 4.0)], 0.5)
+
+
+def test_the_dwell_model_while_holding(alternating, monkeypatch):
+    """Where grounds alternate with stays of a typical length, weigh them by the dwell model.
+
+    The weights leave the chain's monotone decay (the robot is expected back on the last
+    ground after a stay on the other), the covariance is still the mixture's, and the drift
+    over the dropout is smaller than the chain's alone on this drive.
+    """
+    reference = _reference(alternating)
+    odometer, prediction, seen = _run(alternating, reference, record=True)
+    assert odometer.counters['online_hold_blend'] == odometer.counters['online_hold_dwell'] == 1
+    holding = [s for s in seen if CUT_S[0] + 1.5 < s[0] < CUT_S[1] and s[1] == 'holding']
+    weights = np.array([s[2] for s in holding])
+    assert np.any(np.diff(weights) > 0.02) and np.any(np.diff(weights) < -0.02)
+    for s in holding[::50]:
+        (w, k, _), ks = s[5], s[7]
+        assert w.sum() == pytest.approx(1.0) and np.all(w >= 0.0)
+        assert np.all(k >= ks.min(axis=0) - 1e-12) and np.all(k <= ks.max(axis=0) + 1e-12)
+    after = [s for s in seen if s[0] > CUT_S[1] + 0.5]
+    assert after and all(s[2] == 1.0 and s[5] is None for s in after)
+    with_dwell = _drift(alternating, prediction.poses)
+    monkeypatch.setattr(HoldingBlend, '_dwell_plan', lambda self, grounds: None)
+    chain = _drift(alternating, _run(alternating, reference)[1].poses)
+    assert with_dwell < chain
+
+
+def test_c247_stretches_of_random_length_and_a_bad_spread():
+    """terrain_regime alternate with period_spread: stretches drawn within period_m (1 +- s).
+
+    Each drive seed draws its own lengths, the same for every prefix of a drive; a spread out
+    of [0, 1) is refused with what was expected.
+    """
+    from skidkin_ros.errors import ParameterError
+    from skidkin_ros.sim.effects import _alternating, EffectInput
+
+    n = 20001
+    t = np.linspace(0.0, 200.0, n)
+    data = EffectInput(t, np.zeros(n), np.zeros(n), np.tile([0.5, 0.0, 0.0], (n, 1)), None,
+                       200.0)     # 100 m of path at 0.5 m/s
+
+    def stretches(mask):
+        edges = np.flatnonzero(np.diff(mask.astype(int))) + 1
+        return np.diff(edges) * 0.5 * (t[1] - t[0])
+    fixed = stretches(_alternating(data, 4.0))
+    assert np.allclose(fixed, 4.0, atol=0.02)
+    drawn = stretches(_alternating(data, 4.0, 0.5, seed=7))
+    assert drawn.min() >= 2.0 - 0.02 and drawn.max() <= 6.0 + 0.02 and drawn.std() > 0.5
+    other = stretches(_alternating(data, 4.0, 0.5, seed=8))
+    assert not np.array_equal(drawn[:5], other[:5])
+    half = EffectInput(t[:n // 2], data.omega_l[:n // 2], data.omega_r[:n // 2],
+                       data.twist[:n // 2], None, 200.0)
+    assert np.array_equal(_alternating(half, 4.0, 0.5, seed=7),
+                          _alternating(data, 4.0, 0.5, seed=7)[:n // 2])
+    for bad in (-0.1, 1.0, 2.5):
+        with pytest.raises(ParameterError, match=r'period_spread must be >= 0 and < 1'):
+            make_effect('terrain_regime', 0.25, mode='alternate', period_spread=bad)

@@ -7,7 +7,8 @@ error lies (increments starting before, during, and after the dropout, as shares
 drive's eps_t), and bounds: the run without the dropout with, for the dropout's 20 s only, the
 per-sample motion of another odometry spliced in (the true model of the ground under the robot:
 an oracle; the true model of either ground held; the true model of the two grounds' average:
-the best single choice that knows nothing of where the robot is). Run::
+the best single choice that knows nothing of where the robot is, and the two grounds' predicted
+twists averaged: their predictions blended rather than their parameters). Run::
 
     python -m lab.bench.online_dropout --case alternating --seeds 11 44 45
 
@@ -17,6 +18,14 @@ the grounds while holding (``core/online/gyrochoice.py``); ``--no-choice`` leave
 weighing out (the blend of the Markov chain alone, as without a gyro), for the comparison;
 ``--gyro-bias-sigma`` sets the file's ``imu.bias_sigma`` (the default 1e-3 is a third of the
 default bias: the published NEES then shows a gyro declared better than it is).
+
+With ``--spread F`` (alternating only): each stretch of ground lasts a length drawn uniformly
+within the study's 4 m (1 +- F), a new draw per drive seed (``terrain_regime`` period_spread),
+instead of exactly 4 m: a holding rule that learned "every 4 m" gains nothing there.
+``--no-dwell`` runs the holding blend without its dwell model (the Markov chain alone).
+``--wheel-signals`` runs no odometry: per drive, how well each wheel signal tells the ground
+under the robot (the area under the ROC curve against the terrain regime's mask; 0.5: not
+at all).
 """
 
 from __future__ import annotations
@@ -32,6 +41,7 @@ from skidkin_ros.core.drive import ImuSamples
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer
+from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
 
 DURATION_S = 240.0
@@ -70,14 +80,35 @@ def biased_gyro(imu: ImuSamples, bias: float) -> ImuSamples:
     return dataclasses.replace(imu, yaw_rate=imu.yaw_rate + bias)
 
 
+class _MeanTwist:
+    """A twist source: the mean of the given bound models' predicted twists."""
+
+    def __init__(self, *models) -> None:
+        self.models = models
+
+    def twist(self, omega_l, omega_r) -> np.ndarray:
+        return np.mean([np.asarray(m.twist(omega_l, omega_r), dtype=float)
+                        for m in self.models], axis=0)
+
+
+def effects(case: str, seed: int, spread: float = 0.0) -> tuple:
+    """Return the study's effects of ``case``; ``spread`` > 0: alternating stretches drawn."""
+    if spread <= 0.0 or case != 'alternating':
+        return study._effects(case)
+    return (make_effect('terrain_regime', study.SLIP, mode='alternate', period_m=study.PERIOD_M,
+                        period_spread=spread, period_seed=seed, yaw=study.YAW_SLIP),)
+
+
 def run_drive(case: str, seed: int, fixed: OdometryConfig, at: float = 0.75,
-              gyro_bias: float | None = None, bias_sigma: float | None = None) -> dict:
+              gyro_bias: float | None = None, bias_sigma: float | None = None,
+              spread: float = 0.0) -> dict:
     """Return the dropout's cost, where it lies, and the bounds, for one drive.
 
     ``gyro_bias`` (rad/s): the odometry fuses the simulator's gyro with this bias; None: no gyro.
     ``bias_sigma`` (rad/s): the file's ``imu.bias_sigma`` (None: the file's, 1e-3).
     """
-    sim = simulate(SimConfig(duration_s=DURATION_S, seed=seed, effects=study._effects(case)))
+    sim = simulate(SimConfig(duration_s=DURATION_S, seed=seed,
+                             effects=effects(case, seed, spread)))
     flat = {**fixed.values, 'online.enabled': True}
     imu = None
     if gyro_bias is not None:
@@ -116,12 +147,33 @@ def run_drive(case: str, seed: int, fixed: OdometryConfig, at: float = 0.75,
     model, geometry = get_model(study.MODEL), sim.config.geometry
     a, b = _grounds()
     mean = {k: 0.5 * (a[k] + b[k]) for k in a}
-    for name, pair in (('oracle', (a, b)), ('hold first', (a, a)), ('hold second', (b, b)),
-                       ('average', (mean, mean))):
-        poses = study.ground_poses(sim, tuple(model.bind(p, geometry) for p in pair),
-                                   fixed['interval'])
+    bound = {name: model.bind(p, geometry) for name, p in (('a', a), ('b', b), ('mean', mean))}
+    blended = _MeanTwist(bound['a'], bound['b'])
+    for name, pair in (('oracle', (bound['a'], bound['b'])), ('hold first', (bound['a'],) * 2),
+                       ('hold second', (bound['b'],) * 2), ('average', (bound['mean'],) * 2),
+                       ('average twist', (blended, blended))):
+        poses = study.ground_poses(sim, pair, fixed['interval'])
         out[name] = study._scores(sim, splice(full.poses, poses, i0, i1))[0].mean() / base - 1
     return out
+
+
+def wheel_signals(case: str, seed: int, spread: float = 0.0) -> dict:
+    """Return the area under the ROC curve of wheel signals against the ground, per signal."""
+    from scipy import stats
+
+    sim = simulate(SimConfig(duration_s=DURATION_S, seed=seed,
+                             effects=effects(case, seed, spread)))
+    trace = sim.trace
+    on = np.interp(sim.wheels.t_ns, trace.t_ns, trace.masks['terrain_regime'].astype(float)) > 0.5
+    left, right = np.asarray(sim.wheels.omega_l), np.asarray(sim.wheels.omega_r)
+    cmd_l = np.interp(sim.wheels.t_ns, trace.t_ns, trace.cmd_l)
+    cmd_r = np.interp(sim.wheels.t_ns, trace.t_ns, trace.cmd_r)
+    signals = {'mean speed': np.abs(left + right) / 2, 'speed difference': right - left,
+               'speed - commanded': (left + right - cmd_l - cmd_r) / 2,
+               'difference - commanded': (right - left) - (cmd_r - cmd_l)}
+    pairs = float(on.sum()) * float((~on).sum())
+    return {name: float(stats.mannwhitneyu(v[on], v[~on]).statistic / pairs)
+            for name, v in signals.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,7 +190,21 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --gyro: the file's imu.bias_sigma (default: the file's, 1e-3)")
     parser.add_argument('--no-choice', action='store_true',
                         help="with --gyro: leave the gyro's weighing of the grounds out")
+    parser.add_argument('--spread', type=float, default=0.0,
+                        help='alternating: stretch lengths drawn within 4 m (1 +- SPREAD)')
+    parser.add_argument('--no-dwell', action='store_true',
+                        help="leave the holding blend's dwell model out (the Markov chain alone)")
+    parser.add_argument('--wheel-signals', action='store_true',
+                        help='no odometry: how well wheel signals tell the grounds apart (AUC)')
     args = parser.parse_args(argv)
+    if args.wheel_signals:
+        for seed in args.seeds:
+            auc = wheel_signals(args.case, seed, args.spread)
+            print(f'seed {seed}: AUC ' + ', '.join(f'{k} {v:.3f}' for k, v in auc.items()))
+        return 0
+    if args.no_dwell:
+        from skidkin_ros.core.online import holding
+        holding.HoldingBlend._dwell_plan = lambda self, grounds: None
     if args.no_choice:
         from skidkin_ros.core.online.gyrochoice import GyroChoice
         GyroChoice._gyro_weigh = lambda self, t1_ns, plan, travel, weights: weights
@@ -149,11 +215,12 @@ def main(argv: list[str] | None = None) -> int:
     print('|' + '---|' * 11)
     for seed in args.seeds:
         r = run_drive(args.case, seed, fixed, args.at,
-                      args.gyro_bias if args.gyro else None, args.gyro_bias_sigma)
+                      args.gyro_bias if args.gyro else None, args.gyro_bias_sigma, args.spread)
         print(f"| {r['case']} | {seed} | {r['eps_t']:.4f} | {100 * r['cost']:+.1f} % | "
               f"{100 * r['before']:+.1f} / {100 * r['during']:+.1f} / {100 * r['after']:+.1f} |"
               f" {100 * r['oracle']:+.1f} % | {100 * r['hold first']:+.1f} % | "
               f"{100 * r['hold second']:+.1f} % | {100 * r['average']:+.1f} % | "
+              f"{100 * r['average twist']:+.1f} % | "
               f"{r['blends']} ({r['looks']}) | {r['nees']:.2f} / {r['nees_dropout']:.2f} |",
               flush=True)
     return 0

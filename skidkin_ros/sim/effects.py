@@ -79,7 +79,8 @@ EFFECTS: dict[str, EffectSpec] = {spec.name: spec for spec in (
     EffectSpec('terrain_regime', 'twist', '-', 0.1, 0.4,
                'v_x and omega lose a fraction k (omega: option yaw, when given) after a switch '
                'time (mode time), where x > boundary (mode region) or on every other stretch of '
-               'period_m metres of path (mode alternate)'),
+               'period_m metres of path (mode alternate; period_spread: each stretch drawn '
+               'uniformly within period_m (1 +- period_spread), from period_seed)'),
     # Appended (not inserted) so the strengths drawn for the effects above stay as they were.
     EffectSpec('forward_lag', 'dynamics', 's', 0.05, 0.4,
                'forward speed follows the wheel-implied forward speed through a first-order '
@@ -119,7 +120,9 @@ class Effect:
     terrain_regime options: mode ('time', 'region' or 'alternate'), switch_frac (fraction of the
     duration after which the regime starts, mode time), boundary_x_m (regime where x > boundary,
     mode region), period_m (mode alternate: the regime on every other stretch of that much path,
-    the first stretch off), yaw (the fraction omega loses, default the strength: a ground that
+    the first stretch off), period_spread (mode alternate: each stretch's length drawn uniformly
+    within period_m (1 +- period_spread) instead, 0 <= spread < 1, default 0) and period_seed (the
+    draws' seed, default 0), yaw (the fraction omega loses, default the strength: a ground that
     slips in translation and in yaw by different amounts).
     """
 
@@ -138,7 +141,7 @@ class Effect:
                                  f'{spec.unit} (typical {spec.low:g}..{spec.high:g}), got '
                                  f'{self.strength!r}')
         allowed = {'terrain_regime': {'mode', 'switch_frac', 'boundary_x_m', 'period_m',
-                                      'yaw'}}.get(self.name, set())
+                                      'period_spread', 'period_seed', 'yaw'}}.get(self.name, set())
         unknown = sorted(set(self.options) - allowed)
         if unknown:
             raise ParameterError(f'effect {self.name}: unknown option(s) {unknown}; allowed: '
@@ -147,6 +150,9 @@ class Effect:
             raise ParameterError("terrain_regime mode must be 'time', 'region' or 'alternate'")
         if not float(self.options.get('period_m', 5.0)) > 0.0:
             raise ParameterError('terrain_regime period_m must be > 0 m')
+        if not 0.0 <= float(self.options.get('period_spread', 0.0)) < 1.0:
+            raise ParameterError('terrain_regime period_spread must be >= 0 and < 1 (a share of '
+                                 f"period_m), got {self.options['period_spread']!r}")
 
     @property
     def spec(self) -> EffectSpec:
@@ -176,7 +182,9 @@ class Effect:
         if self.options.get('mode', 'time') == 'time':
             return data.t_s >= float(self.options.get('switch_frac', 0.5)) * data.duration_s
         if self.options['mode'] == 'alternate':
-            return _alternating(data, float(self.options.get('period_m', 5.0)))
+            return _alternating(data, float(self.options.get('period_m', 5.0)),
+                                float(self.options.get('period_spread', 0.0)),
+                                int(self.options.get('period_seed', 0)))
         return data.pose_hint[:, 0] > float(self.options.get('boundary_x_m', 0.0))
 
     def apply_wheels(self, data: EffectInput) -> tuple[np.ndarray, np.ndarray]:
@@ -217,16 +225,28 @@ class Effect:
         return twist
 
 
-def _alternating(data: EffectInput, period_m: float) -> np.ndarray:
+def _alternating(data: EffectInput, period_m: float, spread: float = 0.0,
+                 seed: int = 0) -> np.ndarray:
     """Return True on every other stretch of ``period_m`` metres of path (the first: False).
 
     The path is the wheel-implied one (the twist before this effect), integrated on the fine
-    grid: causal, so a prefix of a drive has the prefix of its mask.
+    grid: causal, so a prefix of a drive has the prefix of its mask. With ``spread`` > 0 each
+    stretch lasts a length drawn uniformly within ``period_m`` (1 +- spread) (``seed``: the
+    draws, the same for every prefix of the drive).
     """
     speed = np.hypot(data.twist[:, 0], data.twist[:, 1])
     dt_s = np.diff(data.t_s, append=data.t_s[-1])
     path = np.concatenate([[0.0], np.cumsum(speed * dt_s)[:-1]])
-    return (np.floor(path / period_m).astype(np.int64) % 2) == 1
+    if spread <= 0.0:
+        return (np.floor(path / period_m).astype(np.int64) % 2) == 1
+    rng = np.random.default_rng(seed)
+    lengths: list[float] = []
+    total = 0.0
+    while total <= path[-1]:
+        lengths.extend(period_m * (1.0 + spread * rng.uniform(-1.0, 1.0, 64)))
+        total = float(np.sum(lengths))
+    ends = np.cumsum(lengths)
+    return (np.searchsorted(ends, path, side='right') % 2) == 1
 
 
 def _first_order(signal: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:

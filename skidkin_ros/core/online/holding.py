@@ -20,6 +20,10 @@ that replaced the old one is a change, not an alternation. A stay shorter than
 ``online.switch_window`` (the recognition flickering, e.g. a false switch back right after a
 change) is not counted as a stay.
 
+Without a gyro, where stays have been completed, the chain's weights are replaced by those of
+a semi-Markov chain in wheel travel that knows how long the robot has been on the last ground
+and how long stays lasted (``dwell.py``); with a gyro, ``gyrochoice.py`` weighs the chain's.
+
 When the reference returns, the active ground's own parameters are in force again at once; the
 recognition (``grounds.py``) takes another ground within its first ``switch_window`` if another
 explains the reference better. The ground learned, its window and what ``~/save_calibration``
@@ -36,6 +40,7 @@ import math
 
 import numpy as np
 
+from skidkin_ros.core.online import dwell
 from skidkin_ros.core.timeunits import NS_PER_S
 from skidkin_ros.errors import ParameterError
 
@@ -56,6 +61,7 @@ class HoldingBlend:
 
     _blend: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (weights, k, covariance)
     _hold_plan: tuple | None = None    # (grounds, pi, mu) chosen when holding began
+    _hold_dwell: np.ndarray | None = None   # dwell.py's occupancy table for that plan
     _ref_travel = 0.0                  # the wheels' running travel at the last accepted pose
 
     # ------------------------------------------------------------------ what is in force
@@ -74,13 +80,13 @@ class HoldingBlend:
         history = self.__dict__.get('_activations')
         if history is None:
             history = self._activations = collections.deque(maxlen=HISTORY)
-            history.append((0.0, self.grounds[0], 'start'))
+            history.append((0.0, self.grounds[0], 'start', 0.0))
         return history
 
     def _activate(self, ground, cause: str) -> None:
         self._history()
         super()._activate(ground, cause)
-        self._history().append((self.travel_m, ground, cause))
+        self._history().append((self.travel_m, ground, cause, self._travel))
 
     def _accept(self, ref) -> None:
         super()._accept(ref)
@@ -124,6 +130,30 @@ class HoldingBlend:
             return None
         return grounds, pi, (switches / span) / spread
 
+    def _dwell_plan(self, grounds: list) -> np.ndarray | None:
+        """Return the dwell model's occupancy table (``dwell.py``) for ``grounds``, or None."""
+        events = [e for e in self._history() if len(e) > 3]
+        start = self.travel_m - self.params.memory
+        # stays in metres of wheel travel, the hold's own clock (the reference's path also
+        # sums its noise: 1.3x the true path on the study's drives, most where the robot
+        # stands or spins)
+        history = _dwells([(e[3], e[1], e[2]) for e in events], self._ref_travel,
+                          self.params.switch_window)
+        if not history or history[-1][1] is not grounds[0]:
+            return None
+        index = {id(g): j for j, g in enumerate(grounds)}
+        recent = {e[3] for e in events if e[0] > start}
+        stays, switches = [], []
+        for (at, ground), (end, after) in zip(history, history[1:]):
+            if end in recent and id(ground) in index:
+                stays.append((index[id(ground)], end - at))
+                if id(after) in index:
+                    switches.append((index[id(ground)], index[id(after)]))
+        if not stays or not dwell.lengths_explained(stays, self.params.switch_window):
+            return None   # no stay, or stays of no typical length: the Markov chain
+        return dwell.occupancy(stays, switches, len(grounds), self._ref_travel - history[-1][0],
+                               self.params.switch_window)
+
     def _hold_check(self, t1_ns: int) -> None:
         """Set the blend in force for the travel since the reference was lost (or end it)."""
         last = self._last_accepted_wheel_ns
@@ -139,15 +169,24 @@ class HoldingBlend:
             return
         if self._hold_plan is None:
             self._hold_plan = self._hold_plan_now() or ()
+            self._hold_dwell = None
             if self._hold_plan:
                 self.counters['online_hold_blend'] += 1
+                if self.gyro_turn is None or self.gyro_turn(last, t1_ns) is None:
+                    # no gyro (with one, gyrochoice.py's forward filter carries the chain on)
+                    self._hold_dwell = self._dwell_plan(self._hold_plan[0])
+                    if self._hold_dwell is not None:
+                        self.counters['online_hold_dwell'] += 1
         if not self._hold_plan:
             return   # the active ground holds until a pose is accepted again
         self._due_ns = min(self._due_ns, t1_ns + int(HOLD_CHECK_S * NS_PER_S))
         grounds, pi, mu = self._hold_plan
         travel = max(self._travel - self._ref_travel, 0.0)
-        weights = pi * (1.0 - math.exp(-mu * travel))
-        weights[0] += math.exp(-mu * travel)
+        if self._hold_dwell is not None:
+            weights = dwell.weights_at(self._hold_dwell, travel)
+        else:
+            weights = pi * (1.0 - math.exp(-mu * travel))
+            weights[0] += math.exp(-mu * travel)
         weights = self._gyro_weigh(t1_ns, self._hold_plan, travel, weights)   # gyrochoice.py
         if self._blend is not None and np.abs(weights - self._blend[0]).max() < HOLD_STEP:
             return
@@ -183,7 +222,8 @@ def _dwells(events: list, now: float, shortest: float) -> list[tuple[float, obje
     it goes on (a false switch back and forth right after a change is no alternation).
     """
     kept: list[tuple[float, object]] = []
-    for i, (at, ground, _cause) in enumerate(events):
+    for i, event in enumerate(events):
+        at, ground = event[0], event[1]
         end = events[i + 1][0] if i + 1 < len(events) else now
         if end - at < shortest and i + 1 < len(events):
             continue
