@@ -36,7 +36,8 @@ from skidkin_ros.core.kinematics import residual
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.specs import Geometry
 
-__all__ = ['MIN_FOLD_SEGMENTS', 'PRIOR_WEIGHTS', 'REFINE_ITERATIONS', 'refine_coefficients']
+__all__ = ['MIN_FOLD_SEGMENTS', 'PRIOR_WEIGHTS', 'REFINE_ITERATIONS', 'refine_at',
+           'refine_coefficients']
 
 # Gauss-Newton iterations (each one Jacobian and at least one rollout).
 REFINE_ITERATIONS = 4
@@ -80,20 +81,20 @@ def refine_coefficients(predictor: SegmentPredictor, base_name: str, geometry: G
             if min(train.size, test.size) < MIN_FOLD_SEGMENTS:
                 return state
             fitted = (state if weight is None else
-                      _refine(predictor, base_name, geometry, state, options, train, weight))
+                      refine_at(predictor, base_name, geometry, state, options, train, weight))
             total += float(held_out_loss(predictor, fitted.bind(base_name, geometry), options,
                                          test).sum())
         scores[weight] = total
     best = min(scores, key=lambda w: scores[w])
     if best is None:
         return state
-    return _refine(predictor, base_name, geometry, state, options, keep, best)
+    return refine_at(predictor, base_name, geometry, state, options, keep, best)
 
 
-def _refine(predictor: SegmentPredictor, base_name: str, geometry: Geometry, state: ModelState,
-            options: DiagnosisOptions, keep: np.ndarray | None, prior_weight: float,
-            iterations: int | None = None) -> ModelState:
-    """Refine at one prior weight (steps 1-4 of the module docstring)."""
+def refine_at(predictor: SegmentPredictor, base_name: str, geometry: Geometry, state: ModelState,
+              options: DiagnosisOptions, keep: np.ndarray | None, prior_weight: float,
+              iterations: int | None = None) -> ModelState:
+    """Refine at one weight of the prior precision (steps 1-4 of the module docstring)."""
     iterations = REFINE_ITERATIONS if iterations is None else iterations
     if _NAME not in state.extensions or not state.residual_covariance:
         return state
