@@ -5,8 +5,8 @@ from lab.studies.unnamed_effects import draw_effects
 import numpy as np
 from skidkin_ros.core.calibration.diagnosis import DiagnosisOptions, ModelState
 from skidkin_ros.core.calibration.diagnosis.regression import fit_residual_model
-from skidkin_ros.core.calibration.diagnosis.residual_refine import (MIN_FOLD_SEGMENTS, refine_at,
-                                                                   refine_coefficients)
+from skidkin_ros.core.calibration.diagnosis.residual_refine import (
+    MIN_FOLD_SEGMENTS, refine_at, refine_coefficients)
 from skidkin_ros.core.calibration.diagnosis.residuals import pose_samples
 from skidkin_ros.core.calibration.diagnosis.state import held_out_loss
 from skidkin_ros.core.calibration.fitting import fit_model
@@ -19,7 +19,7 @@ NAME = 'residual_model'
 
 
 def _velocity_fit(families=('turn_slip',), strength=(0.35, 0.35), seeds=(1,), duration_s=60.0):
-    """A drive with a known unnamed effect, its base fitted, the residual model on velocities."""
+    """Simulate a known unnamed effect, fit the base, then the residual model on velocities."""
     effects = draw_effects(np.random.default_rng(5), count=1, families=families,
                            strength=strength)
     train = sim_drives(effects, list(seeds), duration_s)
@@ -97,7 +97,7 @@ def test_the_prior_weight_is_chosen_on_held_out_segments_or_the_velocity_fit_is_
 
 
 def _exact_drive(coefs):
-    """A simulated drive whose ground truth is the base model plus a known residual model."""
+    """Simulate a drive whose ground truth is the base model plus a known residual model."""
     from dataclasses import replace
     from lab.studies.effects import TRUE_PARAMS
     from skidkin_ros.core.drive import PoseTrack

@@ -46,7 +46,11 @@ REFINE_ITERATIONS = 4
 PRIOR_WEIGHTS = (0.3, 1.0, 3.0)
 # Fewest segments a cross-validation half may have (fewer: no refinement).
 MIN_FOLD_SEGMENTS = 10
-_NAME = 'residual_model'
+
+
+def _regression(state: ModelState) -> str | None:
+    """Return the state's regression extension (the residual model), if it has one."""
+    return next((n for n in state.extensions if get_extension(n).regression), None)
 
 
 def _prior_precision(cov: np.ndarray) -> np.ndarray:
@@ -68,6 +72,9 @@ def refine_coefficients(predictor: SegmentPredictor, base_name: str, geometry: G
     A state without a residual model, without coefficients in use or without their covariance
     is returned as it is, as is one where no weight beats the velocity fit.
     """
+    name = _regression(state)
+    if name is None or not state.residual_covariance or not state.terms(name):
+        return state
     seg = predictor.segments
     rows = np.arange(len(seg)) if keep is None else np.asarray(keep)
     if rows.size < 2 * MIN_FOLD_SEGMENTS or len(PRIOR_WEIGHTS) == 0:
@@ -96,24 +103,25 @@ def refine_at(predictor: SegmentPredictor, base_name: str, geometry: Geometry, s
               iterations: int | None = None) -> ModelState:
     """Refine at one weight of the prior precision (steps 1-4 of the module docstring)."""
     iterations = REFINE_ITERATIONS if iterations is None else iterations
-    if _NAME not in state.extensions or not state.residual_covariance:
+    name = _regression(state)
+    if name is None or not state.residual_covariance:
         return state
-    terms = state.terms(_NAME)
+    terms = state.terms(name)
     if not terms:
         return state
-    ext = get_extension(_NAME)
+    ext = get_extension(name)
     names = residual.coefficient_names()
     where = [names.index(t) for t in terms]   # position in the covariance and the parameters
-    index = state.extensions.index(_NAME)
+    index = state.extensions.index(name)
     free = [(index, ext.param_names.index(t)) for t in terms]
     full = np.asarray(state.residual_covariance, dtype=float).reshape(len(names), len(names))
     prior = _prior_precision(full[np.ix_(where, where)]) * prior_weight
-    mean = np.array([state.ext_values[_NAME][t] for t in terms])
+    mean = np.array([state.ext_values[name][t] for t in terms])
     weight = options.whitening
 
     def with_coefs(coefs: np.ndarray) -> ModelState:
         values = {k: dict(v) for k, v in state.ext_values.items()}
-        values[_NAME].update(zip(terms, (float(c) for c in coefs)))
+        values[name].update(zip(terms, (float(c) for c in coefs)))
         return ModelState(state.extensions, state.base_values, values, state.sparse_terms,
                           state.found, state.residual_covariance)
 

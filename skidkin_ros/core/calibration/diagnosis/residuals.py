@@ -35,7 +35,8 @@ from skidkin_ros.core.odometry.integrator import rollout_stream
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError
 
-__all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'difference_operator', 'truth_velocities', 'pose_samples',
+__all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'difference_operator',
+           'truth_velocities', 'pose_samples',
            'model_rollouts', 'pose_residuals', 'reversal_speed', 'REVERSAL_SPAN_RAD']
 
 COMPONENTS = ('v_x', 'v_y', 'omega')

@@ -44,7 +44,7 @@ __all__ = ['window_terms']
 
 def _incoming(source: TwistSource, wl: np.ndarray, wr: np.ndarray, t_s: np.ndarray,
               rate: np.ndarray) -> np.ndarray:
-    """The twist the residual model sees: the base twist through the twist stages before it."""
+    """Return the twist the residual model sees: the base twist through the stages before it."""
     base = source.base if isinstance(source, BoundAugmented) else source
     twist = np.asarray(base.twist(wl, wr), dtype=float)
     if isinstance(source, BoundAugmented):
