@@ -7,7 +7,9 @@ levels. It is fitted as Norlab's DRIVE fits body-frame slip, as a recipe:
 1. **Inputs.** At every fresh ground-truth pose, the twist the residual model would see (the
    current model's twist before it, of the held wheel speeds) and the base twist's rate; the
    target is the per-pose body-velocity residual of the current model
-   (:func:`~.residuals.pose_residuals`), component by component (v_x, v_y, omega).
+   (:func:`~.residuals.pose_residuals`), component by component (v_x, v_y, omega); the terms it
+   is regressed on are the library's as that windowed target sees them (integrated over the
+   wheel samples, then differentiated by the same window: :mod:`.window_features`).
 2. **Range.** Each input's fitted range is its 0.5 .. 99.5 percentile over the poses used; the
    terms are computed on the inputs clamped to it and scaled to [-1, 1] (outside the range the
    correction holds its edge value: it cannot run away where it has not seen data).
