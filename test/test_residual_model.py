@@ -1,6 +1,7 @@
 """The data-driven residual model: bounded, clamped, streaming == batch, fitted and found."""
 
 from dataclasses import replace
+
 from lab.studies.effects import GEOMETRY, sim_drives, SIM_INTERVAL
 from lab.studies.unnamed_effects import draw_effects
 import numpy as np
