@@ -7,7 +7,9 @@ levels. It is fitted as Norlab's DRIVE fits body-frame slip, as a recipe:
 1. **Inputs.** At every fresh ground-truth pose, the twist the residual model would see (the
    current model's twist before it, of the held wheel speeds) and the base twist's rate; the
    target is the per-pose body-velocity residual of the current model
-   (:func:`~.residuals.pose_residuals`), component by component (v_x, v_y, omega).
+   (:func:`~.residuals.pose_residuals`), component by component (v_x, v_y, omega); the terms it
+   is regressed on are the library's as that windowed target sees them (integrated over the
+   wheel samples, then differentiated by the same window: :mod:`.window_features`).
 2. **Range.** Each input's fitted range is its 0.5 .. 99.5 percentile over the poses used; the
    terms are computed on the inputs clamped to it and scaled to [-1, 1] (outside the range the
    correction holds its edge value: it cannot run away where it has not seen data).
@@ -39,21 +41,26 @@ import numpy as np
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.residuals import (base_rates, pose_residuals,
                                                               PoseSamples)
+from skidkin_ros.core.calibration.diagnosis.window_features import window_terms
 from skidkin_ros.core.calibration.engine import TwistSource
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics import residual
 from skidkin_ros.core.kinematics.augmented import BoundAugmented
 from skidkin_ros.core.kinematics.extensions import get_extension
 
-__all__ = ['BLOCK_FOLDS', 'Regression', 'ResidualFit', 'blr', 'block_folds', 'fit_residual_model',
-           'model_inputs', 'RANGE_PERCENTILES']
+__all__ = ['autocorrelation', 'BLOCK_FOLDS', 'COEF_LIMIT', 'Regression', 'ResidualFit', 'blr',
+           'block_folds', 'fit_residual_model', 'model_inputs', 'RANGE_PERCENTILES']
 
 BLOCK_FOLDS = 4
 RANGE_PERCENTILES = (0.5, 99.5)
 _EVIDENCE_ITERATIONS = 50
-_COEF_LIMIT = 9.9  # inside the coefficients' bounds (+-10)
+COEF_LIMIT = 9.9  # inside the coefficients' bounds (+-10)
 # A level must beat a simpler one by this much held-out log-likelihood per pose (nats).
 LEVEL_TIE_NATS = 0.002
+# Fit on the terms as the target sees them (:mod:`.window_features`), the target over a half
+# window of TARGET_WINDOW_S (None: the options' smoothing_s).
+WINDOW_TERMS = True
+TARGET_WINDOW_S: float | None = None
 
 
 @dataclass(frozen=True)
@@ -184,7 +191,8 @@ def _null_log_likelihood(train: np.ndarray, test: np.ndarray) -> float:
     return float(-0.5 * np.sum(np.log(2.0 * math.pi * var) + test ** 2 / var))
 
 
-def _autocorrelation(errors: np.ndarray, drive: np.ndarray) -> float:
+def autocorrelation(errors: np.ndarray, drive: np.ndarray) -> float:
+    """Return the lag-one autocorrelation of ``errors`` within each drive, in [0, 0.99]."""
     num = den = 0.0
     for d in np.unique(drive):
         e = errors[drive == d]
@@ -200,15 +208,25 @@ def fit_residual_model(drives: Sequence[Drive], samples: PoseSamples, source: Tw
                        options: DiagnosisOptions, use: np.ndarray | None = None
                        ) -> ResidualFit:
     """Fit the residual model on the poses ``use`` (bool mask, None: all) (module docstring)."""
-    target, valid = pose_residuals(drives, samples, source, options)
     twist, rate = model_inputs(drives, samples, source, options)
-    ok = valid & np.all(np.isfinite(target), axis=1) & np.all(np.isfinite(twist), axis=1)
-    ok &= np.all(np.isfinite(rate), axis=1)
+    ok = np.all(np.isfinite(twist), axis=1) & np.all(np.isfinite(rate), axis=1)
     if use is not None:
         ok &= use
+    if WINDOW_TERMS:   # the terms as the target sees them, over the target's window
+        ranges = _ranges(twist[ok & samples.valid], rate[ok & samples.valid])
+        target, valid, moving, turning = window_terms(
+            drives, samples, source, options, ranges, TARGET_WINDOW_S or options.smoothing_s)
+        ok &= np.all(np.isfinite(moving), axis=1) & np.all(np.isfinite(turning), axis=1)
+    else:
+        target, valid = pose_residuals(drives, samples, source, options)
+    ok &= valid & np.all(np.isfinite(target), axis=1)
     rows = np.nonzero(ok)[0]
-    ranges = _ranges(twist[rows], rate[rows])
-    phi_all = residual.features(ranges, twist[rows], rate[rows])
+    if WINDOW_TERMS:
+        terms_of = (moving[rows], moving[rows], turning[rows])
+    else:
+        ranges = _ranges(twist[rows], rate[rows])
+        phi = residual.features(ranges, twist[rows], rate[rows])
+        terms_of = (phi, phi, phi)
     folds = block_folds(samples.drive[rows], samples.t_ns[rows])
     names = residual.term_names()
     count = len(names)
@@ -221,6 +239,7 @@ def fit_residual_model(drives: Sequence[Drive], samples: PoseSamples, source: Tw
              for fold in range(BLOCK_FOLDS)]  # each fold's rows, taken once for every level
     for c, (out, _) in enumerate(residual.OUTPUTS):
         y = target[rows, c]
+        phi_all = terms_of[c]
         score = {0: 0.0}
         for level in residual.LEVELS:
             score[level] = 0.0
@@ -242,11 +261,11 @@ def fit_residual_model(drives: Sequence[Drive], samples: PoseSamples, source: Tw
             continue
         cols = [j for j, (_, lvl, _, _) in enumerate(residual.TERMS) if lvl <= best]
         fit = blr(phi_all[:, cols], y)
-        coef[c, cols] = np.clip(fit.mean, -_COEF_LIMIT, _COEF_LIMIT)
+        coef[c, cols] = np.clip(fit.mean, -COEF_LIMIT, COEF_LIMIT)
         index = [c * count + j for j in cols]
         cov[np.ix_(index, index)] = fit.cov
         errors.append(y - phi_all[:, cols] @ fit.mean)
-    rho = max((_autocorrelation(e, samples.drive[rows]) for e in errors), default=0.0)
+    rho = max((autocorrelation(e, samples.drive[rows]) for e in errors), default=0.0)
     inflation = (1.0 + rho) / (1.0 - rho)
     cov *= inflation
     cov = 0.5 * (cov + cov.T)

@@ -35,7 +35,8 @@ from skidkin_ros.core.odometry.integrator import rollout_stream
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError
 
-__all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'truth_velocities', 'pose_samples',
+__all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'difference_operator',
+           'truth_velocities', 'pose_samples',
            'model_rollouts', 'pose_residuals', 'reversal_speed', 'REVERSAL_SPAN_RAD']
 
 COMPONENTS = ('v_x', 'v_y', 'omega')
@@ -107,6 +108,13 @@ def _operator(t_ns: np.ndarray, half_window_s: float
         _OPERATORS.clear()
     _OPERATORS[key] = (index, operator, valid)
     return index, operator, valid
+
+
+def difference_operator(t_ns: np.ndarray, half_window_s: float
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (index (n, w), slope weights (n, w), valid (n,)) of :func:`body_velocities`."""
+    index, operator, valid = _operator(t_ns, half_window_s)
+    return index, operator[:, 1], valid
 
 
 def body_velocities(t_ns: np.ndarray, poses: np.ndarray, half_window_s: float
