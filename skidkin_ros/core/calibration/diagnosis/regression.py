@@ -235,11 +235,15 @@ def fit_residual_model(drives: Sequence[Drive], samples: PoseSamples, source: Tw
     levels = []
     scores: dict[str, dict[int, float]] = {}
     errors = []
-    split = [(folds == fold, phi_all[folds != fold], phi_all[folds == fold])
-             for fold in range(BLOCK_FOLDS)]  # each fold's rows, taken once for every level
+    splits: dict[int, list] = {}   # each fold's rows, taken once per term array for every level
     for c, (out, _) in enumerate(residual.OUTPUTS):
         y = target[rows, c]
         phi_all = terms_of[c]
+        split = splits.get(id(phi_all))
+        if split is None:
+            split = splits[id(phi_all)] = [
+                (folds == fold, phi_all[folds != fold], phi_all[folds == fold])
+                for fold in range(BLOCK_FOLDS)]
         score = {0: 0.0}
         for level in residual.LEVELS:
             score[level] = 0.0
