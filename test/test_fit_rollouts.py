@@ -14,6 +14,7 @@ its correction reads the terms from one contiguous copy: both as before, bit for
 
 import numpy as np
 import pytest
+from skidkin_ros.core.calibration.diagnosis import regression
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.regression import (_ranges, BLOCK_FOLDS, block_folds,
                                                                blr, fit_residual_model,
@@ -21,6 +22,7 @@ from skidkin_ros.core.calibration.diagnosis.regression import (_ranges, BLOCK_FO
 from skidkin_ros.core.calibration.diagnosis.residuals import (_operator, body_velocities,
                                                               model_rollouts, pose_residuals,
                                                               pose_samples)
+from skidkin_ros.core.calibration.diagnosis.window_features import window_terms
 from skidkin_ros.core.calibration.predictor import SegmentPredictor
 from skidkin_ros.core.calibration.segments import cut_segments, SegmentOptions
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
@@ -251,19 +253,36 @@ def test_c243_the_play_loop_runs_once_for_the_same_speeds_and_play():
         backlash._RECENT.clear()
 
 
-def test_c244_the_residual_levels_take_each_folds_rows_once(drives):
-    """The level scores equal those of the rows taken again for every level, bit for bit."""
+@pytest.mark.parametrize('window', [True, False])
+def test_c244_the_residual_levels_take_each_folds_rows_once(drives, window, monkeypatch):
+    """The level scores equal those of the rows taken again for every level, bit for bit.
+
+    Both forms of the terms: as the smoothed target sees them (the default, the yaw rate with
+    terms of its own) and read at the pose.
+    """
+    monkeypatch.setattr(regression, 'WINDOW_TERMS', window)
     options = DiagnosisOptions(interval='ending')
     samples = pose_samples(drives, BASE, options)
     fit = fit_residual_model(drives, samples, BASE, options)
-    target, valid = pose_residuals(drives, samples, BASE, options)
     twist, rate = model_inputs(drives, samples, BASE, options)
-    ok = valid & np.all(np.isfinite(target), axis=1) & np.all(np.isfinite(twist), axis=1)
-    rows = np.nonzero(ok & np.all(np.isfinite(rate), axis=1))[0]
-    phi_all = residual.features(_ranges(twist[rows], rate[rows]), twist[rows], rate[rows])
+    ok = np.all(np.isfinite(twist), axis=1) & np.all(np.isfinite(rate), axis=1)
+    if window:
+        ranges = _ranges(twist[ok & samples.valid], rate[ok & samples.valid])
+        target, valid, moving, turning = window_terms(drives, samples, BASE, options, ranges,
+                                                      options.smoothing_s)
+        ok &= np.all(np.isfinite(moving), axis=1) & np.all(np.isfinite(turning), axis=1)
+    else:
+        target, valid = pose_residuals(drives, samples, BASE, options)
+    rows = np.nonzero(ok & valid & np.all(np.isfinite(target), axis=1))[0]
+    if window:
+        terms_of = (moving[rows], moving[rows], turning[rows])
+    else:
+        phi = residual.features(_ranges(twist[rows], rate[rows]), twist[rows], rate[rows])
+        terms_of = (phi, phi, phi)
     folds = block_folds(samples.drive[rows], samples.t_ns[rows])
     for c, (out, _) in enumerate(residual.OUTPUTS):
         y = target[rows, c]
+        phi_all = terms_of[c]
         for level in residual.LEVELS:
             cols = [j for j, (_, lvl, _, _) in enumerate(residual.TERMS) if lvl <= level]
             score = 0.0
