@@ -166,3 +166,24 @@ def test_without_the_retry_the_seam_in_the_spin_stays_cut(spin, monkeypatch):
     monkeypatch.setattr(chunks, 'retry_cut_seams', lambda outcomes, *args: outcomes)
     today = _truth(bag, sim, None)
     assert any('1 seam(s) tested, 1 of them cut' in n for n in today.notes), today.notes
+
+
+def test_c254_wheels_that_miss_the_nominal_warm_up_move_nothing():
+    """Wheels that start late or stop early: the nominal place's turning is unknown.
+
+    A place moves only where that halves its warm-up's turning; unknown there, it stays (the
+    encoder noise of whatever the wheels cover must not pick the seam or the window).
+    """
+    nominal = [60 * S]
+    for wheels in (_wheels([], duration_s=58.0), _wheels([(0.0, 58.0)], duration_s=58.0)):
+        assert calm_seams(nominal, wheels, 4 * S, 60 * S, S // 10, 120 * S) == nominal
+    full = _wheels([(55.0, 70.0)])
+    keep = full.t_ns >= 62 * S
+    late = WheelSamples(full.t_ns[keep], full.omega_l[keep], full.omega_r[keep])
+    assert calm_seams(nominal, late, 4 * S, 60 * S, S // 10, 120 * S) == nominal
+    # a sample window whose warm-up runs past the wheels' end stays too
+    early = _wheels([], duration_s=109.0)
+    assert calm_windows([(108 * S, None)], early, 10 * S, 2 * S, S // 10, 0) == [(108 * S, None)]
+    # covered, the same wheels still move a seam out of a spin
+    assert calm_seams(nominal, _wheels([(50.0, 60.5)]), 4 * S, 60 * S, S // 10,
+                      120 * S) != nominal

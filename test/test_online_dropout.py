@@ -409,3 +409,23 @@ def test_c247_stretches_of_random_length_and_a_bad_spread():
     for bad in (-0.1, 1.0, 2.5):
         with pytest.raises(ParameterError, match=r'period_spread must be >= 0 and < 1'):
             make_effect('terrain_regime', 0.25, mode='alternate', period_spread=bad)
+
+
+def test_c253_a_last_stay_far_longer_than_any_seen_still_ends():
+    """Stays of about 1 m, then tens of metres on the last ground before the loss.
+
+    Far beyond every stay seen the stay-length law is its memoryless share alone, so the
+    chances ahead are the same for 20 m or 60 m spent (an exponential forgets the past); the
+    table must stay finite and a stay longer than any seen must still end.
+    """
+    stays = [(j % 2, length) for j, length in enumerate((1.0, 1.1, 0.9, 1.0, 1.05, 0.95))]
+    switches = [(j % 2, 1 - j % 2) for j in range(6)]
+    near = dwell.occupancy(stays, switches, 2, 20.0, 0.5)
+    assert np.all(np.isfinite(near))
+    for elapsed in (35.0, 60.0, 500.0, 1e5):
+        far = dwell.occupancy(stays, switches, 2, elapsed, 0.5)
+        assert np.all(np.isfinite(far)), elapsed
+        assert np.allclose(far, near, atol=1e-9), elapsed
+        weights = dwell.weights_at(far, 0.0)
+        assert weights[0] == pytest.approx(1.0)
+        assert 0.1 < dwell.weights_at(far, 1.0)[0] < 0.7   # it ends within a metre or so

@@ -25,8 +25,9 @@ nominal seam, or turning alike everywhere, keeps today's cut, and encoder noise 
 nothing); ties go to the candidate nearest the nominal place (then the earlier). The rule reads the
 recording only (its wheels, its lidar period, ``chunk_s`` and ``overlap_s``), never the number
 of processes, so the poses stay the same for any ``--jobs``. Candidates are on a grid of one
-lidar period. A candidate whose warm-up the wheels do not cover is not taken; a recording
-without wheels (or with fewer than two samples) keeps the nominal places.
+lidar period. A candidate whose warm-up the wheels do not cover is not taken, and a nominal
+place whose warm-up they do not cover stays (its turning is unknown); a recording without
+wheels (or with fewer than two samples) keeps the nominal places.
 """
 
 from __future__ import annotations
@@ -110,7 +111,8 @@ def _calmest(signal: TurnSignal, nominal: int, low: int, high: int, span_ns: int
     cost = signal.mean(starts, starts + span_ns)
     best = int(np.argmin(cost))
     # shifts[0] is the nominal place: it stays unless the best turns less than half as much
-    if not np.isfinite(cost[best]) or not cost[best] < _MOVE_BELOW * cost[0]:
+    # (and where the wheels miss its warm-up, how much it turns is unknown: it stays)
+    if not np.isfinite(cost[0]) or not cost[best] < _MOVE_BELOW * cost[0]:
         return nominal
     return int(places[best])
 

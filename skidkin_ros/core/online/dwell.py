@@ -43,13 +43,20 @@ MEMORYLESS = 0.1
 MIN_STAYS = 2
 # Switches added to every transition between two different grounds (a prior).
 PRIOR = 0.5
+# Kernel widths past the longest stay where a normal kernel's density is 0 in floating point.
+KERNEL_REACH = 40.0
+
+
+def _width(lengths: np.ndarray, width_min: float) -> float:
+    """Return the kernel's width: the larger of ``width_min`` and Silverman's."""
+    sd = float(lengths.std()) if lengths.size > 1 else 0.0
+    return max(width_min, 1.06 * sd * lengths.size ** -0.2)
 
 
 def _length_law(lengths: Sequence[float], width_min: float, size: int) -> np.ndarray:
     """Return P(stay length in cell m), m = 0..size-1 (cell m: within STEP_M / 2 of m STEP_M)."""
     lengths = np.asarray(lengths, dtype=float)
-    sd = float(lengths.std()) if lengths.size > 1 else 0.0
-    width = max(width_min, 1.06 * sd * lengths.size ** -0.2)
+    width = _width(lengths, width_min)
     x = np.arange(size) * STEP_M
     density = np.exp(-0.5 * ((x[:, None] - lengths[None, :]) / width) ** 2).sum(axis=1)
     density[0] = 0.0
@@ -102,17 +109,24 @@ def occupancy(stays: Sequence[tuple[int, float]], switches: Sequence[tuple[int, 
     if not stays:
         return None
     n = int(round(REACH_M / STEP_M)) + 1
-    m0 = int(round(max(elapsed_m, 0.0) / STEP_M))
+    # Beyond KERNEL_REACH widths past the longest stay of the last ground, its kernel density
+    # is 0 in floating point and what is left is the exponential, which forgets how long the
+    # stay has lasted: a longer time spent there reads the same as that cell.
+    own = np.asarray(_own(stays, 0), dtype=float)
+    calm = int(math.ceil((float(own.max()) + KERNEL_REACH * _width(own, width_min)) / STEP_M))
+    m0 = min(int(round(max(elapsed_m, 0.0) / STEP_M)), calm)
     size = n + m0 + 1
     laws = [_length_law(_own(stays, j), width_min, size) for j in range(count)]
-    survive = [1.0 - np.cumsum(h) for h in laws]
+    # the chance to last beyond cell m as the sum of the cells beyond it (1 - cumsum loses it
+    # below 1e-16, some 35 mean stays on)
+    survive = [np.append(np.cumsum(h[:0:-1])[::-1], 0.0) for h in laws]
     moves = np.full((count, count), PRIOR)
     np.fill_diagonal(moves, 0.0)
     for a, b in switches:
         if a != b:
             moves[a, b] += 1.0
     moves /= moves.sum(axis=1, keepdims=True)
-    left = max(float(survive[0][m0]), 1e-12)
+    left = max(float(survive[0][m0]), 1e-300)
     first_exit = laws[0][m0:m0 + n] / left        # the current stay ends in cell m
     first_exit[0] = 0.0
     still = np.clip(survive[0][m0:m0 + n] / left, 0.0, 1.0)
