@@ -1,12 +1,11 @@
 """The residual model's coefficients refined on whole segments' end poses."""
 
 from lab.studies.effects import GEOMETRY, sim_drives, SIM_INTERVAL
+from lab.studies.residual_refine import MIN_FOLD_SEGMENTS, refine_at, refine_coefficients
 from lab.studies.unnamed_effects import draw_effects
 import numpy as np
 from skidkin_ros.core.calibration.diagnosis import DiagnosisOptions, ModelState
 from skidkin_ros.core.calibration.diagnosis.regression import fit_residual_model
-from skidkin_ros.core.calibration.diagnosis.residual_refine import (
-    MIN_FOLD_SEGMENTS, refine_at, refine_coefficients)
 from skidkin_ros.core.calibration.diagnosis.residuals import pose_samples
 from skidkin_ros.core.calibration.diagnosis.state import held_out_loss
 from skidkin_ros.core.calibration.fitting import fit_model

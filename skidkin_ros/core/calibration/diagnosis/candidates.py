@@ -29,7 +29,6 @@ import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.regression import fit_residual_model
-from skidkin_ros.core.calibration.diagnosis.residual_refine import refine_coefficients
 from skidkin_ros.core.calibration.diagnosis.residuals import PoseSamples
 from skidkin_ros.core.calibration.diagnosis.sparse import library_start
 from skidkin_ros.core.calibration.diagnosis.state import fit_state, held_out_loss, ModelState
@@ -41,8 +40,6 @@ from skidkin_ros.core.kinematics.specs import Geometry
 
 __all__ = ['CandidateFitter', 'Task', 'fold_labels', 'split_variant', 'variant_name']
 
-# Refine the residual model's coefficients on the segments' end poses (:mod:`.residual_refine`).
-REFINE_RESIDUAL = False
 # Least-squares iterations (per parameter) of each grid point's short fit.
 SCAN_MAX_NFEV = 10
 # (state, candidate or None for the current model alone, fold or None for all segments)
@@ -133,9 +130,6 @@ class CandidateFitter:
         structure = state.extensions if name in state.extensions else state.extensions + (name,)
         state = ModelState(ordered(structure), dict(state.base_values), values, terms,
                            state.found + (name,), covariance)
-        if ext.regression and REFINE_RESIDUAL:   # its coefficients on whole segments
-            state = refine_coefficients(self.predictor, self.base_name, self.geometry, state,
-                                        self.options, keep)
         return state
 
     def _pose_mask(self, keep: np.ndarray | None) -> np.ndarray | None:

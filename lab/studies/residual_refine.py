@@ -1,4 +1,9 @@
-"""Refine the residual model's coefficients on the end-pose errors of whole segments.
+"""Refine the residual model's coefficients on the end-pose errors of whole segments (a study).
+
+Measured and not used by ``skidkin diagnose`` (docs/residual-model.md: it lowers the training
+segments' error and costs held-out error); kept in the lab, tested, for a study with more
+segments per coefficient: ``refine_coefficients(predictor, base, geometry, state, options)``
+on a diagnosis state that holds a residual model.
 
 The regression (:mod:`.regression`) fits the residual model's coefficients C on per-pose
 velocity residuals, differentiated from the noisy ground truth; the odometry integrates the
