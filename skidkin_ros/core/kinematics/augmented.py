@@ -46,7 +46,7 @@ from skidkin_ros.errors import ParameterError
 
 __all__ = ['AUGMENTED_NAME', 'MIN_RATE_STEP_S', 'AugmentedModel', 'AugmentedState',
            'BoundAugmented', 'first_order_response', 'lag_factors', 'lag_response',
-           'twist_rates']
+           'rate_divisor', 'rate_steps', 'twist_rates']
 
 AUGMENTED_NAME = 'augmented'
 # A rate of change is measured over at least this long (s), as a wheel jump is (the wheel-jump
@@ -77,6 +77,27 @@ class AugmentedState(NamedTuple):
     play: tuple[float, float, float, float, float] = PLAY_STATE
 
 
+def rate_divisor(step_s: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """Return what a backward-difference rate divides by: the step, at least MIN_RATE_STEP_S.
+
+    1 where the step is not usable (the rate is 0 there). The one home of the rule for every
+    array form (:func:`twist_rates`, the tangents' rates, the online learner's paired steps);
+    the node's scalar form, :meth:`BoundAugmented.begin`, does the same on floats.
+    """
+    return np.where(usable, np.maximum(step_s, MIN_RATE_STEP_S), 1.0)
+
+
+def rate_steps(dt_s: np.ndarray, restart: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (usable, divisor) of the rates of (D, L) rows from sample i to i+1.
+
+    ``dt_s[:, i]``: the step from sample i to i+1 (0 across a gap or a repeated stamp); a step is
+    usable when it is positive and sample i+1 is no restart.
+    """
+    step = np.asarray(dt_s, dtype=float)[:, :-1]
+    usable = (step > 0.0) & ~np.asarray(restart, bool)[:, 1:]
+    return usable, rate_divisor(step, usable)
+
+
 def twist_rates(base: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.ndarray:
     """Return the base twist's backward-difference rate over (D, L) rows (D, L, 3).
 
@@ -85,9 +106,7 @@ def twist_rates(base: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.n
     a step shorter than :data:`MIN_RATE_STEP_S` counts as that long.
     """
     rate = np.zeros(base.shape)
-    step = np.asarray(dt_s, dtype=float)[:, :-1]
-    usable = (step > 0.0) & ~np.asarray(restart, bool)[:, 1:]
-    safe = np.where(usable, np.maximum(step, MIN_RATE_STEP_S), 1.0)
+    usable, safe = rate_steps(dt_s, restart)
     rate[:, 1:] = np.where(usable[..., None],
                            (base[:, 1:] - base[:, :-1]) / safe[..., None], 0.0)
     return rate
@@ -232,7 +251,7 @@ class BoundAugmented:
         rate = _STILL
         if state is not None and not restart:
             step = (t_ns - state.t_ns) * 1e-9
-            if step > 0.0:
+            if step > 0.0:   # rate_divisor on floats
                 step = step if step > MIN_RATE_STEP_S else MIN_RATE_STEP_S
                 p = state.b
                 rate = ((b[0] - p[0]) / step, (b[1] - p[1]) / step, (b[2] - p[2]) / step)

@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from skidkin_ros.core.kinematics.augmented import (BoundAugmented, first_order_response,
-                                                   lag_factors, lag_response, MIN_RATE_STEP_S,
+                                                   lag_factors, lag_response, rate_steps,
                                                    twist_rates)
 from skidkin_ros.core.kinematics.backlash import play_speeds
 from skidkin_ros.core.kinematics.extensions import get_extension
@@ -199,9 +199,7 @@ def base_tangents(base: BoundModel, omega_l: np.ndarray, omega_r: np.ndarray,
 def _rate_tangents(tangent: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -> np.ndarray:
     """:func:`twist_rates` of tangents (P, D, L): the same backward difference, per direction."""
     rate = np.zeros(tangent.shape)
-    step = np.asarray(dt_s, dtype=float)[:, :-1]
-    usable = (step > 0.0) & ~np.asarray(restart, bool)[:, 1:]
-    safe = np.where(usable, np.maximum(step, MIN_RATE_STEP_S), 1.0)
+    usable, safe = rate_steps(dt_s, restart)
     rate[..., 1:] = np.where(usable, (tangent[..., 1:] - tangent[..., :-1]) / safe, 0.0)
     return rate
 

@@ -52,7 +52,7 @@ from skidkin_ros.core.calibration.fitting import segment_errors, segment_errors_
 from skidkin_ros.core.calibration.noise_fit import (mahalanobis, segment_covariances,
                                                     segment_motion, SegmentMotion)
 from skidkin_ros.core.calibration.segments import SegmentSet
-from skidkin_ros.core.kinematics.augmented import BoundAugmented, MIN_RATE_STEP_S
+from skidkin_ros.core.kinematics.augmented import BoundAugmented, rate_divisor
 from skidkin_ros.core.kinematics.augmented_tangents import interval_tangents
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel, get_model, KinematicModel
@@ -232,7 +232,7 @@ class AugmentedCalibrator(OnlineCalibrator):
         # the node's rate: the difference to the step before over their start stamps' distance
         step = np.diff(t0) * 1e-9
         usable = (step > 0.0) & (chain[1:] == chain[:-1])
-        safe = np.where(usable, np.maximum(step, MIN_RATE_STEP_S), 1.0)
+        safe = rate_divisor(step, usable)
         rates = [np.where(usable, np.diff(w) / safe, 0.0) for w in speeds]
         skip = i0 - first
         dt_s = (np.minimum(t1, b.t_ns) - np.maximum(t0, a.t_ns))[skip:] * 1e-9
