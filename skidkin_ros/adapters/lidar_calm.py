@@ -40,6 +40,7 @@ from typing import Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.core.timeunits import s_to_ns
 
 # A place moves only where its warm-up turns less than this share of the nominal one's: a
 # recording that is calm at the nominal seam (or turns alike everywhere) keeps today's cut.
@@ -91,7 +92,7 @@ def turn_signal(wheels: WheelSamples | None) -> TurnSignal | None:
         return None
     step_ns = np.diff(t_ns)
     integral = np.concatenate([[0.0], np.cumsum(turn[:-1] * step_ns * 1e-9)])
-    gap = step_ns > max(_GAP_PERIODS * float(np.median(step_ns)), _GAP_MIN_S * 1e9)
+    gap = step_ns > max(_GAP_PERIODS * float(np.median(step_ns)), s_to_ns(_GAP_MIN_S))
     return TurnSignal(t_ns, integral, t_ns[:-1][gap], t_ns[1:][gap])
 
 
