@@ -140,6 +140,11 @@ def test_a_seam_in_a_spin_is_cut_today_and_joins_where_the_wheels_place_it(spin)
     assert any('1 cut seam(s) tried again' in n and '1 joined' in n for n in today.notes), \
         today.notes
     assert any('1 seam(s) tested, 0 of them cut' in n for n in today.notes), today.notes
+    # the second try reads the registrations only: the same poses for two processes
+    today_two = _truth(bag, sim, None, jobs=2)
+    assert np.array_equal(today.track.poses, today_two.track.poses)
+    assert np.array_equal(today.track.valid, today_two.track.valid)
+    assert today_two.notes == today.notes
     # placed by the wheels: the warm-up is out of the spin and the seam joins at once
     placed = _truth(bag, sim, sim.wheels)
     assert any('1 seam(s) tested, 0 of them cut' in n for n in placed.notes), placed.notes
