@@ -140,6 +140,11 @@ def test_a_seam_in_a_spin_is_cut_today_and_joins_where_the_wheels_place_it(spin)
     assert any('1 cut seam(s) tried again' in n and '1 joined' in n for n in today.notes), \
         today.notes
     assert any('1 seam(s) tested, 0 of them cut' in n for n in today.notes), today.notes
+    # the second try reads the registrations only: the same poses for two processes
+    today_two = _truth(bag, sim, None, jobs=2)
+    assert np.array_equal(today.track.poses, today_two.track.poses)
+    assert np.array_equal(today.track.valid, today_two.track.valid)
+    assert today_two.notes == today.notes
     # placed by the wheels: the warm-up is out of the spin and the seam joins at once
     placed = _truth(bag, sim, sim.wheels)
     assert any('1 seam(s) tested, 0 of them cut' in n for n in placed.notes), placed.notes
@@ -187,3 +192,34 @@ def test_c254_wheels_that_miss_the_nominal_warm_up_move_nothing():
     # covered, the same wheels still move a seam out of a spin
     assert calm_seams(nominal, _wheels([(50.0, 60.5)]), 4 * S, 60 * S, S // 10,
                       120 * S) != nominal
+
+
+def test_c260_a_seam_does_not_move_into_a_gap_in_the_wheel_stamps():
+    """A gap reads as nothing measured, not as the last wheel value held across it.
+
+    The wheels drop out from 46 to 53 s (the robot spins there, unseen), their last sample
+    before it drives straight without noise, and a spin at 55-60.5 s is under the nominal
+    seam (60 s): held across the gap, that last sample made its warm-ups the calmest of all.
+    """
+    full = _wheels([(46.0, 53.0), (55.0, 60.5)])
+    t_s = full.t_ns * 1e-9
+    left, right = full.omega_l.copy(), full.omega_r.copy()
+    last = np.flatnonzero(t_s < 46.0)[-1]
+    left[last] = right[last] = 3.0
+    keep = (t_s < 46.0) | (t_s >= 53.0)
+    gap = WheelSamples(full.t_ns[keep], left[keep], right[keep])
+    seams = calm_seams([60 * S], gap, 4 * S, 60 * S, S // 10, 120 * S)
+    # the seam still leaves the spin, to a warm-up the wheels measured
+    assert seams != [60 * S] and abs(seams[0] - 60 * S) <= 15 * S
+    assert seams[0] - 4 * S >= 53 * S or seams[0] <= 46 * S, seams[0] * 1e-9
+    assert seams[0] - 4 * S >= 60.5 * S or seams[0] <= 55 * S, seams[0] * 1e-9
+    # a sample window whose warm-up would start in the gap does not move there either
+    (start, stop), = calm_windows([(55 * S, None)], gap, 10 * S, 2 * S, S // 10, 0)
+    assert (start, stop) == (55 * S, None) or start >= 53 * S or start + 2 * S <= 46 * S
+    # a short drop (a few samples) is still read through: the same seam as without it
+    drop = (t_s < 40.0) | (t_s >= 40.2)
+    few = WheelSamples(full.t_ns[drop], left[drop], right[drop])
+    assert calm_seams([60 * S], few, 4 * S, 60 * S, S // 10, 120 * S) == seams
+    # slow wheels (1 Hz, no gap) still place a seam out of a spin
+    slow = _wheels([(55.0, 60.5)], rate_hz=1.0)
+    assert calm_seams([60 * S], slow, 4 * S, 60 * S, S // 10, 120 * S) != [60 * S]

@@ -17,7 +17,7 @@ import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.lidar_chunks import (bag_ground_truth, bag_identity, ChunkOptions,
                                                ChunkOutcome, join_chunks, plan_chunks,
-                                               run_chunks)
+                                               retry_cut_seams, run_chunks)
 from skidkin_ros.adapters.lidar_gt import IcpConfig, lidar_ground_truth, Registration
 from skidkin_ros.adapters.sim_writer import write_bag
 from skidkin_ros.core.drive import WheelSamples
@@ -182,6 +182,87 @@ def test_the_seam_note_counts_tested_and_untested_cuts_apart():
     assert joined.seams_cut == 2
     note = joined.seams_note(len(tasks), CHUNKS)
     assert '2 seam(s) tested, 1 of them cut; 1 cut untested (after a failed chunk' in note
+
+
+def _bend(outcome, from_ns, to_ns, rad_per_frame=0.1):
+    """Return the chunk as if it went wrong in [from, to): its poses turned more and more."""
+    reg = outcome.registration
+    poses = reg.lidar_pose.copy()
+    rows = np.flatnonzero((reg.receive_ns >= from_ns) & (reg.receive_ns < to_ns))
+    for k, row in enumerate(rows, start=1):
+        c, s = np.cos(k * rad_per_frame), np.sin(k * rad_per_frame)
+        turn = np.eye(4)
+        turn[:2, :2] = [[c, -s], [s, c]]
+        poses[row] = poses[row] @ turn
+    return dataclasses.replace(outcome,
+                               registration=dataclasses.replace(reg, lidar_pose=poses))
+
+
+def _head(outcome):
+    """Return the second before the chunk's seam, where the seam test looks."""
+    return outcome.task.seam_ns - 10**9, outcome.task.seam_ns
+
+
+def _tail(outcome):
+    """Return the second before the chunk's end (the next chunk's seam)."""
+    return outcome.task.stop_ns - 10**9, outcome.task.stop_ns
+
+
+def test_c259_a_retry_that_breaks_the_next_seam_is_not_kept(drive):
+    """A retried chunk replaces the first only where the join is no worse (its seam and the next).
+
+    Real kiss-icp registrations of three 5 s chunks, each seam passing; chunk 1 is bent over
+    the second before its seam (it started wrong: that seam fails) and its second try, a real
+    registration from an earlier start, over the second before its end (it went wrong late).
+    Kept, the retry would swap the cut seam 1 for a cut seam 2 and the note would say it
+    joined (before: kept, '1 joined', chunk 2 cut).
+    """
+    _, bag = drive
+    with open_recording(bag) as rec:
+        first = next(iter(rec.iter_lidar('/points')))
+    tasks = plan_chunks(str(bag), '/points', first.receive_ns, 10**8, 159, first.end_ns, ICP,
+                        CHUNKS)
+    runs = {jobs: run_chunks(tasks, dataclasses.replace(CHUNKS, jobs=jobs)) for jobs in (1, 2)}
+    real = runs[1]
+    assert join_chunks(real, CHUNKS).cut_frames == []
+
+    def rerun_bending_chunk_1(jobs):
+        def rerun(retry):
+            again = run_chunks(retry, dataclasses.replace(CHUNKS, jobs=jobs))
+            return [_bend(o, *_tail(o)) if o.task.index == 1 else o for o in again]
+        return rerun
+
+    started_wrong = [real[0], _bend(real[1], *_head(real[1])), real[2]]
+    assert join_chunks(started_wrong, CHUNKS).failed_chunks == (1,)
+    notes = []
+    kept = retry_cut_seams(started_wrong, CHUNKS, rerun_bending_chunk_1(1), notes)
+    assert kept[1] is started_wrong[1], notes
+    joined = join_chunks(kept, CHUNKS)
+    assert joined.failed_chunks == (1,) and joined.seams_cut == 1
+    assert notes == ['1 cut seam(s) tried again with the chunk after it started 6 s before its '
+                     'seam: 0 joined; 1 not kept (the seam after it would then fail)']
+    # a retry that goes right is kept: both seams pass
+    notes = []
+    kept = retry_cut_seams(started_wrong, CHUNKS, lambda retry: run_chunks(retry, CHUNKS), notes)
+    assert kept[1] is not started_wrong[1] and join_chunks(kept, CHUNKS).seams_cut == 0
+    assert notes[0].endswith(': 1 joined'), notes
+    # where the next seam failed already, the retry that mends its own seam is kept; the
+    # same for one and two processes, byte for byte
+    wrong_twice = [real[0], _bend(_bend(real[1], *_head(real[1])), *_tail(real[1])), real[2]]
+    assert join_chunks(wrong_twice, CHUNKS).failed_chunks == (1, 2)
+    results = {}
+    for jobs in (1, 2):
+        first_try = [runs[jobs][0],
+                     _bend(_bend(runs[jobs][1], *_head(real[1])), *_tail(real[1])), runs[jobs][2]]
+        notes = []
+        kept = retry_cut_seams(first_try, CHUNKS, rerun_bending_chunk_1(jobs), notes)
+        assert kept[1] is not first_try[1] and kept[2] is first_try[2], notes
+        assert notes[0].endswith(': 1 joined'), notes
+        results[jobs] = join_chunks(kept, CHUNKS)
+        assert results[jobs].failed_chunks == (2,)
+    assert np.array_equal(results[1].registration.lidar_pose, results[2].registration.lidar_pose)
+    assert np.array_equal(results[1].registration.end_ns, results[2].registration.end_ns)
+    assert results[1].cut_frames == results[2].cut_frames
 
 
 _MAIN_PROBE = """

@@ -27,7 +27,9 @@ recording only (its wheels, its lidar period, ``chunk_s`` and ``overlap_s``), ne
 of processes, so the poses stay the same for any ``--jobs``. Candidates are on a grid of one
 lidar period. A candidate whose warm-up the wheels do not cover is not taken, and a nominal
 place whose warm-up they do not cover stays (its turning is unknown); a recording without
-wheels (or with fewer than two samples) keeps the nominal places.
+wheels (or with fewer than two samples) keeps the nominal places. A gap in the wheel stamps
+longer than ``_GAP_PERIODS`` median wheel periods and ``_GAP_MIN_S`` (a dropout, not jitter)
+is not covered: a warm-up that overlaps it is unknown, not the last value held across it.
 """
 
 from __future__ import annotations
@@ -38,10 +40,14 @@ from typing import Sequence
 import numpy as np
 
 from skidkin_ros.core.drive import WheelSamples
+from skidkin_ros.core.timeunits import s_to_ns
 
 # A place moves only where its warm-up turns less than this share of the nominal one's: a
 # recording that is calm at the nominal seam (or turns alike everywhere) keeps today's cut.
 _MOVE_BELOW = 0.5
+# A step between wheel stamps longer than both of these is a gap nobody measured.
+_GAP_PERIODS = 10
+_GAP_MIN_S = 0.5
 
 __all__ = ['TurnSignal', 'calm_seams', 'calm_windows', 'nominal_seams', 'seams_placed_note',
            'turn_signal']
@@ -53,6 +59,8 @@ class TurnSignal:
 
     t_ns: np.ndarray
     integral: np.ndarray  # rad, at t_ns (the held value integrated from t_ns[0])
+    gap_start_ns: np.ndarray  # the stamps before and after each gap (sorted)
+    gap_stop_ns: np.ndarray
 
     def mean(self, start_ns: np.ndarray, stop_ns: np.ndarray) -> np.ndarray:
         """Return the mean turning over [start, stop) per interval; inf where not covered."""
@@ -61,7 +69,9 @@ class TurnSignal:
         lo = np.interp((start - self.t_ns[0]) * 1e-9, self._t_s, self.integral)
         hi = np.interp((stop - self.t_ns[0]) * 1e-9, self._t_s, self.integral)
         span_s = np.maximum((stop - start) * 1e-9, 1e-9)
-        covered = (start >= self.t_ns[0]) & (stop <= self.t_ns[-1])
+        gaps = (np.searchsorted(self.gap_start_ns, stop, 'left')
+                - np.searchsorted(self.gap_stop_ns, start, 'right'))
+        covered = (start >= self.t_ns[0]) & (stop <= self.t_ns[-1]) & (gaps == 0)
         return np.where(covered, (hi - lo) / span_s, np.inf)
 
     @property
@@ -80,9 +90,10 @@ def turn_signal(wheels: WheelSamples | None) -> TurnSignal | None:
     turn = turn[ok]
     if t_ns.size < 2 or t_ns[-1] <= t_ns[0]:
         return None
-    dt_s = np.diff(t_ns) * 1e-9
-    integral = np.concatenate([[0.0], np.cumsum(turn[:-1] * dt_s)])
-    return TurnSignal(t_ns, integral)
+    step_ns = np.diff(t_ns)
+    integral = np.concatenate([[0.0], np.cumsum(turn[:-1] * step_ns * 1e-9)])
+    gap = step_ns > max(_GAP_PERIODS * float(np.median(step_ns)), s_to_ns(_GAP_MIN_S))
+    return TurnSignal(t_ns, integral, t_ns[:-1][gap], t_ns[1:][gap])
 
 
 def nominal_seams(first_receive_ns: int, period_ns: int, n_frames: int,

@@ -29,7 +29,8 @@ machines as there are. Recipe (:func:`bag_ground_truth`):
    wrong). A seam that fails, or has no common frame, is cut: the first pose after it is
    flagged 'seam', so no segment crosses it. Before it is cut, the chunk after it is registered
    once more from an earlier start (:func:`retry_cut_seams`: a warm-up three times as long),
-   and that registration is kept where its seam then passes.
+   and that registration is kept where its seam then passes and the next seam does not newly
+   fail.
 5. **Failures**: a chunk whose task fails (an unreadable part of the recording, a worker that
    died) is named in the notes and its frames get no ground truth; the other chunks are kept,
    and the chunk after it starts behind a cut seam. When every chunk fails, DataError.
@@ -220,8 +221,9 @@ def retry_cut_seams(outcomes: list[ChunkOutcome], options: ChunkOptions,
 
     A chunk that started where its registration went wrong (a spin the wheels did not show, a
     scan the map could not hold) gets a warm-up ``_RETRY_WARMUPS`` times as long, same seam and
-    end; its new registration replaces the old one only where its seam then passes. The rule
-    reads the registrations only, so it is the same for any number of processes.
+    end; its new registration replaces the old one only where the join is then no worse: its
+    seam passes, and the seam after it passes or had failed already. The rule reads the
+    registrations only, so it is the same for any number of processes.
     """
     joined = join_chunks(outcomes, options)
     if not joined.failed_chunks:
@@ -230,18 +232,40 @@ def retry_cut_seams(outcomes: list[ChunkOutcome], options: ChunkOptions,
     retry = [replace(outcomes[i].task, start_ns=int(outcomes[i].task.seam_ns)
                      - _RETRY_WARMUPS * overlap_ns)
              for i in joined.failed_chunks if outcomes[i].task.seam_ns is not None]
-    trial = list(outcomes)
+    kept = list(outcomes)
     for outcome in rerun(retry):
         if outcome.registration is not None:
-            trial[outcome.task.index] = outcome
-    after = join_chunks(trial, options)
-    kept = list(outcomes)
-    joined_again = []
-    for task in retry:
-        if trial[task.index] is not outcomes[task.index] and task.index not in after.failed_chunks:
-            kept[task.index] = trial[task.index]
-            joined_again.append(task.index)
-    notes.append(f'{len(retry)} cut seam(s) tried again with the chunk after it started '
-                 f'{_RETRY_WARMUPS * options.overlap_s:g} s before its seam: '
-                 f'{len(joined_again)} joined')
+            kept[outcome.task.index] = outcome
+    tried = sorted(t.index for t in retry if kept[t.index] is not outcomes[t.index])
+    refused = 0
+    while True:
+        worse = _worse_retry(tried, kept, outcomes, joined, join_chunks(kept, options))
+        if not worse:
+            break
+        index, next_seam = worse
+        kept[index] = outcomes[index]
+        refused += int(next_seam)
+    joined_again = sum(1 for i in tried if kept[i] is not outcomes[i])
+    note = (f'{len(retry)} cut seam(s) tried again with the chunk after it started '
+            f'{_RETRY_WARMUPS * options.overlap_s:g} s before its seam: {joined_again} joined')
+    if refused:
+        note += f'; {refused} not kept (the seam after it would then fail)'
+    notes.append(note)
     return kept
+
+
+def _worse_retry(tried: list[int], kept: list[ChunkOutcome], outcomes: list[ChunkOutcome],
+                 first: Joined, now: Joined) -> tuple[int, bool] | None:
+    """Return the first kept retry that leaves the join worse, and whether by the next seam.
+
+    A retry stays where its own seam passes and the seam after it passes, or had failed
+    already (without it); otherwise it would only swap one cut for another.
+    """
+    for index in tried:
+        if kept[index] is outcomes[index]:
+            continue
+        if index in now.cut_chunks:
+            return index, False
+        if index + 1 in now.cut_chunks and index + 1 not in first.cut_chunks:
+            return index, True
+    return None

@@ -28,7 +28,7 @@ class Joined:
     disagreed (cut), ``failed_chunks`` the indices of the chunks after them; ``seams_untested``:
     seams cut without a test (after a failed chunk, or no frame registered by both chunks).
     ``seams_cut`` is their sum (a cut seam with no frame after it is not counted: there is
-    nothing to cut).
+    nothing to cut); ``cut_chunks`` the indices of the chunks after all of them.
     """
 
     registration: Registration
@@ -38,6 +38,7 @@ class Joined:
     seams_failed: int = 0
     seams_untested: int = 0
     failed_chunks: tuple[int, ...] = ()
+    cut_chunks: tuple[int, ...] = ()
 
     @property
     def seams_cut(self) -> int:
@@ -87,6 +88,7 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
     notes: list[str] = []
     tested = failed = untested = 0
     failed_chunks: list[int] = []
+    cut_chunks: list[int] = []
     offset = 0
     previous: Registration | None = None  # the previous chunk, poses in the joined frame
     window_ns = s_to_ns(options.overlap_s / 2)
@@ -120,6 +122,7 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
             poses = np.einsum('ij,njk->nik', transform, poses)
             if not agrees and first_own.size:
                 cut.append(offset + int(np.count_nonzero(own[:first_own[0]])))
+                cut_chunks.append(task.index)
                 if anchored:
                     failed += 1
                     failed_chunks.append(task.index)
@@ -133,7 +136,7 @@ def join_chunks(outcomes: Sequence[ChunkOutcome], options: ChunkOptions) -> Join
     if not parts:
         raise DataError('every lidar chunk failed; no ground truth: ' + '; '.join(notes))
     return Joined(_concatenate(parts), cut, notes, tested, failed, untested,
-                  tuple(failed_chunks))
+                  tuple(failed_chunks), tuple(cut_chunks))
 
 
 def _continue_from(parts: Sequence[Registration], reg: Registration,
