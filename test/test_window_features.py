@@ -68,3 +68,23 @@ def test_c262_poses_whose_window_the_model_does_not_integrate_are_left_out():
         assert np.isfinite(turning).all() and valid[far].mean() > 0.9, name
         fit = fit_residual_model([wheels_cut], samples, bound, options)
         assert fit.levels[2] > 0 and fit.inflation < 50.0, (name, fit.levels, fit.inflation)
+
+
+def test_c263_the_traced_residuals_leave_out_the_same_poses(monkeypatch):
+    """The residuals the tracing and the pose form read, on the same careless wheel stamps."""
+    from skidkin_ros.core.calibration.diagnosis import regression
+    from skidkin_ros.core.calibration.diagnosis.residuals import pose_residuals
+    drive, bound, options = _setup()
+    t = drive.wheels.t_ns
+    cuts = ((t < t[0] + 20e9) | (t > t[0] + 23e9), (t > t[0] + 5e9) & (t < t[-1] - 5e9))
+    clean_samples = pose_samples([drive], bound, options)
+    _, clean_valid = pose_residuals([drive], clean_samples, bound, options)
+    monkeypatch.setattr(regression, 'WINDOW_TERMS', False)
+    for keep in cuts:
+        careless = _keep_wheels(drive, keep)
+        samples, (_, window_valid, _, _) = _terms(careless, bound, options)
+        _, valid = pose_residuals([careless], samples, bound, options)
+        assert np.array_equal(valid, window_valid)   # one rule for both
+        assert valid.sum() < clean_valid.sum() - 10
+        fit = fit_residual_model([careless], samples, bound, options)
+        assert fit.levels[2] > 0 and fit.inflation < 50.0, (fit.levels, fit.inflation)

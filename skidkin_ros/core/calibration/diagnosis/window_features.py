@@ -30,15 +30,14 @@ import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.residuals import (base_rates, body_velocities,
-                                                              difference_operator, PoseSamples,
-                                                              truth_velocities)
+                                                              difference_operator, integrated,
+                                                              PoseSamples, truth_velocities)
 from skidkin_ros.core.calibration.engine import TwistSource
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics import residual
 from skidkin_ros.core.kinematics.augmented import BoundAugmented
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.odometry.integrator import rollout_stream, stream_twists
-from skidkin_ros.core.timeunits import s_to_ns
 
 __all__ = ['window_terms']
 
@@ -64,27 +63,6 @@ def _at(t_query: np.ndarray, t_ref: np.ndarray, values: np.ndarray) -> np.ndarra
     f = np.clip((t_query - t_ref[i]) / span, 0.0, 1.0)
     shape = (-1,) + (1,) * (values.ndim - 1)
     return values[i] * (1.0 - f).reshape(shape) + values[i + 1] * f.reshape(shape)
-
-
-def _integrated(t_ns: np.ndarray, shift: int, t_wheels: np.ndarray, window_s: float,
-                max_dt_s: float) -> np.ndarray:
-    """Tell, per pose, whether the model is integrated over its whole window.
-
-    A window whose poses reach past the wheels' first or last stamp (the recording's, before
-    the source's time offset moves the model), or whose model poses (at the stamps less the
-    offset) span a step longer than ``max_dt_s`` (a gap the integrator does not cross), holds
-    poses where the model stands still while the ground truth moves: its target is not the
-    model's error, and its terms (integrated over the wheel steps) do not see that stretch.
-    """
-    half = s_to_ns(window_s)
-    first = t_ns[np.searchsorted(t_ns, t_ns - half, side='left')]    # the window's poses' ends
-    last = t_ns[np.searchsorted(t_ns, t_ns + half, side='right') - 1]
-    gaps = np.zeros(len(t_wheels), dtype=np.int64)   # gaps among the steps before each sample
-    gaps[1:] = np.cumsum(np.diff(t_wheels) * 1e-9 > max_dt_s)
-    k0 = np.clip(np.searchsorted(t_wheels, first - shift, side='right') - 1, 0,
-                 len(t_wheels) - 1)
-    k1 = np.clip(np.searchsorted(t_wheels, last - shift, side='left'), 0, len(t_wheels) - 1)
-    return (first >= t_wheels[0]) & (last <= t_wheels[-1]) & (gaps[k1] == gaps[k0])
 
 
 def window_terms(drives: Sequence[Drive], samples: PoseSamples, source: TwistSource,
@@ -123,9 +101,8 @@ def window_terms(drives: Sequence[Drive], samples: PoseSamples, source: TwistSou
         model_poses = _at(at, wheels.t_ns, poses)
         model, ok_model = body_velocities(t_ns, model_poses, window_s)
         target[rows] = truth - model
-        integrated = _integrated(t_ns.astype(np.int64), shift, wheels.t_ns, window_s,
-                                 options.max_dt_s)
-        valid[rows] = ok & ok_model & integrated
+        valid[rows] = ok & ok_model & integrated(t_ns, shift, wheels.t_ns, window_s,
+                                                 options.max_dt_s)
         # the terms at every interval, held as the integrator holds them
         _, _, dt_s = stream_twists(base, wheels.t_ns, wheels.omega_l, wheels.omega_r,
                                    options.max_dt_s, options.interval)
