@@ -35,7 +35,7 @@ from skidkin_ros.core.odometry.integrator import rollout_stream
 from skidkin_ros.core.timeunits import s_to_ns
 from skidkin_ros.errors import DataError
 
-__all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'difference_operator',
+__all__ = ['COMPONENTS', 'PoseSamples', 'body_velocities', 'difference_operator', 'integrated',
            'truth_velocities', 'pose_samples',
            'model_rollouts', 'pose_residuals', 'reversal_speed', 'REVERSAL_SPAN_RAD']
 
@@ -153,6 +153,28 @@ def truth_velocities(drive: Drive, half_window_s: float
     return t_ns, twist, valid
 
 
+def integrated(t_ns: np.ndarray, shift: int, t_wheels: np.ndarray, window_s: float,
+               max_dt_s: float) -> np.ndarray:
+    """Tell, per pose, whether the model is integrated over its whole window.
+
+    A window whose poses reach past the wheels' first or last stamp (the recording's, before
+    the source's time offset moves the model), or whose model poses (at the stamps less the
+    offset) span a step longer than ``max_dt_s`` (a gap the integrator does not cross), holds
+    poses where the model stands still while the ground truth moves: its target is not the
+    model's error, and its terms (integrated over the wheel steps) do not see that stretch.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    half = s_to_ns(window_s)
+    first = t_ns[np.searchsorted(t_ns, t_ns - half, side='left')]    # the window's poses' ends
+    last = t_ns[np.searchsorted(t_ns, t_ns + half, side='right') - 1]
+    gaps = np.zeros(len(t_wheels), dtype=np.int64)   # gaps among the steps before each sample
+    gaps[1:] = np.cumsum(np.diff(t_wheels) * 1e-9 > max_dt_s)
+    k0 = np.clip(np.searchsorted(t_wheels, first - shift, side='right') - 1, 0,
+                 len(t_wheels) - 1)
+    k1 = np.clip(np.searchsorted(t_wheels, last - shift, side='left'), 0, len(t_wheels) - 1)
+    return (first >= t_wheels[0]) & (last <= t_wheels[-1]) & (gaps[k1] == gaps[k0])
+
+
 def _model_velocities(source: Any, drive: Drive, t_ns: np.ndarray,
                       half_window_s: float, max_dt_s: float, interval: str,
                       poses: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -169,7 +191,8 @@ def _model_velocities(source: Any, drive: Drive, t_ns: np.ndarray,
     at = np.asarray(t_ns, dtype=np.int64) - shift
     ref = wheels.t_ns
     model_poses = np.stack([np.interp(at, ref, poses[:, i]) for i in range(3)], axis=-1)
-    return body_velocities(t_ns, model_poses, half_window_s)
+    model, valid = body_velocities(t_ns, model_poses, half_window_s)
+    return model, valid & integrated(t_ns, shift, ref, half_window_s, max_dt_s)
 
 
 @dataclass(frozen=True)

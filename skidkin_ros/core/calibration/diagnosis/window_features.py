@@ -30,8 +30,8 @@ import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.residuals import (base_rates, body_velocities,
-                                                              difference_operator, PoseSamples,
-                                                              truth_velocities)
+                                                              difference_operator, integrated,
+                                                              PoseSamples, truth_velocities)
 from skidkin_ros.core.calibration.engine import TwistSource
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics import residual
@@ -101,7 +101,8 @@ def window_terms(drives: Sequence[Drive], samples: PoseSamples, source: TwistSou
         model_poses = _at(at, wheels.t_ns, poses)
         model, ok_model = body_velocities(t_ns, model_poses, window_s)
         target[rows] = truth - model
-        valid[rows] = ok & ok_model
+        valid[rows] = ok & ok_model & integrated(t_ns, shift, wheels.t_ns, window_s,
+                                                 options.max_dt_s)
         # the terms at every interval, held as the integrator holds them
         _, _, dt_s = stream_twists(base, wheels.t_ns, wheels.omega_l, wheels.omega_r,
                                    options.max_dt_s, options.interval)
