@@ -10,6 +10,7 @@ from typing import Any, Callable, Mapping, Sequence
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
+import numpy as np
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -140,3 +141,15 @@ class NodeRig:
 def best_effort_publisher(rig: NodeRig) -> Any:
     """Return a best-effort JointState publisher (like many drivers) on the rig's topic."""
     return rig.driver.create_publisher(JointState, 'joint_states', qos_profile_sensor_data)
+
+
+def assert_replay_matches(result: Any, expected: Any) -> None:
+    """Assert a replay through the node equals ``skidkin predict``'s prediction.
+
+    The stamps and the twists bit for bit; the poses to the rounding of the published
+    quaternion (1e-12).
+    """
+    assert np.array_equal(result.t_ns, expected.t_ns)
+    for published, c in ((result.vx, 0), (result.vy, 1), (result.wz, 2)):
+        assert np.array_equal(published, expected.twists[:, c])
+    np.testing.assert_allclose(result.poses, expected.poses, rtol=0, atol=1e-12)

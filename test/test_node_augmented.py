@@ -2,6 +2,7 @@
 
 import math
 
+from node_harness import assert_replay_matches
 import numpy as np
 import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
@@ -168,11 +169,7 @@ def test_node_runs_rate_dependent_extensions_bit_for_bit(tmp_path):
     path = write_params_file(tmp_path / 'rates.yaml', RATE_DEPENDENT, {'source': 'test'})
     expected = Odometer.from_config(OdometryConfig.from_file(path)).predict(wheels)
     result = replay_through_node(wheels, params_file=path)
-    assert np.array_equal(result.t_ns, expected.t_ns)
-    # twists bit for bit; poses to the rounding of the published quaternion
-    for published, c in ((result.vx, 0), (result.vy, 1), (result.wz, 2)):
-        assert np.array_equal(published, expected.twists[:, c])
-    np.testing.assert_allclose(result.poses, expected.poses, rtol=0, atol=1e-12)
+    assert_replay_matches(result, expected)   # twists bit for bit, poses to 1e-12
     # the rate terms matter: without them the forward speed differs
     plain = dict(RATE_DEPENDENT, **{'augmented.extensions': 'component_lags'})
     other = Odometer.from_config(OdometryConfig.from_file(write_params_file(
@@ -190,10 +187,7 @@ def test_node_runs_the_backlash_bit_for_bit(tmp_path):
     path = write_params_file(tmp_path / 'backlash.yaml', values, {'source': 'test'})
     expected = Odometer.from_config(OdometryConfig.from_file(path)).predict(wheels)
     result = replay_through_node(wheels, params_file=path)
-    assert np.array_equal(result.t_ns, expected.t_ns)
-    for published, c in ((result.vx, 0), (result.vy, 1), (result.wz, 2)):
-        assert np.array_equal(published, expected.twists[:, c])
-    np.testing.assert_allclose(result.poses, expected.poses, rtol=0, atol=1e-12)
+    assert_replay_matches(result, expected)   # twists bit for bit, poses to 1e-12
     # the play matters on this drive: without it the path goes elsewhere
     plain = dict(values, **{'augmented.extensions': 'lateral_skid, first_order_lag'})
     del plain['augmented.backlash.play_rad']

@@ -230,6 +230,7 @@ def test_the_coefficient_covariance_widens_the_published_covariance(tmp_path):
 
 @pytest.mark.ros
 def test_node_runs_the_residual_model_bit_for_bit_with_its_covariance(tmp_path):
+    from node_harness import assert_replay_matches
     from skidkin_ros.node.replay import replay_through_node
     wheels = simulate(SimConfig(duration_s=8.0, seed=8)).wheels
     rng = np.random.default_rng(5)
@@ -238,10 +239,7 @@ def test_node_runs_the_residual_model_bit_for_bit_with_its_covariance(tmp_path):
     path = _calibrated_file(tmp_path, values, _covariance(terms, 4e-4))
     expected = Odometer.from_config(OdometryConfig.from_file(path)).predict(wheels)
     result = replay_through_node(wheels, params_file=path)
-    assert np.array_equal(result.t_ns, expected.t_ns)
-    for published, c in ((result.vx, 0), (result.vy, 1), (result.wz, 2)):
-        assert np.array_equal(published, expected.twists[:, c])
-    np.testing.assert_allclose(result.poses, expected.poses, rtol=0, atol=1e-12)
+    assert_replay_matches(result, expected)   # twists bit for bit, poses to 1e-12
     np.testing.assert_array_equal(result.pose_cov, expected.pose_covariances)
     # the correction matters: the base model alone goes elsewhere
     base = predict_wheels(wheels, BASE, interval='ending')

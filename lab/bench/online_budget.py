@@ -90,12 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--learn-m', type=float, default=10.0)
     parser.add_argument('--set', action='append', default=[], metavar='online.NAME=VALUE')
     args = parser.parse_args(argv)
-    settings = {}
-    for item in args.set:
-        name, _, value = item.partition('=')
-        if not name.startswith('online.') or not value:
-            parser.error(f'--set {item!r}: expected online.NAME=VALUE')
-        settings[name] = float(value)
+    settings = study.online_settings(parser, args.set)
     fixed = study.calibrated_file()
     print(HEADER)
     for seed in args.seeds:

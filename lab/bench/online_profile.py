@@ -63,12 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
     parser.add_argument('--set', action='append', default=[], metavar='online.NAME=VALUE')
     args = parser.parse_args(argv)
-    settings = {}
-    for item in args.set:
-        name, _, value = item.partition('=')
-        if not name.startswith('online.') or not value:
-            parser.error(f'--set {item!r}: expected online.NAME=VALUE')
-        settings[name] = float(value)
+    settings = study.online_settings(parser, args.set)
     fixed = study.calibrated_file()
     for seed in args.seeds:
         print(profile(seed, fixed, settings), flush=True)

@@ -54,7 +54,8 @@ from skidkin_ros.sim.accuracy import increment_errors
 from skidkin_ros.sim.effects import make_effect
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate, Simulation
 
-__all__ = ['CASES', 'CaseResult', 'calibrated_file', 'run_case', 'run_study', 'table']
+__all__ = ['CASES', 'CaseResult', 'calibrated_file', 'online_settings', 'run_case', 'run_study',
+           'table']
 
 SLIP, YAW_SLIP = 0.25, 0.15
 PERIOD_M = 4.0
@@ -74,6 +75,17 @@ def _effects(case: str) -> tuple:
         return (make_effect('terrain_regime', SLIP, mode='alternate', period_m=PERIOD_M,
                             yaw=YAW_SLIP),)
     return ()
+
+
+def online_settings(parser, items: Sequence[str]) -> dict[str, float]:
+    """Return the benches' ``--set online.NAME=VALUE`` items as a dict (a parser error else)."""
+    settings = {}
+    for item in items:
+        name, _, value = item.partition('=')
+        if not name.startswith('online.') or not value:
+            parser.error(f'--set {item!r}: expected online.NAME=VALUE')
+        settings[name] = float(value)
+    return settings
 
 
 def calibrated_file(seeds: Sequence[int] = (101, 102), held_out: int = 103,

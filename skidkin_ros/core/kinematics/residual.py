@@ -39,7 +39,9 @@ The coefficients are fitted by Bayesian linear regression on the per-pose body-t
 
 The batch form (arrays) and the node's per-sample form (floats) run the same operations in the
 same order, term by term (no matrix product, no transcendental function), so they agree bit for
-bit.
+bit. This module stays over 500 lines for that reason: the library's terms, their gradients and
+the batch, per-sample and planned forms of the correction must change together; split across
+modules, a term edited in one would drift from its float form in another.
 """
 
 from __future__ import annotations
