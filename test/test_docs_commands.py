@@ -9,7 +9,8 @@ from skidkin_ros.cli.main import build_parser
 from skidkin_ros.core.odometry.config import parameter_schema
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = [ROOT / 'README.md'] + sorted((ROOT / 'docs').glob('*.md'))
+# docs/ and its studies/ (the lab's record behind a product page): every page is checked.
+PAGES = [ROOT / 'README.md'] + sorted((ROOT / 'docs').rglob('*.md'))
 # Folders a path named in the docs starts from (the package's own folders are named without it).
 OWN_FOLDERS = ('skidkin_ros', 'core', 'adapters', 'node', 'cli', 'report', 'sim', 'lab', 'test',
                'config', 'launch', 'data', 'docs')
@@ -63,7 +64,7 @@ def _path_problems(text: str, folder: Path) -> list[str]:
     return problems
 
 
-@pytest.mark.parametrize('page', PAGES, ids=lambda p: p.name)
+@pytest.mark.parametrize('page', PAGES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_skidkin_command_in_the_docs_has_the_flags_shown(page):
     assert _command_problems(_text(page)) == [], page.name
 
@@ -90,7 +91,7 @@ def test_every_node_parameter_set_on_a_command_line_in_the_docs_exists():
                 assert argument in arguments, f'{page.name}: the launch file has no {argument}'
 
 
-@pytest.mark.parametrize('page', PAGES, ids=lambda p: p.name)
+@pytest.mark.parametrize('page', PAGES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_path_the_docs_name_exists(page):
     assert _path_problems(page.read_text(encoding='utf-8'), page.parent) == [], page.name
 
