@@ -53,3 +53,11 @@ def test_the_readme_starts_with_the_two_commands_and_stays_short():
     assert lines[2] == '```bash'
     assert lines[3].startswith('make demo') and lines[4].startswith('make test')
     assert len(lines) <= 200
+
+
+def test_every_online_parameter_is_named_on_the_online_page():
+    """A field engineer finds each ``online.*`` parameter on the page that says what it is for."""
+    from skidkin_ros.core.odometry.reference import ONLINE_SPECS
+    page = (ROOT / 'docs' / 'online-calibration.md').read_text()
+    missing = [s.name for s in ONLINE_SPECS if f'`online.{s.name}`' not in page]
+    assert missing == [], f'docs/online-calibration.md does not name online.{missing}'
