@@ -144,7 +144,6 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         self._offset_ns = params.time_offset_ns
         self._min_period_ns = NS_PER_S / params.max_rate
         self._restart_buffers()
-        self._last_arrival_ns: int | None = None
 
     # ------------------------------------------------------------------ state
     def _restart_buffers(self) -> None:
@@ -169,6 +168,9 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         self._last_seen: tuple[int, float, float, float] | None = None
         self._recognised_m = -math.inf
         self._last_accepted_wheel_ns: int | None = None
+        # the last stamp accepted on arrival; forgotten with the buffers, or a clock that
+        # jumped back (a bag replayed in a loop) would refuse every later pose as older
+        self._last_arrival_ns: int | None = None
 
     def restart(self) -> None:
         """Forget the buffered wheel steps and reference poses (a reset); keep the grounds."""

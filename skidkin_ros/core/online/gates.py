@@ -90,10 +90,12 @@ class ReferenceGates:
             return ReferenceStatus.NON_FINITE
         if t_ns <= 0:
             return ReferenceStatus.BAD_STAMP
-        if ((params.reference_frame_id and frame_id != params.reference_frame_id)
-                or (params.reference_child_frame_id
-                    and child_frame_id != params.reference_child_frame_id)):
+        if not params.frames_match(frame_id, child_frame_id):
             return ReferenceStatus.FRAME
+        if (self._last_t1 is not None and t_ns - self._offset_ns - self._last_t1
+                > max(params.max_gap, 1.0) * NS_PER_S + abs(self._offset_ns)):
+            # a stamp hours ahead of the wheels, accepted, would refuse every later pose
+            return ReferenceStatus.FUTURE
         last = self._last_arrival_ns
         if last is not None:
             if t_ns <= last:
