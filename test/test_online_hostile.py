@@ -234,7 +234,7 @@ def test_n179_save_calibration_where_a_user_points_it(tmp_path, monkeypatch):
 
 
 def _two_frame_bag(tmp_path, sim):
-    """A bag whose reference topic carries a second publisher's poses: 'map', 0.3 m off."""
+    """Write a bag whose reference topic carries a second publisher's poses: 'map', 0.3 m off."""
     path = tmp_path / 'drive'
     rows = []
     with BagWriter(path) as writer:
@@ -279,4 +279,4 @@ def test_c275_predict_applies_the_reference_frames_of_the_parameters_file(tmp_pa
     assert main(['predict', str(bag), '--params', str(none), '--reference', '/ref',
                  '--out', str(tmp_path / 'none.csv')]) == 0
     said = capsys.readouterr().out
-    assert "no pose on /ref is in the configured frames" in said and "'map'" in said
+    assert 'no pose on /ref is in the configured frames' in said and "'map'" in said
