@@ -280,3 +280,30 @@ def test_c275_predict_applies_the_reference_frames_of_the_parameters_file(tmp_pa
                  '--out', str(tmp_path / 'none.csv')]) == 0
     said = capsys.readouterr().out
     assert 'no pose on /ref is in the configured frames' in said and "'map'" in said
+
+
+@pytest.mark.ros
+def test_n177_two_publishers_in_two_frames_on_one_topic_are_said():
+    for configured in (False, True):
+        flat = {**FILE, 'online.reference_frame_id': 'odom_lidar'} if configured else FILE
+        rig = NodeRig(flat)
+        try:
+            ref_pub = rig.driver.create_publisher(Odometry, 'reference/odom', RELIABLE)
+            other = rig.driver.create_publisher(Odometry, 'reference/odom', RELIABLE)
+            rig.wait_matched(ref_pub)
+            rig.wait_matched(other)
+            t0 = time.time_ns() - 60 * 1_000_000_000
+            rows = _drive_node(rig, ref_pub, t0, 40)
+            for t, x, y, yaw in rows[1:]:   # a second localiser, 0.2 m off, in 'map'
+                before = rig.node.counters['reference_received']
+                other.publish(_reference_msg(t + 25_000_000, x + 0.2, y,
+                                             yaw_to_quaternion(yaw), frame='map'))
+                rig.spin_until(lambda: rig.node.counters['reference_received'] > before,
+                               what='reference pose')
+            warned = rig.node.last_warnings.get('reference_frames_mixed', '')
+            if configured:   # the frame rule refuses 'map': nothing to say beyond the count
+                assert warned == '' and rig.node.counters['reference_frame'] == len(rows) - 1
+            else:   # before: nothing said, both learned from
+                assert "'map'" in warned and 'online.reference_frame_id' in warned
+        finally:
+            rig.close()

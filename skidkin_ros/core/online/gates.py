@@ -53,6 +53,7 @@ class ReferenceGates:
     _gyro_refused = 0
     _gyro_epoch = 0
     last_refusal = ''   # the cause of the last reference pose not used (/diagnostics)
+    _frames_seen: tuple[str, str] | None = None   # frames of the last pose accepted on arrival
     gyro_refused_ns = -(1 << 62)   # wheel time of the last pose the gyro refused
 
     def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
@@ -69,6 +70,7 @@ class ReferenceGates:
                         'the parameters learned so far')
             return status, False
         self._last_arrival_ns = t_ns
+        self._note_frames(frame_id, child_frame_id)
         bx, by, byaw = base_pose(x, y, yaw, self.params)
         item = (t_ns - self._offset_ns, bx, by, byaw)
         before = self.version
@@ -106,6 +108,19 @@ class ReferenceGates:
             return ReferenceStatus.NON_FINITE
         return ReferenceStatus.ACCEPTED
 
+    def _note_frames(self, frame_id: str, child_frame_id: str) -> None:
+        """Warn when the poses' frames change and no frame is configured (two publishers?)."""
+        frames, seen = (frame_id, child_frame_id), self._frames_seen
+        self._frames_seen = frames
+        params = self.params
+        if (seen is not None and frames != seen
+                and not (params.reference_frame_id and params.reference_child_frame_id)):
+            self._warn('reference_frames_mixed', f'reference poses in frame_id/child_frame_id '
+                       f'{seen[0][:64]!r}/{seen[1][:64]!r} then {frames[0][:64]!r}/'
+                       f'{frames[1][:64]!r} (two publishers on one topic?): the learner cannot '
+                       'tell them apart; set online.reference_frame_id and '
+                       'reference_child_frame_id to the frames to learn from')
+
     def _count(self, status: ReferenceStatus, message: str) -> None:
         self.counters[status.value] += 1
         self.last_refusal = status.value
@@ -119,7 +134,8 @@ class ReferenceGates:
         """Judge a reference pose the wheels now cover; use it if it is good."""
         if not self._t1 or t_ns <= self._steps.first_start():
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
-                        'step kept (time_offset wrong, or wheel data missing)')
+                        'step kept: normal for the first pose after a start or a change of '
+                        'online.*; if it goes on, time_offset is wrong or wheel data missing')
             return
         seen, self._last_seen = self._last_seen, (t_ns, x, y, yaw)
         if seen is not None and seen[1:] == (x, y, yaw):
