@@ -60,7 +60,9 @@ def test_n176_a_reference_stamped_hours_ahead_is_refused_and_learning_goes_on():
     assert clean.counters['online_segments'] >= 8
     hostile = rows[:60] + [(rows[59][0] + HOURS_3_NS, *rows[59][1:])] + rows[60:200] + [
         ((2 ** 31 - 1) * 1_000_000_000, *rows[199][1:])] + rows[200:]
-    odometer = online_odometer(OdometryConfig.from_flat(FILE))
+    said = []
+    odometer = online_odometer(OdometryConfig.from_flat(FILE),
+                               warn=lambda cause, message, error=False: said.append(message))
     # each arrives with its neighbours (a publisher's clock glitch)
     poses = _stream(odometer, sim, hostile, [row[0] for row in rows[:60]] + [rows[59][0]]
                     + [row[0] for row in rows[60:200]] + [rows[199][0]]
@@ -71,6 +73,7 @@ def test_n176_a_reference_stamped_hours_ahead_is_refused_and_learning_goes_on():
     assert odometer.counters['online_segments'] == clean.counters['online_segments']
     assert np.array_equal(poses, expected)
     assert odometer.learner.state() == 'learning'
+    assert any('10800.' in m and 's ahead of the last wheel sample' in m for m in said), said
 
 
 def _reference_msg(t_ns, x, y, q, frame='odom_lidar', child='base_link'):

@@ -65,9 +65,12 @@ class ReferenceGates:
         """
         status = self._arrival(t_ns, x, y, yaw, frame_id, child_frame_id)
         if status is not ReferenceStatus.ACCEPTED:
-            self._count(status, f'reference pose {status.value.removeprefix("reference_")}'
-                        f' (stamp {t_ns * 1e-9:.3f} s): not used; the odometry goes on with '
-                        'the parameters learned so far')
+            why = status.value.removeprefix('reference_')
+            if status is ReferenceStatus.FUTURE:
+                why = (f'{(t_ns - self._offset_ns - self._last_t1) * 1e-9:.3f} s ahead of the '
+                       'last wheel sample (its clock ahead, or no wheel data for that long)')
+            self._count(status, f'reference pose {why} (stamp {t_ns * 1e-9:.3f} s): not used; '
+                        'the odometry goes on with the parameters learned so far')
             return status, False
         self._last_arrival_ns = t_ns
         self._note_frames(frame_id, child_frame_id)
