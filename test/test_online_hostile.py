@@ -310,3 +310,23 @@ def test_n177_two_publishers_in_two_frames_on_one_topic_are_said():
                 assert "'map'" in warned and 'online.reference_frame_id' in warned
         finally:
             rig.close()
+
+
+def test_c276_a_robot_carried_with_its_wheels_still_declares_no_grounds():
+    sim = simulate(SimConfig(duration_s=90.0, seed=44))
+    wheels, rows = sim.wheels, _rows(sim)
+    lifted, set_down = wheels.t_ns[0] + 30 * 1_000_000_000, wheels.t_ns[0] + 55 * 1_000_000_000
+    still = (wheels.t_ns >= lifted) & (wheels.t_ns < set_down)
+    carried = type(wheels)(wheels.t_ns, np.where(still, 0.0, wheels.omega_l),
+                           np.where(still, 0.0, wheels.omega_r))
+    odometer = online_odometer(OdometryConfig.from_flat(FILE))
+    poses = odometer.predict(carried, reference=sim.truth_at(np.array([r[0] for r in rows])))
+    assert np.all(np.isfinite(poses.poses))
+    learner = odometer.learner
+    # 25 s carried: the wheels say nothing about the ground (before: 30-34 'changes of ground'
+    # and the bank full of 4 grounds, remembered ones forgotten); the straddling segment at
+    # most one
+    assert odometer.counters['online_wheels_still'] >= 20
+    assert odometer.counters['online_change'] <= 1 and len(learner.grounds) <= 2
+    for name, value in learner.values.items():
+        assert value == pytest.approx(DEFAULT_TRUE_PARAMS[name], rel=0.03), name

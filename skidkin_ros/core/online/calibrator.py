@@ -317,6 +317,15 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         if self.options.too_still(b.path_m - a.path_m, b.yaw - a.yaw):
             self.counters['online_still'] += 1
             return
+        wheels = self._wheel_motion(a.t_ns, b.t_ns)
+        if wheels is not None and self.options.too_still(*wheels):
+            # no parameters make still wheels move the robot (the twist is J(k) times the
+            # speeds): nothing to learn, and no change of ground to declare
+            self.counters['online_wheels_still'] += 1
+            self._warn('online_wheels_still', f'the reference moved {b.path_m - a.path_m:.2f} m '
+                       f'/ {b.yaw - a.yaw:+.2f} rad while the wheels did not (robot carried, or '
+                       'sliding with its wheels locked): not learned')
+            return
         seg = self._segment(a, b)
         if seg is None:
             self.counters['online_wheel_gap'] += 1
