@@ -17,7 +17,7 @@ def quaternion_to_yaw(x: float, y: float, z: float, w: float) -> float:
     """Return the yaw (rad, in [-pi, pi]) of a quaternion; roll and pitch are ignored.
 
     The formula holds for unit quaternions: one off by more than 1e-6 in squared norm is
-    normalized first (scaled by 0.5 it read a 90 degree turn as 19 degrees); a zero or
+    normalized first (scaled by 0.5 it read a 90 degree turn as 18 degrees); a zero or
     non-finite one has no yaw: NaN, which every reader refuses as a non-finite pose.
     """
     norm2 = x * x + y * y + z * z + w * w
