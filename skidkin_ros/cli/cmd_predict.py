@@ -8,9 +8,12 @@ import dataclasses
 import io
 from pathlib import Path
 
+import numpy as np
+from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.sources import is_table, load_source, SourceOptions
 from skidkin_ros.atomic import atomic_write_text, check_writable
 from skidkin_ros.cli.common import add_source_args, print_notes, say, source_options
+from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.odometry.config import (check_model_given, default_parameters_warning,
                                               OdometryConfig)
 from skidkin_ros.core.odometry.controller import ControllerGeometry
@@ -87,9 +90,14 @@ def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str,
     _check_gyro(config, loaded.drives)
     drive = loaded.drives[0]
     wheels = drive.wheels
+    reference, refused = drive.truth, 0
+    if args.reference is not None:
+        reference, refused, config = _frames_checked(args.source, args.reference, reference,
+                                                     config)
     odometer = online_odometer(config)
+    odometer.counters['reference_frame'] += refused
     # The reader applied the wheel-jump rule as the node does (encoder travel exempt).
-    pred = odometer.predict(wheels, imu=drive.imu, reference=drive.truth
+    pred = odometer.predict(wheels, imu=drive.imu, reference=reference
                             if args.reference is not None else None,
                             jumps_dropped=config['wheel_signal'] != 'velocity')
     if odometer.learner is not None:
@@ -109,6 +117,36 @@ def _predict_bag(args: argparse.Namespace, config: OdometryConfig) -> tuple[str,
                   f'{pose[2]:.9f},{twist[0]:.9f},{twist[1]:.9f},{twist[2]:.9f},'
                   f'{status.value},' + ','.join(repr(float(v)) for v in block) + '\n')
     return out.getvalue(), len(wheels)
+
+
+def _frames_checked(source: str, topic: str, track: PoseTrack, config: OdometryConfig
+                    ) -> tuple[PoseTrack, int, OdometryConfig]:
+    """Apply online.reference_frame_id / reference_child_frame_id as the node does.
+
+    The pose track carries no frames: the poses in other frames are dropped here (the node
+    refuses them on arrival, which changes nothing else), and the configuration handed to the
+    odometer keeps no frame rule (every pose left matches it). Returns the track, the poses
+    refused and that configuration.
+    """
+    online = config.online
+    if not (online.reference_frame_id or online.reference_child_frame_id):
+        return track, 0, config
+    with open_recording(source) as recording:
+        frames = recording.read_pose_frames(topic)
+    other = [t for t, frame, child in frames if not online.frames_match(frame, child)]
+    if len(other) == len(frames):
+        seen = sorted({f'{frame!r}/{child!r}' for _, frame, child in frames})[:3]
+        say(f'online calibration: no pose on {topic} is in the configured frames '
+            f'(online.reference_frame_id {online.reference_frame_id!r}, '
+            f'reference_child_frame_id {online.reference_child_frame_id!r}); the topic has '
+            f'frame_id/child_frame_id {", ".join(seen)}: nothing can be learned (fix the '
+            'parameters file, or leave them empty to take any frame)')
+    keep = ~np.isin(track.t_ns, np.array(other, dtype=np.int64))
+    kept = PoseTrack(track.t_ns[keep], track.x[keep], track.y[keep], track.yaw[keep],
+                     track.valid[keep])
+    anyframe = OdometryConfig.from_flat({**config.values, 'online.reference_frame_id': '',
+                                         'online.reference_child_frame_id': ''})
+    return kept, int(np.count_nonzero(~keep)), anyframe
 
 
 def run(args: argparse.Namespace) -> int:

@@ -28,7 +28,7 @@ WARN_CAUSES = ('non_finite', 'implausible', 'wheel_jump', 'older', 'gap', 'zero_
                'imu_bad_stamp', 'imu_future_stamp', 'imu_no_rate', 'imu_interval_stale',
                'reference_non_finite', 'reference_bad_stamp', 'reference_older',
                'reference_frame', 'reference_jump', 'reference_stall', 'online_inconsistent',
-               'online_nonfinite',
+               'online_nonfinite', 'reference_future',
                'stale_position', 'position_range', 'imu_clock_reset',
                'imu_interval_contradicts', 'imu_interval_clock_ahead')
 ERROR_CAUSES = ('non_finite_state', 'non_finite_output', 'callback_error')

@@ -47,6 +47,14 @@ class PosesMixin:
         xyyaw = xyyaw[keep]
         return PoseTrack(t[keep], xyyaw[:, 0], xyyaw[:, 1], np.unwrap(xyyaw[:, 2]))
 
+    def read_pose_frames(self, topic: str) -> list[tuple[int, str, str]]:
+        """Return (stamp ns, header.frame_id, child_frame_id) of every pose on ``topic``.
+
+        PoseStamped and PoseWithCovarianceStamped have no child frame: ''.
+        """
+        return [(stamp_ns(msg.header), str(msg.header.frame_id),
+                 str(getattr(msg, 'child_frame_id', ''))) for _, msg in self.messages(topic)]
+
     # -- extrinsic -------------------------------------------------------------------------------
     def read_extrinsic(self, base_frame: str, lidar_frame: str, topic: str = '/tf_static'
                        ) -> np.ndarray | None:

@@ -165,6 +165,12 @@ class OnlineParams:
     def time_offset_ns(self) -> int:
         return s_to_ns(self.time_offset)
 
+    def frames_match(self, frame_id: str, child_frame_id: str) -> bool:
+        """Return whether a pose's frames are the configured ones (empty: any)."""
+        return ((not self.reference_frame_id or frame_id == self.reference_frame_id)
+                and (not self.reference_child_frame_id
+                     or child_frame_id == self.reference_child_frame_id))
+
 
 assert ({f.name for f in fields(OnlineParams)}
         == set(_ATTR.values()) | {'enabled', 'reference_frame_id', 'reference_child_frame_id'})
@@ -176,6 +182,7 @@ class ReferenceStatus(enum.Enum):
     ACCEPTED = 'reference_accepted'          # used: a segment end, a window, or the next start
     NON_FINITE = 'reference_non_finite'      # NaN or inf in the pose: refused
     BAD_STAMP = 'reference_bad_stamp'        # zero or negative stamp: refused
+    FUTURE = 'reference_future'              # max_gap (>= 1 s) ahead of the wheels
     OLDER = 'reference_older'                # not after the last accepted stamp: refused
     RATE_LIMITED = 'reference_rate_limited'  # closer than 1/max_rate to the last one: dropped
     FRAME = 'reference_frame'                # frame_id or child_frame_id not the configured one

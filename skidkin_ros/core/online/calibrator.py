@@ -144,7 +144,6 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         self._offset_ns = params.time_offset_ns
         self._min_period_ns = NS_PER_S / params.max_rate
         self._restart_buffers()
-        self._last_arrival_ns: int | None = None
 
     # ------------------------------------------------------------------ state
     def _restart_buffers(self) -> None:
@@ -169,6 +168,9 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         self._last_seen: tuple[int, float, float, float] | None = None
         self._recognised_m = -math.inf
         self._last_accepted_wheel_ns: int | None = None
+        # the last stamp accepted on arrival; forgotten with the buffers, or a clock that
+        # jumped back (a bag replayed in a loop) would refuse every later pose as older
+        self._last_arrival_ns: int | None = None
 
     def restart(self) -> None:
         """Forget the buffered wheel steps and reference poses (a reset); keep the grounds."""
@@ -314,6 +316,15 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         """One learning segment: gates, change detection, the update (module docstring)."""
         if self.options.too_still(b.path_m - a.path_m, b.yaw - a.yaw):
             self.counters['online_still'] += 1
+            return
+        wheels = self._wheel_motion(a.t_ns, b.t_ns)
+        if wheels is not None and self.options.too_still(*wheels):
+            # no parameters make still wheels move the robot (the twist is J(k) times the
+            # speeds): nothing to learn, and no change of ground to declare
+            self.counters['online_wheels_still'] += 1
+            self._warn('online_wheels_still', f'the reference moved {b.path_m - a.path_m:.2f} m '
+                       f'/ {b.yaw - a.yaw:+.2f} rad while the wheels did not (robot carried, or '
+                       'sliding with its wheels locked): not learned')
             return
         seg = self._segment(a, b)
         if seg is None:

@@ -53,6 +53,7 @@ class ReferenceGates:
     _gyro_refused = 0
     _gyro_epoch = 0
     last_refusal = ''   # the cause of the last reference pose not used (/diagnostics)
+    _frames_seen: tuple[str, str] | None = None   # frames of the last pose accepted on arrival
     gyro_refused_ns = -(1 << 62)   # wheel time of the last pose the gyro refused
 
     def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
@@ -64,11 +65,15 @@ class ReferenceGates:
         """
         status = self._arrival(t_ns, x, y, yaw, frame_id, child_frame_id)
         if status is not ReferenceStatus.ACCEPTED:
-            self._count(status, f'reference pose {status.value.removeprefix("reference_")}'
-                        f' (stamp {t_ns * 1e-9:.3f} s): not used; the odometry goes on with '
-                        'the parameters learned so far')
+            why = status.value.removeprefix('reference_')
+            if status is ReferenceStatus.FUTURE:
+                why = (f'{(t_ns - self._offset_ns - self._last_t1) * 1e-9:.3f} s ahead of the '
+                       'last wheel sample (its clock ahead, or no wheel data for that long)')
+            self._count(status, f'reference pose {why} (stamp {t_ns * 1e-9:.3f} s): not used; '
+                        'the odometry goes on with the parameters learned so far')
             return status, False
         self._last_arrival_ns = t_ns
+        self._note_frames(frame_id, child_frame_id)
         bx, by, byaw = base_pose(x, y, yaw, self.params)
         item = (t_ns - self._offset_ns, bx, by, byaw)
         before = self.version
@@ -90,10 +95,12 @@ class ReferenceGates:
             return ReferenceStatus.NON_FINITE
         if t_ns <= 0:
             return ReferenceStatus.BAD_STAMP
-        if ((params.reference_frame_id and frame_id != params.reference_frame_id)
-                or (params.reference_child_frame_id
-                    and child_frame_id != params.reference_child_frame_id)):
+        if not params.frames_match(frame_id, child_frame_id):
             return ReferenceStatus.FRAME
+        if (self._last_t1 is not None and t_ns - self._offset_ns - self._last_t1
+                > max(params.max_gap, 1.0) * NS_PER_S + abs(self._offset_ns)):
+            # a stamp hours ahead of the wheels, accepted, would refuse every later pose
+            return ReferenceStatus.FUTURE
         last = self._last_arrival_ns
         if last is not None:
             if t_ns <= last:
@@ -103,6 +110,19 @@ class ReferenceGates:
         if abs(x) > 1e9 or abs(y) > 1e9:
             return ReferenceStatus.NON_FINITE
         return ReferenceStatus.ACCEPTED
+
+    def _note_frames(self, frame_id: str, child_frame_id: str) -> None:
+        """Warn when the poses' frames change and no frame is configured (two publishers?)."""
+        frames, seen = (frame_id, child_frame_id), self._frames_seen
+        self._frames_seen = frames
+        params = self.params
+        if (seen is not None and frames != seen
+                and not (params.reference_frame_id and params.reference_child_frame_id)):
+            self._warn('reference_frames_mixed', f'reference poses in frame_id/child_frame_id '
+                       f'{seen[0][:64]!r}/{seen[1][:64]!r} then {frames[0][:64]!r}/'
+                       f'{frames[1][:64]!r} (two publishers on one topic?): the learner cannot '
+                       'tell them apart; set online.reference_frame_id and '
+                       'reference_child_frame_id to the frames to learn from')
 
     def _count(self, status: ReferenceStatus, message: str) -> None:
         self.counters[status.value] += 1
@@ -117,7 +137,8 @@ class ReferenceGates:
         """Judge a reference pose the wheels now cover; use it if it is good."""
         if not self._t1 or t_ns <= self._steps.first_start():
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
-                        'step kept (time_offset wrong, or wheel data missing)')
+                        'step kept: normal for the first pose after a start or a change of '
+                        'online.*; if it goes on, time_offset is wrong or wheel data missing')
             return
         seen, self._last_seen = self._last_seen, (t_ns, x, y, yaw)
         if seen is not None and seen[1:] == (x, y, yaw):

@@ -8,6 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from skidkin_ros.atomic import check_writable
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
 from skidkin_ros.errors import OutputError
@@ -46,11 +47,13 @@ def save_learned(config: OdometryConfig, learner: OnlineCalibrator, path: str | 
     and when it was learned (the reference, the distance, the ground).
     """
     now = datetime.datetime.now(datetime.timezone.utc)
-    target = Path(path) if str(path) else Path.cwd() / now.strftime(
-        'skidkin_online_%Y%m%dT%H%M%SZ.yaml')
-    if target.exists():
+    # '~' expanded: a ROS parameter reaches the node as typed, no shell expands it
+    target = Path(path).expanduser() if str(path) else _default_target(now)
+    if target.exists() and not target.is_dir():
         raise OutputError(f'{target} exists and is never overwritten (it may be the file the '
                           'node loaded); set online.save_path to a new file name')
+    # a folder, a missing folder, one not writable: said in the node's terms, before writing
+    check_writable(target, False, 'online.save_path')
     summary = learner.summary()
     prov = {'source': 'online calibration (skidkin_ros odom_node ~/save_calibration)',
             'date': now.isoformat(timespec='seconds'), 'model': learner.model.name,
@@ -63,3 +66,12 @@ def save_learned(config: OdometryConfig, learner: OnlineCalibrator, path: str | 
             'parameter_sigma': [float(v) for v in np.sqrt(np.diag(learner.covariance))]}
     prov.update(provenance or {})
     return write_params_file(target, learned_values(config, learner), prov)
+
+
+def _default_target(now: datetime.datetime) -> Path:
+    """Return skidkin_online_<UTC time>.yaml in the working directory, _2, _3... if taken."""
+    stem = now.strftime('skidkin_online_%Y%m%dT%H%M%SZ')
+    target, n = Path.cwd() / f'{stem}.yaml', 2
+    while target.exists() or target.is_symlink():   # two saves in one second
+        target, n = Path.cwd() / f'{stem}_{n}.yaml', n + 1
+    return target
