@@ -74,6 +74,7 @@ from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
 from skidkin_ros.core.online.gyrochoice import GyroChoice
+from skidkin_ros.core.online.heading import HeadingRule
 from skidkin_ros.core.online.holding import HoldingBlend
 from skidkin_ros.core.online.noise import NoiseLearner
 from skidkin_ros.core.online.refnoise import RefNoiseLearner
@@ -97,8 +98,8 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, RefNoiseLearner,
-                       ReferenceGates, GroundBank, WindowSolver):
+class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, ChangeLearner, NoiseLearner,
+                       RefNoiseLearner, ReferenceGates, GroundBank, WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by
@@ -217,6 +218,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
                                        'last_nees': self.last_nees,
                                        'last_refusal': self.last_refusal or 'none',
                                        'noise_scale': self.noise_scale,
+                                       'reference_heading': self.heading_state(),
                                        'hold_weight': self.hold_weight()}
         out['reference_sigma_xy'], out['reference_sigma_yaw'] = self.reference_sigmas()
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
@@ -314,6 +316,9 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         """One learning segment: gates, change detection, the update (module docstring)."""
         if self.options.too_still(b.path_m - a.path_m, b.yaw - a.yaw):
             self.counters['online_still'] += 1
+            return
+        if self._heading_constant_over(a.t_ns, a.yaw, b.yaw):   # heading.py
+            self.counters['online_heading_constant'] += 1
             return
         seg = self._segment(a, b)
         if seg is None:

@@ -56,11 +56,14 @@ class ReferenceGates:
     gyro_refused_ns = -(1 << 62)   # wheel time of the last pose the gyro refused
 
     def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
-                  child_frame_id: str = '') -> tuple[ReferenceStatus, bool]:
+                  child_frame_id: str = '', yaw_variance: float = math.nan
+                  ) -> tuple[ReferenceStatus, bool]:
         """Take a reference pose of the reference frame, stamped t_ns (reference clock).
 
-        Returns (status on arrival, whether the parameters changed). A pose accepted on arrival
-        may still be judged a gap, a jump or a stall once the wheels cover it (counted then).
+        ``yaw_variance``: its pose covariance's yaw entry (rad^2; NaN: none), read by the
+        heading rule (heading.py). Returns (status on arrival, whether the parameters changed).
+        A pose accepted on arrival may still be judged a gap, a jump or a stall once the wheels
+        cover it (counted then).
         """
         status = self._arrival(t_ns, x, y, yaw, frame_id, child_frame_id)
         if status is not ReferenceStatus.ACCEPTED:
@@ -68,6 +71,8 @@ class ReferenceGates:
                         f' (stamp {t_ns * 1e-9:.3f} s): not used; the odometry goes on with '
                         'the parameters learned so far')
             return status, False
+        if self._heading_refused(yaw_variance):   # counted there, logged once
+            return ReferenceStatus.NO_HEADING, False
         self._last_arrival_ns = t_ns
         bx, by, byaw = base_pose(x, y, yaw, self.params)
         item = (t_ns - self._offset_ns, bx, by, byaw)
@@ -118,6 +123,8 @@ class ReferenceGates:
         if not self._t1 or t_ns <= self._steps.first_start():
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
                         'step kept (time_offset wrong, or wheel data missing)')
+            return
+        if self._heading_flat(t_ns, yaw):   # a heading constant while the wheels turn
             return
         seen, self._last_seen = self._last_seen, (t_ns, x, y, yaw)
         if seen is not None and seen[1:] == (x, y, yaw):
