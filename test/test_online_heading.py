@@ -34,7 +34,7 @@ GNSS_COVARIANCE = np.diag([0.0004, 0.0004, 0.0016, 99999.0, 99999.0, 99999.0]).r
 
 @pytest.fixture(scope='module')
 def drive():
-    """A 60 s drive that turns, on a ground 25 % slower than the file's (there is a lot to learn)."""
+    """Return a 60 s drive that turns, on a ground 25 % slower than the file's."""
     effect = make_effect('terrain_regime', 0.25, mode='time', switch_frac=0.0, yaw=0.1)
     return simulate(SimConfig(duration_s=60.0, seed=21, effects=(effect,)))
 

@@ -9,8 +9,8 @@ the odometer in the order the node gets them, so the offline prediction and the 
 from __future__ import annotations
 
 import collections
-import itertools
 from dataclasses import dataclass
+import itertools
 from typing import Any
 
 import numpy as np

@@ -126,6 +126,7 @@ class OnlineParams:
     reference_frame_id: str = ''
     reference_child_frame_id: str = ''
     reference_heading: str = 'auto'
+    position_only: bool = False
     time_offset: float = 0.0
     mount_x: float = 0.0
     mount_y: float = 0.0
@@ -160,7 +161,8 @@ class OnlineParams:
             'reference_frame_id': str(values.get(prefix + 'reference_frame_id', '')),
             'reference_child_frame_id': str(values.get(prefix + 'reference_child_frame_id',
                                                        '')),
-            'reference_heading': str(values.get(prefix + 'reference_heading', 'auto'))}
+            'reference_heading': str(values.get(prefix + 'reference_heading', 'auto')),
+            'position_only': bool(values.get(prefix + 'position_only', False))}
         if kwargs['reference_heading'] not in HEADING_MODES:
             raise ParameterError(f"{prefix}reference_heading: {kwargs['reference_heading']!r} "
                                  f'is not one of {", ".join(HEADING_MODES)} (auto: the '
@@ -177,7 +179,7 @@ class OnlineParams:
 
 assert ({f.name for f in fields(OnlineParams)}
         == set(_ATTR.values()) | {'enabled', 'reference_frame_id', 'reference_child_frame_id',
-                                  'reference_heading'})
+                                  'reference_heading', 'position_only'})
 
 
 class ReferenceStatus(enum.Enum):

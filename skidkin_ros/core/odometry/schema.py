@@ -222,8 +222,12 @@ def _online_entries() -> list[SchemaEntry]:
                     "is the reference's heading measured? auto: not where the pose covariance's "
                     'yaw variance is 1 rad^2 or more (GNSS converters write 999 or 99999) or '
                     'where it stays constant while the wheels turn 0.3 rad; unmeasured '
-                    '(GNSS without heading): its poses are not learned from (counted '
+                    '(GNSS without heading): its heading is never learned from (counted '
                     'reference_no_heading)', choices=HEADING_MODES),
+        SchemaEntry('online.position_only', 'bool', False,
+                    'where the reference heading is not measured, learn from its positions '
+                    'alone (a base model; no change-of-ground detection; see '
+                    'online-calibration.md); off: hold the parameters in force'),
         SchemaEntry('online.save_path', 'string', '',
                     '~/save_calibration writes here (empty: skidkin_online_<date>.yaml in the '
                     'working directory); an existing file is never overwritten'),

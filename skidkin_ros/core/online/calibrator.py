@@ -77,6 +77,7 @@ from skidkin_ros.core.online.gyrochoice import GyroChoice
 from skidkin_ros.core.online.heading import HeadingRule
 from skidkin_ros.core.online.holding import HoldingBlend
 from skidkin_ros.core.online.noise import NoiseLearner
+from skidkin_ros.core.online.position import PositionLearner
 from skidkin_ros.core.online.refnoise import RefNoiseLearner
 from skidkin_ros.core.online.steps import WheelSteps
 from skidkin_ros.core.online.window import WindowSolver
@@ -98,8 +99,8 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, ChangeLearner, NoiseLearner,
-                       RefNoiseLearner, ReferenceGates, GroundBank, WindowSolver):
+class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, ChangeLearner,
+                       NoiseLearner, RefNoiseLearner, ReferenceGates, GroundBank, WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by

@@ -72,10 +72,14 @@ class ReferenceGates:
                         'the parameters learned so far')
             return status, False
         if self._heading_refused(yaw_variance):   # counted there, logged once
-            return ReferenceStatus.NO_HEADING, False
+            if not self.position_learning():
+                return ReferenceStatus.NO_HEADING, False
+            # the reference frame's position alone (position.py): its heading is not one
+            item = (t_ns - self._offset_ns, x, y, math.nan)
+        else:
+            bx, by, byaw = base_pose(x, y, yaw, self.params)
+            item = (t_ns - self._offset_ns, bx, by, byaw)
         self._last_arrival_ns = t_ns
-        bx, by, byaw = base_pose(x, y, yaw, self.params)
-        item = (t_ns - self._offset_ns, bx, by, byaw)
         before = self.version
         if self._last_t1 is not None and item[0] <= self._last_t1 and not self._pending:
             self._judge(*item)
@@ -123,6 +127,9 @@ class ReferenceGates:
         if not self._t1 or t_ns <= self._steps.first_start():
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
                         'step kept (time_offset wrong, or wheel data missing)')
+            return
+        if self.no_heading and self.position_learning():   # positions alone (position.py)
+            self._judge_position(t_ns, x, y)
             return
         if self._heading_flat(t_ns, yaw):   # a heading constant while the wheels turn
             return

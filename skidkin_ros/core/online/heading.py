@@ -19,9 +19,9 @@ yaw parameters are wrong, and the odometry is ruined within a minute (fault matr
 
 Once not measured, it stays so (the decision is logged once, with its cause, and named on
 /diagnostics as ``online.reference_heading``): every later pose is counted
-``reference_no_heading`` and not used, the state is ``holding``, and the odometry goes on with
-the parameters in force. Learning from the positions alone is not built (docs: "A reference
-without a heading").
+``reference_no_heading``. With ``online.position_only`` its position is learned from
+(:mod:`skidkin_ros.core.online.position`); without it (the default) the pose is not used, the
+state is ``holding``, and the odometry goes on with the parameters in force.
 """
 
 from __future__ import annotations
@@ -98,13 +98,13 @@ class HeadingRule:
         return True
 
     def _heading_constant_over(self, t_a_ns: int, yaw_a: float, yaw_b: float) -> bool:
-        """True (auto): the heading stayed exactly constant from t_a_ns on (a segment's start)."""
+        """Return True (auto) when the heading stayed exactly constant from t_a_ns on."""
         flat = self._flat
         return (self.params.reference_heading == 'auto' and flat is not None
                 and yaw_a == yaw_b and flat[0] <= t_a_ns)
 
     def _probe(self, ref) -> None:
-        """The segment in progress is not scored or solved over an exactly constant heading."""
+        """Leave out the segment in progress when its heading stayed exactly constant."""
         start = self._seg_start
         if start is not None and self._heading_constant_over(start.t_ns, start.yaw, ref.yaw):
             return
@@ -114,7 +114,9 @@ class HeadingRule:
         self.no_heading = cause
         self._warn(ReferenceStatus.NO_HEADING.value,
                    f'online calibration: the reference has no measured heading ({why}); its '
-                   'poses are not learned from (counted reference_no_heading), the odometry '
-                   'goes on with the parameters in force. A GNSS position-only reference cannot '
-                   'calibrate the model here; set online.reference_heading: measured only if '
-                   'the heading is real')
+                   'heading is never learned from (counted reference_no_heading). '
+                   + ('Learning from its positions alone (online.position_only).'
+                      if self.position_learning() else
+                      'Its poses are not used: the odometry goes on with the parameters in '
+                      'force (online.position_only: true learns from the positions alone). ')
+                   + 'Set online.reference_heading: measured only if the heading is real')
