@@ -15,10 +15,14 @@ import pytest
 from skidkin_ros.adapters.bag_reader import open_recording
 from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.cli.main import main
+from skidkin_ros.core.calibration.fitting import parameter_scales
 from skidkin_ros.core.drive import PoseTrack
+from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.online import online_odometer
+from skidkin_ros.core.online.position import MAX_POINTS, position_residuals, PositionSegment
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.node.conversions import ns_to_stamp
 from skidkin_ros.node.replay import replay_through_node
@@ -143,8 +147,10 @@ def test_n173_configured_unmeasured_and_a_bad_value():
 
 
 @pytest.mark.ros
-def test_n174_the_node_and_predict_agree_on_a_gnss_reference(tmp_path, drive):
-    path = write_params_file(tmp_path / 'gnss.yaml', FILE, {'source': 'test'})
+@pytest.mark.parametrize('position_only', [False, True])
+def test_n174_the_node_and_predict_agree_on_a_gnss_reference(tmp_path, drive, position_only):
+    path = write_params_file(tmp_path / 'gnss.yaml',
+                             {**FILE, 'online.position_only': position_only}, {'source': 'test'})
     config = OdometryConfig.from_file(path)
     reference = _gnss(drive, 99999.0)
     odometer = online_odometer(config)
@@ -152,9 +158,98 @@ def test_n174_the_node_and_predict_agree_on_a_gnss_reference(tmp_path, drive):
     result = replay_through_node(drive.wheels, params_file=path, reference=reference,
                                  timeout_s=120.0)
     assert_replay_matches(result, expected)
-    assert result.counters['reference_no_heading'] == odometer.counters['reference_no_heading']
+    assert np.array_equal(result.pose_cov, expected.pose_covariances)
+    for cause in ('reference_no_heading', 'reference_accepted', 'online_position_segments'):
+        assert result.counters.get(cause, 0) == odometer.counters[cause], cause
     assert result.counters['reference_no_heading'] == len(reference)
-    assert result.counters.get('online_segments', 0) == 0
+    assert result.counters.get('online_segments', 0) == 0   # never the full-pose residual
+    # learning from the positions moved the odometry; holding did not
+    off = Odometer.from_config(OdometryConfig.from_flat({**config.values,
+                                                         'online.enabled': False}))
+    moved = np.abs(expected.poses - off.predict(drive.wheels).poses).max()
+    assert (moved > 0.05) if position_only else (moved == 0.0)
+
+
+def _segment(sim, reference, t_a, t_b):
+    """Return a PositionSegment of the reference positions in [t_a, t_b] and the wheels."""
+    pick = np.flatnonzero((reference.t_ns >= t_a) & (reference.t_ns <= t_b))
+    wheels = sim.wheels
+    ends, lefts, rights, dts = [0], [], [], []
+    for a, b in zip(pick[:-1], pick[1:]):
+        inside = (wheels.t_ns > reference.t_ns[a]) & (wheels.t_ns <= reference.t_ns[b])
+        lefts.append(wheels.omega_l[inside])
+        rights.append(wheels.omega_r[inside])
+        dts.append(np.full(inside.sum(), 0.05))
+        ends.append(ends[-1] + int(inside.sum()))
+    return PositionSegment(np.stack([reference.x[pick], reference.y[pick]], axis=1),
+                           np.concatenate(lefts), np.concatenate(rights), np.concatenate(dts),
+                           np.array(ends), 0.0)
+
+
+def test_c273_the_position_residual_ignores_the_frame_and_sees_only_the_shape():
+    """The residual of positions alone: zero at the truth, blind to the heading and place."""
+    sim = simulate(SimConfig(duration_s=20.0, seed=7))
+    model = get_model('edd_asymmetric')
+    geometry = sim.config.geometry
+    k = model.vector(DEFAULT_TRUE_PARAMS, geometry)
+    scale = parameter_scales(model, geometry)
+    mount = (0.3, 0.1)
+    truth = sim.truth_at(sim.wheels.t_ns[::4])
+    c, s = np.cos(truth.yaw), np.sin(truth.yaw)
+    antenna = PoseTrack(truth.t_ns, truth.x + c * 0.3 - s * 0.1, truth.y + s * 0.3 + c * 0.1,
+                        np.zeros(len(truth)))
+    seg = _segment(sim, antenna, truth.t_ns[2], truth.t_ns[14])
+    noise = NoiseModel(1e-3, 1e-3, 1e-4, 1e-3)
+    errors, sens = position_residuals(model, k, geometry, [seg], mount, scale, noise, 0.02)
+    assert errors.shape == (1, 2 * MAX_POINTS) and sens.shape == (1, 2 * MAX_POINTS, 5)
+    # the simulator integrates its own way: the residual is a small fraction of one sigma
+    assert np.abs(errors).max() < 0.3
+    # the same positions turned by 1 rad and moved 100 m: the same residual (no heading used)
+    turn = np.array([[math.cos(1.0), -math.sin(1.0)], [math.sin(1.0), math.cos(1.0)]])
+    moved = PositionSegment(seg.u @ turn.T + [100.0, -50.0], seg.left, seg.right, seg.dt_s,
+                            seg.ends, 0.0)
+    errors_moved, sens_moved = position_residuals(model, k, geometry, [moved], mount, scale,
+                                                  noise, 0.02)
+    np.testing.assert_allclose(errors_moved, errors, atol=1e-6)
+    np.testing.assert_allclose(sens_moved, sens, atol=1e-6)
+    # a wrong speed scale (alpha 10 % high) shows: the path is too long for the positions
+    wrong = k.copy()
+    wrong[:2] *= 1.1
+    errors_wrong, _ = position_residuals(model, wrong, geometry, [seg], mount, scale, noise,
+                                         0.02)
+    assert np.linalg.norm(errors_wrong) > 3.0 * np.linalg.norm(errors)
+    # driving straight says nothing of the yaw parameters (the ICR's y_l, y_r)
+    straight = PositionSegment(np.stack([np.arange(9) * 0.05, np.zeros(9)], axis=1),
+                               np.full(80, 3.0), np.full(80, 3.0 * k[0] / k[1]),
+                               np.full(80, 0.05), np.arange(0, 81, 10), 0.0)
+    _, sens_straight = position_residuals(model, k, geometry, [straight], (0.0, 0.0), scale,
+                                          noise, 0.02)
+    info = sens_straight[0].T @ sens_straight[0]
+    names = list(model.param_names)
+    for name in ('y_l', 'y_r'):
+        assert info[names.index(name), names.index(name)] < 1e-6 * np.trace(info)
+
+
+def test_c274_position_only_learns_the_speed_of_a_new_ground(drive):
+    """A 25 % slower ground from a 5 Hz GNSS antenna 0.3 m ahead: alpha learned, no heading."""
+    t = np.arange(drive.start_ns, drive.end_ns, 200_000_000)
+    truth = drive.truth_at(t)
+    rng = np.random.default_rng(3)
+    n = len(t)
+    c, s = np.cos(truth.yaw), np.sin(truth.yaw)
+    antenna = PoseTrack(t, truth.x + 0.3 * c + rng.normal(0, 0.02, n),
+                        truth.y + 0.3 * s + rng.normal(0, 0.02, n), np.zeros(n),
+                        yaw_variance=np.full(n, 99999.0))
+    odometer, got = _run(drive, antenna, **{'online.position_only': True,
+                                            'online.mount_x': 0.3})
+    counters = odometer.counters
+    assert counters['online_position_segments'] >= 3 and counters['online_segments'] == 0
+    values = odometer.learner.values
+    for name in ('alpha_l', 'alpha_r'):   # most of the way from the file's to the truth's
+        share = (DEFAULT_TRUE_PARAMS[name] - values[name]) / (0.25 * DEFAULT_TRUE_PARAMS[name])
+        assert 0.6 < share < 1.2, (name, share)
+    assert odometer.learner.summary()['state'] == 'learning'
+    assert _final_error(drive, got) < 0.7 * _final_error(drive, _fixed(drive))
 
 
 def _gnss_msg(t_ns, x, y, covariance):

@@ -157,26 +157,23 @@ def position_residuals(model: KinematicModel, k: np.ndarray, geometry: Geometry,
         theta, shift = _align(q, seg.u)
         c, s = math.cos(theta), math.sin(theta)
         rot = np.array([[c, -s], [s, c]])
-        turned = q @ rot.T
-        # the covariance is rotation-invariant up to the frame: computed in the start frame,
-        # turned with the alignment
+        # everything in the segment's start frame, as aligned: the reference's frame and
+        # place do not matter
         cov = _path_covariance(q, seg, rollout, noise, sigma_xy)
-        big = np.kron(np.eye(m), rot)
-        cov = big @ cov @ big.T
         chol = np.linalg.cholesky(cov + 1e-12 * np.eye(2 * m))
-        residual = (seg.u - turned - shift).ravel()
-        # d(aligned)/dk by central differences of the rollout, rotated by the alignment
+        residual = ((seg.u - shift) @ rot - q).ravel()
+        # d(path)/dk by central differences of the rollout
         jac = np.empty((2 * m, p))
         for j in range(p):
             step = np.zeros(p)
             step[j] = DIFF_STEP * scale[j]
             plus = _rollout(model, k + step, geometry, seg, mount)[0]
             minus = _rollout(model, k - step, geometry, seg, mount)[0]
-            jac[:, j] = (((plus - minus) @ rot.T) / (2.0 * DIFF_STEP)).ravel()
+            jac[:, j] = ((plus - minus) / (2.0 * DIFF_STEP)).ravel()
         # the alignment's directions: translation x, y and rotation about the origin
         nuisance = np.zeros((m, 2, 3))
         nuisance[:, 0, 0] = nuisance[:, 1, 1] = 1.0
-        nuisance[:, 0, 2], nuisance[:, 1, 2] = -turned[:, 1], turned[:, 0]
+        nuisance[:, 0, 2], nuisance[:, 1, 2] = -q[:, 1], q[:, 0]
         nuisance_w = np.linalg.solve(chol, nuisance.reshape(2 * m, 3))
         jac_w = np.linalg.solve(chol, jac)
         e_w = np.linalg.solve(chol, residual)
