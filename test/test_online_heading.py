@@ -19,8 +19,8 @@ from skidkin_ros.core.calibration.fitting import parameter_scales
 from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
-from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.core.odometry.noise import NoiseModel
+from skidkin_ros.core.odometry.odometer import Odometer
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.core.online.position import MAX_POINTS, position_residuals, PositionSegment
 from skidkin_ros.errors import ConfigError

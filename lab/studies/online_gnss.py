@@ -25,9 +25,8 @@ from __future__ import annotations
 import math
 import time
 
+from lab.studies.online import _effects, _reference, _scores, _true_poses
 import numpy as np
-
-from lab.studies.online import _effects, _reference, _scores, _true_poses, calibrated_file
 from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer

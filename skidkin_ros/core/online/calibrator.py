@@ -298,6 +298,12 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
             self._steps.drop(n)
 
     # ------------------------------------------------------------------ segments
+    @staticmethod
+    def _merge_blocks(left: np.ndarray, right: np.ndarray, dt_s: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return :func:`_blocks` of the steps (for the mixins: position.py)."""
+        return _blocks(left, right, dt_s)
+
     def _segment(self, a: _Ref, b: _Ref) -> SegmentSet | None:
         """Return the segment a -> b as the calibrator's SegmentSet (one row), or None."""
         steps = self._steps.speeds(a.t_ns, b.t_ns)

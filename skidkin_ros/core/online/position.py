@@ -277,7 +277,7 @@ class PositionLearner:
             steps = self._steps.speeds(a[0], b[0])
             if steps is None:
                 return None
-            left, right, dt_s = _blocks(*steps)
+            left, right, dt_s = self._merge_blocks(*steps)
             lefts.append(left)
             rights.append(right)
             dts.append(dt_s)
@@ -323,8 +323,3 @@ class PositionLearner:
                                           self.noise, self.params.sigma_xy)
         self._solve(ground, window, errors, sens,
                     INFORMATION_FACTOR * self.params.min_information)
-
-
-def _blocks(left: np.ndarray, right: np.ndarray, dt_s: np.ndarray):
-    from skidkin_ros.core.online.calibrator import _blocks as blocks   # the same merge
-    return blocks(left, right, dt_s)
