@@ -142,6 +142,11 @@ def test_n173_configured_unmeasured_and_a_bad_value():
     status = odometer.reference_sample(1_000_000_000, 1.0, 2.0, 0.5)
     assert status == 'reference_no_heading'
     assert odometer.learner.summary()['reference_heading'] == 'unmeasured (configured)'
+    # sensor_msgs' 'no data' (-1) on the yaw variance: not a heading either
+    auto = online_odometer(OdometryConfig.from_flat(FILE))
+    assert auto.reference_sample(1_000_000_000, 1.0, 2.0, 0.0, yaw_variance=-1.0) == (
+        'reference_no_heading')
+    assert auto.learner.summary()['reference_heading'] == 'unmeasured (covariance)'
     with pytest.raises(ConfigError, match='reference_heading.*auto, measured, unmeasured'):
         OdometryConfig.from_flat({**FILE, 'online.reference_heading': 'yes'}).online
 

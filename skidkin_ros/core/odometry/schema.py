@@ -221,7 +221,8 @@ def _online_entries() -> list[SchemaEntry]:
         SchemaEntry('online.reference_heading', 'string', 'auto',
                     "is the reference's heading measured? auto: not where the pose covariance's "
                     'yaw variance is 1 rad^2 or more (GNSS converters write 999 or 99999) or '
-                    'where it stays constant while the wheels turn 0.3 rad; unmeasured '
+                    'negative, or where it stays constant while the wheels turn 0.3 rad; '
+                    'unmeasured '
                     '(GNSS without heading): its heading is never learned from (counted '
                     'reference_no_heading)', choices=HEADING_MODES),
         SchemaEntry('online.position_only', 'bool', False,

@@ -11,7 +11,8 @@ yaw parameters are wrong, and the odometry is ruined within a minute (fault matr
 * ``measured``: the heading is used as it comes (what the learner always did);
 * ``unmeasured``: no pose is learned from (counted ``reference_no_heading``);
 * ``auto`` (default): the heading is taken as not measured from the first pose whose yaw
-  variance (pose.covariance[35]) is ``HEADING_VARIANCE`` or more, or once the heading has stayed
+  variance (pose.covariance[35]) is ``HEADING_VARIANCE`` or more (or negative: the -1 that
+  sensor_msgs uses for "no data"), or once the heading has stayed
   exactly constant while the wheels turned ``HEADING_TURN`` (a measured heading is never
   bit-constant while the robot turns). Until then a segment over which the heading stayed
   exactly constant is not learned from (``online_heading_constant``): its start heading may be
@@ -61,9 +62,10 @@ class HeadingRule:
         if not self.no_heading:
             if mode == 'unmeasured':
                 self._declare_no_heading('configured', 'online.reference_heading is unmeasured')
-            elif yaw_variance >= HEADING_VARIANCE:   # NaN (none given) compares False
+            elif yaw_variance >= HEADING_VARIANCE or yaw_variance < 0.0:   # NaN: none given
                 self._declare_no_heading('covariance', f'its yaw variance is {yaw_variance:g} '
-                                         f'rad^2 (>= {HEADING_VARIANCE:g}: no heading)')
+                                         f'rad^2 (>= {HEADING_VARIANCE:g}, or negative as in '
+                                         'sensor_msgs\' "no data": no heading)')
         if not self.no_heading:
             return False
         self.counters[ReferenceStatus.NO_HEADING.value] += 1
