@@ -265,15 +265,21 @@ class BagWriter:
 
     def write_odometry(self, topic: str, t_ns: int, frame_id: str, child_frame_id: str,
                        x: float, y: float, yaw: float, stamp_ns: int | None = None,
-                       twist: Sequence[float] = (0.0, 0.0)) -> None:
-        """Write a planar nav_msgs/Odometry: pose (m, rad), twist (v m/s, w rad/s; default 0)."""
+                       twist: Sequence[float] = (0.0, 0.0),
+                       pose_covariance: Sequence[float] | None = None) -> None:
+        """Write a planar nav_msgs/Odometry: pose (m, rad), twist (v m/s, w rad/s; default 0).
+
+        ``pose_covariance``: its 36 entries (default zeros; a GNSS converter's: huge rotations).
+        """
         v, w = (float(value) for value in twist)
+        pose_cov = (np.zeros(36) if pose_covariance is None
+                    else np.asarray(pose_covariance, dtype=np.float64).reshape(36))
         twist = self._types['geometry_msgs/msg/Twist'](
             linear=self._vector3((v, 0.0, 0.0)), angular=self._vector3((0.0, 0.0, w)))
         msg = self._types['nav_msgs/msg/Odometry'](
             header=self._header(t_ns, stamp_ns, frame_id), child_frame_id=child_frame_id,
             pose=self._types['geometry_msgs/msg/PoseWithCovariance'](
-                pose=self._planar_pose(x, y, yaw), covariance=np.zeros(36)),
+                pose=self._planar_pose(x, y, yaw), covariance=pose_cov),
             twist=self._types['geometry_msgs/msg/TwistWithCovariance'](
                 twist=twist, covariance=np.zeros(36)))
         self.write_message(topic, t_ns, msg)

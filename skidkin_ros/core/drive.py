@@ -82,6 +82,9 @@ class PoseTrack:
 
     ``valid`` marks poses the ground-truth pipeline trusts (False: flagged, e.g. an implausible
     ICP increment); segments touching an invalid pose are excluded from fitting and evaluation.
+    ``yaw_variance`` (rad^2, NaN where not given): the heading variance the source published
+    (a pose covariance's yaw entry); online calibration reads it (GNSS: no heading), nothing
+    else does.
     """
 
     t_ns: np.ndarray
@@ -89,6 +92,7 @@ class PoseTrack:
     y: np.ndarray
     yaw: np.ndarray
     valid: np.ndarray | None = None
+    yaw_variance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = _as_time(self.t_ns, 'pose track')
@@ -102,6 +106,12 @@ class PoseTrack:
         valid = (np.ones(t.shape, dtype=bool) if self.valid is None
                  else np.asarray(self.valid, dtype=bool))
         object.__setattr__(self, 'valid', valid)
+        if self.yaw_variance is not None:
+            variance = np.asarray(self.yaw_variance, dtype=float)
+            if variance.shape != t.shape:
+                raise DataError(f'pose track: yaw_variance has shape {variance.shape}, stamps '
+                                f'have {t.shape}')
+            object.__setattr__(self, 'yaw_variance', variance)
         _check_sorted(t, 'pose track')
 
     def __len__(self) -> int:

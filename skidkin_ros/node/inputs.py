@@ -129,7 +129,11 @@ class InputCallbacks:
 
     @_guarded
     def _on_reference(self, msg: Odometry) -> None:
-        """Take a reference pose (online calibration): header.stamp, pose.pose, its frames."""
+        """Take a reference pose (online calibration): header.stamp, pose.pose, its frames.
+
+        And pose.covariance's yaw variance: a GNSS converter's huge one says the heading is not
+        measured (online.reference_heading auto).
+        """
         with self._lock:
             self.counters['reference_received'] += 1
             pose = msg.pose.pose
@@ -137,7 +141,7 @@ class InputCallbacks:
             yaw = quaternion_to_yaw(q.x, q.y, q.z, q.w)
             self._odometer.reference_sample(stamp_to_ns(msg.header.stamp), pose.position.x,
                                             pose.position.y, yaw, msg.header.frame_id,
-                                            msg.child_frame_id)
+                                            msg.child_frame_id, msg.pose.covariance[35])
 
     @_guarded
     def _on_left_wheel(self, msg: Float64) -> None:

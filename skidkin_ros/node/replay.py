@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import itertools
+import math
 import os
 from pathlib import Path
 import time
@@ -187,8 +188,10 @@ def _send_with_imu(harness: '_Harness', samples: WheelSamples, imu: ImuSamples,
 
 
 def _reference_msg(t_ns: int, x: float, y: float, yaw: float, frame_id: str,
-                   child_frame_id: str) -> Odometry:
+                   child_frame_id: str, yaw_variance: float = math.nan) -> Odometry:
     msg = Odometry()
+    if math.isfinite(yaw_variance):   # the heading's variance, as the recording had it
+        msg.pose.covariance[35] = float(yaw_variance)
     msg.header.stamp = ns_to_stamp(t_ns)
     msg.header.frame_id = frame_id
     msg.child_frame_id = child_frame_id
@@ -215,12 +218,14 @@ def _send_with_reference(harness: '_Harness', samples: WheelSamples, reference: 
                        'reference')
     counters = harness.odom.counters
     ref_t = np.asarray(reference.t_ns, dtype=np.int64)
+    variance = (np.full(len(ref_t), np.nan) if reference.yaw_variance is None
+                else reference.yaw_variance)
 
     def send_reference(k: int) -> None:
         target = counters['reference_received'] + 1
         harness.reference_publisher.publish(_reference_msg(
             int(ref_t[k]) + offset_ns, reference.x[k], reference.y[k], reference.yaw[k],
-            *frames))
+            *frames, float(variance[k])))
         harness.spin_until(lambda: counters['reference_received'] >= target,
                            max(deadline - time.monotonic(), 0.0), f'reference pose {k}')
 

@@ -23,14 +23,17 @@ class PosesMixin:
         """Return a planar track (x, y m; unwrapped yaw rad) from a pose topic.
 
         nav_msgs/Odometry, geometry_msgs/PoseStamped or geometry_msgs/PoseWithCovarianceStamped
-        (AMCL's amcl_pose, robot_localization's map pose); the covariance is not used.
+        (AMCL's amcl_pose, robot_localization's map pose); of the covariance only the yaw
+        variance is kept (``yaw_variance``; NaN for PoseStamped): online calibration reads it.
         """
         chosen = self.select((ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE), topic,
                              'ground truth')
         rows: list[tuple[int, float, float, float]] = []
+        variances: list[float] = []
         for _, msg in self.messages(chosen):
             # Odometry and PoseWithCovarianceStamped hold a PoseWithCovariance; PoseStamped a Pose.
-            pose = msg.pose.pose if hasattr(msg.pose, 'covariance') else msg.pose
+            covariance = getattr(msg.pose, 'covariance', None)
+            pose = msg.pose.pose if covariance is not None else msg.pose
             q = pose.orientation
             yaw = quaternion_to_yaw(q.x, q.y, q.z, q.w)
             row = (stamp_ns(msg.header), float(pose.position.x), float(pose.position.y), yaw)
@@ -38,6 +41,7 @@ class PosesMixin:
                 self._drop(chosen, 'non-finite pose')
                 continue
             rows.append(row)
+            variances.append(math.nan if covariance is None else float(covariance[35]))
         if not rows:
             raise RecordingError(f'ground truth: no valid pose on {chosen} '
                                  f'({self._reasons(chosen)})')
@@ -45,7 +49,8 @@ class PosesMixin:
         xyyaw = np.array([r[1:] for r in rows], dtype=np.float64)
         keep = self._keep_in_order(chosen, t)
         xyyaw = xyyaw[keep]
-        return PoseTrack(t[keep], xyyaw[:, 0], xyyaw[:, 1], np.unwrap(xyyaw[:, 2]))
+        return PoseTrack(t[keep], xyyaw[:, 0], xyyaw[:, 1], np.unwrap(xyyaw[:, 2]),
+                         yaw_variance=np.array(variances, dtype=np.float64)[keep])
 
     def read_pose_frames(self, topic: str) -> list[tuple[int, str, str]]:
         """Return (stamp ns, header.frame_id, child_frame_id) of every pose on ``topic``.

@@ -87,7 +87,7 @@ class Learner(Protocol):
     def wheel_break(self, t_ns: int) -> None: ...
 
     def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str,
-                  child_frame_id: str) -> tuple[Any, bool]: ...
+                  child_frame_id: str, yaw_variance: float) -> tuple[Any, bool]: ...
 
     def restart(self) -> None: ...
 
@@ -323,17 +323,20 @@ class Odometer:
                 self.covariance.cov = self.covariance.cov + error
 
     def reference_sample(self, t_ns: int, x: float, y: float, yaw: float,
-                         frame_id: str = '', child_frame_id: str = '') -> str:
+                         frame_id: str = '', child_frame_id: str = '',
+                         yaw_variance: float = math.nan) -> str:
         """Take a reference pose (online calibration); return its status's counter name.
 
-        Without a learner the pose is counted 'reference_ignored'. The odometry is never held
-        up or changed by the pose itself: only the parameters it teaches change.
+        ``yaw_variance``: the pose covariance's yaw entry (rad^2; NaN: none given). Without a
+        learner the pose is counted 'reference_ignored'. The odometry is never held up or
+        changed by the pose itself: only the parameters it teaches change.
         """
         learner = self.learner
         if learner is None:
             self.counters['reference_ignored'] += 1
             return 'reference_ignored'
-        status, changed = learner.reference(t_ns, x, y, yaw, frame_id, child_frame_id)
+        status, changed = learner.reference(t_ns, x, y, yaw, frame_id, child_frame_id,
+                                            yaw_variance)
         if changed:
             self.apply_learned()
         return status.value

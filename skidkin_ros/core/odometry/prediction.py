@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 from dataclasses import dataclass
+import itertools
 from typing import Any
 
 import numpy as np
@@ -53,12 +54,17 @@ class _ReferenceFeed:
         # odometer: the Odometer (typed loosely: the odometer module imports this one)
         self.odometer = odometer
         if track is None or len(track) == 0:
-            self.rows: list[tuple[int, float, float, float]] = []
+            self.rows: list[tuple] = []
         else:
+            variance = (np.full(len(track), np.nan) if track.yaw_variance is None
+                        else track.yaw_variance)
+            # the heading's variance as the node reads it from the pose covariance (NaN: none)
             self.rows = list(zip(np.asarray(track.t_ns, dtype=np.int64).tolist(),
                                  np.asarray(track.x, dtype=float).tolist(),
                                  np.asarray(track.y, dtype=float).tolist(),
-                                 np.asarray(track.yaw, dtype=float).tolist()))
+                                 np.asarray(track.yaw, dtype=float).tolist(),
+                                 itertools.repeat(''), itertools.repeat(''),
+                                 np.asarray(variance, dtype=float).tolist()))
         self.i = 0
 
     def until(self, t_ns: int) -> None:

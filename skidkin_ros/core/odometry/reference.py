@@ -27,9 +27,10 @@ from skidkin_ros.core.kinematics import residual
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.specs import check_value, INF, ParamSpec
 from skidkin_ros.core.timeunits import s_to_ns
+from skidkin_ros.errors import ParameterError
 
 __all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'residual_rate_terms', 'rate_extensions',
-           'OnlineParams', 'ReferenceStatus', 'base_pose']
+           'OnlineParams', 'ReferenceStatus', 'base_pose', 'HEADING_MODES']
 
 # Extensions of an augmented model that online calibration learns (with the base model's
 # parameters): twist-stage ones that depend on the wheel speeds and the base twist only
@@ -38,6 +39,8 @@ __all__ = ['ONLINE_SPECS', 'ONLINE_EXTENSIONS', 'residual_rate_terms', 'rate_ext
 ONLINE_EXTENSIONS: tuple[str, ...] = ('speed_slip', 'direction_asymmetry', 'lateral_skid',
                                       'icr_offset', 'ratio_yaw_slip', 'acceleration_slip',
                                       'residual_model')
+# online.reference_heading: is the reference's heading measured (heading.py)?
+HEADING_MODES = ('auto', 'measured', 'unmeasured')
 # The residual model's inputs that are rates of the base twist.
 RATE_INPUTS = ('dv', 'dw')
 
@@ -122,6 +125,8 @@ class OnlineParams:
     enabled: bool = False
     reference_frame_id: str = ''
     reference_child_frame_id: str = ''
+    reference_heading: str = 'auto'
+    position_only: bool = False
     time_offset: float = 0.0
     mount_x: float = 0.0
     mount_y: float = 0.0
@@ -155,7 +160,13 @@ class OnlineParams:
             'enabled': bool(values.get(prefix + 'enabled', False)),
             'reference_frame_id': str(values.get(prefix + 'reference_frame_id', '')),
             'reference_child_frame_id': str(values.get(prefix + 'reference_child_frame_id',
-                                                       ''))}
+                                                       '')),
+            'reference_heading': str(values.get(prefix + 'reference_heading', 'auto')),
+            'position_only': bool(values.get(prefix + 'position_only', False))}
+        if kwargs['reference_heading'] not in HEADING_MODES:
+            raise ParameterError(f"{prefix}reference_heading: {kwargs['reference_heading']!r} "
+                                 f'is not one of {", ".join(HEADING_MODES)} (auto: the '
+                                 "pose covariance's yaw variance and the poses decide)")
         for spec in ONLINE_SPECS:
             if prefix + spec.name in values:
                 kwargs[_ATTR[spec.name]] = check_value(spec, values[prefix + spec.name], prefix)
@@ -173,7 +184,8 @@ class OnlineParams:
 
 
 assert ({f.name for f in fields(OnlineParams)}
-        == set(_ATTR.values()) | {'enabled', 'reference_frame_id', 'reference_child_frame_id'})
+        == set(_ATTR.values()) | {'enabled', 'reference_frame_id', 'reference_child_frame_id',
+                                  'reference_heading', 'position_only'})
 
 
 class ReferenceStatus(enum.Enum):
@@ -192,6 +204,7 @@ class ReferenceStatus(enum.Enum):
     GYRO = 'reference_gyro'                  # its heading change disagrees with the gyro's
     UNCOVERED = 'reference_uncovered'        # no wheel data at its time: not used
     WHEEL_GAP = 'reference_wheel_gap'        # the wheels have a gap since the last one: restart
+    NO_HEADING = 'reference_no_heading'      # its heading is not measured: not learned from
 
 
 def base_pose(x: float, y: float, yaw: float,

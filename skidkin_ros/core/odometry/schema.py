@@ -19,7 +19,7 @@ from skidkin_ros.core.odometry.gyro_params import GYRO_MODES, GYRO_SPECS
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS
 from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TWIST_DIAGONAL,
                                              NOISE_SPECS)
-from skidkin_ros.core.odometry.reference import ONLINE_SPECS
+from skidkin_ros.core.odometry.reference import HEADING_MODES, ONLINE_SPECS
 from skidkin_ros.core.odometry.residual_uncertainty import coefficient_count, RESIDUAL_EXTENSION
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 
@@ -218,6 +218,17 @@ def _online_entries() -> list[SchemaEntry]:
                     'refuse reference poses whose header.frame_id differs (empty: any)'),
         SchemaEntry('online.reference_child_frame_id', 'string', '',
                     'refuse reference poses whose child_frame_id differs (empty: any)'),
+        SchemaEntry('online.reference_heading', 'string', 'auto',
+                    "is the reference's heading measured? auto: not where the pose covariance's "
+                    'yaw variance is 1 rad^2 or more (GNSS converters write 999 or 99999) or '
+                    'negative, or where it stays constant while the wheels turn 0.3 rad; '
+                    'unmeasured '
+                    '(GNSS without heading): its heading is never learned from (counted '
+                    'reference_no_heading)', choices=HEADING_MODES),
+        SchemaEntry('online.position_only', 'bool', False,
+                    'where the reference heading is not measured, learn from its positions '
+                    'alone (a base model; no change-of-ground detection; see '
+                    'online-calibration.md); off: hold the parameters in force'),
         SchemaEntry('online.save_path', 'string', '',
                     '~/save_calibration writes here (empty: skidkin_online_<date>.yaml in the '
                     'working directory); an existing file is never overwritten'),

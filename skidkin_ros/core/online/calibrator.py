@@ -74,8 +74,10 @@ from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
 from skidkin_ros.core.online.gyrochoice import GyroChoice
+from skidkin_ros.core.online.heading import HeadingRule
 from skidkin_ros.core.online.holding import HoldingBlend
 from skidkin_ros.core.online.noise import NoiseLearner
+from skidkin_ros.core.online.position import PositionLearner
 from skidkin_ros.core.online.refnoise import RefNoiseLearner
 from skidkin_ros.core.online.steps import WheelSteps
 from skidkin_ros.core.online.window import WindowSolver
@@ -97,8 +99,8 @@ STATES = ('holding', 'learning', 'adapting')
 # window re-solve (window.py) are mixins of OnlineCalibrator; their names are re-exported here.
 
 
-class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, RefNoiseLearner,
-                       ReferenceGates, GroundBank, WindowSolver):
+class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, ChangeLearner,
+                       NoiseLearner, RefNoiseLearner, ReferenceGates, GroundBank, WindowSolver):
     """Learns the parameters of ``model`` from a reference (see the module docstring).
 
     ``counters`` (shared with the odometer) counts every reference pose by
@@ -219,6 +221,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
                                        'last_nees': self.last_nees,
                                        'last_refusal': self.last_refusal or 'none',
                                        'noise_scale': self.noise_scale,
+                                       'reference_heading': self.heading_state(),
                                        'hold_weight': self.hold_weight()}
         out['reference_sigma_xy'], out['reference_sigma_yaw'] = self.reference_sigmas()
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
@@ -297,6 +300,12 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
             self._steps.drop(n)
 
     # ------------------------------------------------------------------ segments
+    @staticmethod
+    def _merge_blocks(left: np.ndarray, right: np.ndarray, dt_s: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return :func:`_blocks` of the steps (for the mixins: position.py)."""
+        return _blocks(left, right, dt_s)
+
     def _segment(self, a: _Ref, b: _Ref) -> SegmentSet | None:
         """Return the segment a -> b as the calibrator's SegmentSet (one row), or None."""
         steps = self._steps.speeds(a.t_ns, b.t_ns)
@@ -325,6 +334,9 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
             self._warn('online_wheels_still', f'the reference moved {b.path_m - a.path_m:.2f} m '
                        f'/ {b.yaw - a.yaw:+.2f} rad while the wheels did not (robot carried, or '
                        'sliding with its wheels locked): not learned')
+            return
+        if self._heading_constant_over(a.t_ns, a.yaw, b.yaw):   # heading.py
+            self.counters['online_heading_constant'] += 1
             return
         seg = self._segment(a, b)
         if seg is None:

@@ -57,11 +57,14 @@ class ReferenceGates:
     gyro_refused_ns = -(1 << 62)   # wheel time of the last pose the gyro refused
 
     def reference(self, t_ns: int, x: float, y: float, yaw: float, frame_id: str = '',
-                  child_frame_id: str = '') -> tuple[ReferenceStatus, bool]:
+                  child_frame_id: str = '', yaw_variance: float = math.nan
+                  ) -> tuple[ReferenceStatus, bool]:
         """Take a reference pose of the reference frame, stamped t_ns (reference clock).
 
-        Returns (status on arrival, whether the parameters changed). A pose accepted on arrival
-        may still be judged a gap, a jump or a stall once the wheels cover it (counted then).
+        ``yaw_variance``: its pose covariance's yaw entry (rad^2; NaN: none), read by the
+        heading rule (heading.py). Returns (status on arrival, whether the parameters changed).
+        A pose accepted on arrival may still be judged a gap, a jump or a stall once the wheels
+        cover it (counted then).
         """
         status = self._arrival(t_ns, x, y, yaw, frame_id, child_frame_id)
         if status is not ReferenceStatus.ACCEPTED:
@@ -72,10 +75,16 @@ class ReferenceGates:
             self._count(status, f'reference pose {why} (stamp {t_ns * 1e-9:.3f} s): not used; '
                         'the odometry goes on with the parameters learned so far')
             return status, False
+        if self._heading_refused(yaw_variance):   # counted there, logged once
+            if not self.position_learning():
+                return ReferenceStatus.NO_HEADING, False
+            # the reference frame's position alone (position.py): its heading is not one
+            item = (t_ns - self._offset_ns, x, y, math.nan)
+        else:
+            bx, by, byaw = base_pose(x, y, yaw, self.params)
+            item = (t_ns - self._offset_ns, bx, by, byaw)
         self._last_arrival_ns = t_ns
         self._note_frames(frame_id, child_frame_id)
-        bx, by, byaw = base_pose(x, y, yaw, self.params)
-        item = (t_ns - self._offset_ns, bx, by, byaw)
         before = self.version
         if self._last_t1 is not None and item[0] <= self._last_t1 and not self._pending:
             self._judge(*item)
@@ -139,6 +148,11 @@ class ReferenceGates:
             self._count(ReferenceStatus.UNCOVERED, 'reference pose before the first wheel '
                         'step kept: normal for the first pose after a start or a change of '
                         'online.*; if it goes on, time_offset is wrong or wheel data missing')
+            return
+        if self.no_heading and self.position_learning():   # positions alone (position.py)
+            self._judge_position(t_ns, x, y)
+            return
+        if self._heading_flat(t_ns, yaw):   # a heading constant while the wheels turn
             return
         seen, self._last_seen = self._last_seen, (t_ns, x, y, yaw)
         if seen is not None and seen[1:] == (x, y, yaw):

@@ -85,13 +85,17 @@ class WindowSolver:
         self.counters['online_provisional'] += 1
         self._solve(ground, items, e, sens)
 
-    def _solve(self, ground: Ground, items: list, e: np.ndarray, sens: np.ndarray) -> None:
+    def _solve(self, ground: Ground, items: list, e: np.ndarray, sens: np.ndarray,
+               min_information: float | None = None) -> None:
         """Take the Gauss-Newton step of ``items`` in the observable directions.
 
         ``e``, ``sens``: the items' residuals and sensitivities at the ground's parameters; the
-        ground's prior holds the directions the items do not observe.
+        ground's prior holds the directions the items do not observe. ``min_information``:
+        the threshold of an observed direction (None: online.min_information).
         """
         params = self.params
+        if min_information is None:
+            min_information = params.min_information
         weights = np.array([item[2] for item in items])
         inverse = np.stack([item[1] for item in items]) * weights[:, None, None]
         data = np.einsum('nip,nij,njq->pq', sens, inverse, sens)
@@ -100,7 +104,7 @@ class WindowSolver:
         gradient = np.einsum('nip,nij,nj->p', sens, inverse, e) - ground.prior @ u_offset
         ground.info = data + ground.prior
         values, vectors = np.linalg.eigh(data)
-        observed = values >= max(params.min_information, 1e-9 * max(values.max(), 0.0))
+        observed = values >= max(min_information, 1e-9 * max(values.max(), 0.0))
         if not observed.any():
             self.counters['online_unobservable'] += 1
             return
