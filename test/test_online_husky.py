@@ -1,14 +1,13 @@
 """Online calibration on the real Husky windows: the bench's machinery, and a bound it kept."""
 
+from lab.studies.online_husky import (GEOMETRY, HORIZON, ideal_file, learned_at, load_windows,
+                                      offline_file, reference_of, run_stream, score,
+                                      with_values)
 import numpy as np
 import pytest
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.core.online.window import _toward_bounds
-
-from lab.studies.online_husky import (GEOMETRY, HORIZON, ideal_file, learned_at, load_windows,
-                                      offline_file, reference_of, run_stream, score,
-                                      with_values)
 
 ONLINE = {'online.enabled': True, 'online.horizon': HORIZON[0],
           'online.horizon_rad': HORIZON[1]}

@@ -1,4 +1,6 @@
-"""Online calibration on the real Husky windows, beside the files users run (lab.studies.online_husky).
+"""Online calibration on the real Husky windows, beside the files users run instead.
+
+The study: lab.studies.online_husky.
 
 Streams the 603 windows of data/husky/drive_husky_windows.csv in time order through the node's
 odometer, the lidar-ICP poses (held repeats dropped, about 10 Hz) as the reference, and prints

@@ -59,8 +59,8 @@ from skidkin_ros.core.odometry.odometer import Prediction
 from skidkin_ros.core.online import online_odometer
 
 __all__ = ['CSV', 'GEOMETRY', 'HORIZON', 'MULTIPLIER', 'Window', 'Run', 'load_windows',
-           'offline_file', 'ideal_file', 'with_values', 'reference_of', 'run_stream', 'score', 'learned_at',
-           'run_study', 'tables']
+           'offline_file', 'ideal_file', 'with_values', 'reference_of', 'run_stream', 'score',
+           'learned_at', 'run_study', 'tables']
 
 CSV = Path(__file__).resolve().parents[2] / 'data' / 'husky' / 'drive_husky_windows.csv'
 # Clearpath's published Husky A200 geometry and its odometry's separation multiplier.
@@ -238,8 +238,11 @@ def per_window(s: Score, pick: Sequence[int]) -> np.ndarray:
 
 def learned_at(online: np.ndarray, offline: np.ndarray, within: float = 1.05,
                run: int = RUN_WINDOWS) -> int | None:
-    """Return the first position from which the next ``run`` windows' mean ε_t is within
-    ``within`` x the offline file's on the same windows (and stays so); None: never."""
+    """Return where online's ε_t stays within ``within`` x the offline file's (None: never).
+
+    The first position from which the mean over the next ``run`` windows is within, and is
+    so from every later position too.
+    """
     ok = np.isfinite(online) & np.isfinite(offline)
     a, b = online[ok], offline[ok]
     index = np.nonzero(ok)[0]
@@ -248,17 +251,6 @@ def learned_at(online: np.ndarray, offline: np.ndarray, within: float = 1.05,
     for i in range(len(good)):
         if all(good[i:]):
             return int(index[i])
-    return None
-
-
-def _first_within(values: Sequence[Mapping[str, float]], target: Mapping[str, float],
-                  rel: float) -> int | None:
-    """Return the first window after which every parameter stays within rel of target."""
-    close = [all(abs(v[k] - target[k]) <= rel * abs(target[k]) for k in target)
-             for v in values]
-    for i in range(len(close)):
-        if all(close[i:]):
-            return i
     return None
 
 
@@ -325,25 +317,25 @@ def run_study(limit: int | None = None, horizon: tuple[float, float] = HORIZON,
     learned = {}
     target = calibrated.model_values[MODEL]
     for name, run in runs.items():
-        if not run.values or 'reference' in name:
+        if not run.values or 'no reference' in name:
             continue
         online_w = per_window(scores[name], held)
         offline_w = per_window(scores['calibrated'], held)
         at = learned_at(online_w, offline_w)
-        within = _first_within(run.values, target, 0.05)
+        alpha = np.array([v['alpha'] for v in run.values])
+        per_alpha = np.array([v['b_hat'] / v['alpha'] for v in run.values])
         learned[name] = {
             'windows': None if at is None else held[at],
             'metres': (None if at is None else
                        float(sum(w.path_m for w in windows[:held[at]]))),
-            'params_windows': within,
-            'params_metres': (None if within is None else
-                              float(sum(w.path_m for w in windows[:within + 1]))),
-            'final': run.values[-1]}
+            'alpha': np.percentile(alpha, [5, 50, 95]),
+            'per_alpha': np.percentile(per_alpha, [5, 50, 95]),
+            'file_per_alpha': target['b_hat'] / target['alpha']}
     return Study(windows, files, runs, scores, late_scores, learned, dropout_from, horizon)
 
 
 def _imu(calibrated: OdometryConfig) -> dict[str, object]:
-    """The calibrated file's gyro (imu.*) values: the ideal file has none of its own."""
+    """Return the calibrated file's gyro (imu.*) values: the ideal file has none of its own."""
     return {k: v for k, v in calibrated.values.items() if k.startswith('imu.')}
 
 
@@ -356,18 +348,20 @@ def _fmt(value: float, digits: int = 3) -> str:
 
 
 def tables(study: Study) -> str:
-    """Return the study's tables (markdown) and the learning counts."""
+    """Return the study's table (markdown) and the learning counts, as text."""
     calibrated = study.files['calibrated'].model_values[MODEL]
     lines = [f'{len(study.windows)} windows, {sum(w.path_m for w in study.windows):.0f} m; '
              f'scored: {sum(w.held_out for w in study.windows)} odd-calib_step windows; '
              f'online.horizon {study.horizon[0]:g} m, horizon_rad {study.horizon[1]:g} rad; '
              f'calibrated file: alpha {calibrated["alpha"]:.4f}, b_hat '
-             f'{calibrated["b_hat"]:.4f} m (interval {study.files["calibrated"]["interval"]})',
+             f'{calibrated["b_hat"]:.4f} m, b_hat / alpha '
+             f'{calibrated["b_hat"] / calibrated["alpha"]:.3f} m '
+             f'(interval {study.files["calibrated"]["interval"]})',
              '',
              '| odometry | eps_t m/m median / mean / p90 | eps_th deg/m median / mean / p90 | '
              'window-end NEES mean (95 % inside) | last half: eps_t / eps_th median | '
-             'reaches the calibrated file in windows (m) | alpha, b_hat within 5 % of it '
-             'after windows (m) | alpha, b_hat at the end |',
+             'reaches the calibrated file after windows (m) | alpha over the stream, 5 / 50 / '
+             '95 % | b_hat / alpha (m), 5 / 50 / 95 % |',
              '|' + '---|' * 8]
     for name, s in study.scores.items():
         late = study.late_scores[name]
@@ -379,9 +373,8 @@ def tables(study: Study) -> str:
         if learn is not None:
             reach = ('never' if learn['windows'] is None else
                      f'{learn["windows"]} ({learn["metres"]:.0f} m)')
-            params = ('never' if learn['params_windows'] is None else
-                      f'{learn["params_windows"] + 1} ({learn["params_metres"]:.0f} m)')
-            final = f'{learn["final"]["alpha"]:.3f}, {learn["final"]["b_hat"]:.3f}'
+            params = ' / '.join(f'{v:.3f}' for v in learn['alpha'])
+            final = ' / '.join(f'{v:.3f}' for v in learn['per_alpha'])
         t = np.percentile(s.eps_t, [50, 90])
         th = np.percentile(s.eps_theta, [50, 90])
         lines.append(
