@@ -163,7 +163,6 @@ def test_n178_zero_and_unnormalized_reference_quaternions():
                            lambda yaw: tuple(0.5 * v for v in yaw_to_quaternion(yaw)))
         counters = rig.node.counters
         assert counters['reference_accepted'] >= 79 and counters['online_segments'] >= 2
-        assert counters['online_change'] == 0   # before: the heading read wrong, 'changes'
         # the node learned what the unit quaternions teach
         odometer = online_odometer(OdometryConfig.from_flat(FILE))
         odometer.reset()
@@ -175,6 +174,8 @@ def test_n178_zero_and_unnormalized_reference_quaternions():
                 j += 1
             odometer.step(t, 2.0, 3.0)
         learned = rig.node._odometer.learner.values
+        # the changes of ground the unit quaternions make, no more (before: 3-4 false ones)
+        assert counters['online_change'] == odometer.counters['online_change'] <= 1
         for name, value in odometer.learner.values.items():
             assert learned[name] == pytest.approx(value, rel=1e-6, abs=1e-8), name
         # a zero quaternion (an unset orientation) has no heading: refused, never yaw 0
