@@ -138,14 +138,33 @@ RESIDUAL = {**{k: v for k, v in AUGMENTED.items() if not k.startswith('augmented
             'augmented.residual_model.vx_dv_up': -0.05 * 3.0}
 
 
-def _old_residuals(checkout: str):
-    """Return another checkout's AugmentedCalibrator._residuals, its module loaded beside."""
+def _old_learner(checkout: str):
+    """Return another checkout's ``skidkin_ros/core/online/augmented.py``, loaded beside."""
     path = pathlib.Path(checkout) / 'skidkin_ros' / 'core' / 'online' / 'augmented.py'
     spec = importlib.util.spec_from_file_location('_old_online_augmented', path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module   # its dataclasses look their module up
     spec.loader.exec_module(module)
-    return module.AugmentedCalibrator._residuals
+    return module
+
+
+@contextlib.contextmanager
+def _per_sample_code(module):
+    """Learn with ``module``'s learning segments and per-sample uncertainty (None: this one's).
+
+    What the augmented learner does per wheel sample and per segment besides the segment
+    residuals: :meth:`AugmentedCalibrator._segment` (how a segment's steps are laid out) and
+    the ``LayoutUncertainty`` its ``uncertainty`` builds (d twist / dk per sample).
+    """
+    from skidkin_ros.core.online import augmented as current
+    saved = current.AugmentedCalibrator._segment, current.LayoutUncertainty
+    if module is not None:
+        current.AugmentedCalibrator._segment = module.AugmentedCalibrator._segment
+        current.LayoutUncertainty = module.LayoutUncertainty
+    try:
+        yield
+    finally:
+        current.AugmentedCalibrator._segment, current.LayoutUncertainty = saved
 
 
 # CPU seconds and calls spent in the learner's segment residuals and Jacobian (_residuals).
@@ -209,7 +228,8 @@ def _augmented(args) -> None:
     flat = RESIDUAL if args.residual else AUGMENTED
     configs = {'off': OdometryConfig.from_flat(flat),
                'on': OdometryConfig.from_flat({**flat, 'online.enabled': True})}
-    old = _old_residuals(args.old) if args.old and not args.residual else None
+    module = _old_learner(args.old) if args.old else None
+    old = None if module is None else module.AugmentedCalibrator._residuals
     keys = ['off', 'on new'] + (['on old'] if old is not None else [])
     runs = {key: [] for key in keys}
     spent = {key: [] for key in keys}
@@ -217,7 +237,8 @@ def _augmented(args) -> None:
     for _ in range(args.repeats):
         for key in keys:
             _SPENT[:] = [0.0, 0]
-            with _residuals(old if key == 'on old' else None):
+            with (_residuals(old if key == 'on old' else None),
+                  _per_sample_code(module if key == 'on old' else None)):
                 seconds, counts, learned = _run_learned(configs[key.split()[0]], sim,
                                                         reference)
             runs[key].append(seconds)
