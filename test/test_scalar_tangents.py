@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from skidkin_ros.core.calibration.engine import ParameterLayout
 from skidkin_ros.core.kinematics import residual
-from skidkin_ros.core.kinematics.extensions import get_extension
+from skidkin_ros.core.kinematics.extensions import get_extension, SLIP_LEVER_M
 from skidkin_ros.core.kinematics.scalar_tangents import SCALAR_PARTIALS, scalar_tangents
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.online.augmented import LayoutModel, LayoutUncertainty, online_layout
@@ -151,3 +151,38 @@ def test_layouts_not_covered_keep_the_central_differences():
     assert set(SCALAR_PARTIALS) == {'speed_slip', 'direction_asymmetry', 'lateral_skid',
                                     'icr_offset', 'ratio_yaw_slip', 'acceleration_slip',
                                     'residual_model'}
+
+
+def test_the_batch_residual_model_computes_only_its_terms_in_use_bit_for_bit():
+    """The batch form evaluates the terms with a coefficient only: the full library's sums."""
+    rng = np.random.default_rng(11)
+    ext = get_extension('residual_model')
+    count = len(residual.TERMS)
+    twist = rng.uniform(-4.0, 4.0, (500, 3))
+    rate = rng.uniform(-5.0, 5.0, (500, 3))
+    for used in (0, 2, 9, count):
+        values = _residual_values(rng, clip=True)
+        names = residual.coefficient_names()
+        keep = set(rng.choice(count, used, replace=False).tolist())
+        for i, name in enumerate(names):
+            if i % count not in keep:
+                values[name] = 0.0
+        k = ext.vector(values)
+        coef = k[:len(names)].tolist()
+        ranges = k[len(names):len(names) + 8].tolist()
+        full = residual.correction(coef, residual.features(ranges, twist, rate))
+        terms = residual.used_terms(coef)
+        assert set(terms) == keep
+        planned = residual.correction(coef, residual.features(ranges, twist, rate, terms), terms)
+        assert np.array_equal(planned, full)
+        # the partials by coefficients not in use still read their terms
+        wanted = [names.index(f'vx_{residual.TERMS[j][0]}') for j in range(0, count, 5)]
+        d_k = ext.partials(k, twist, twist[:, 0], twist[:, 1], 0.0, rate, wanted,
+                           inputs=False)[2]
+        phi = residual.features(ranges, twist, rate)
+        gain = values['gain_vx']
+        change = full * np.array([values['gain_vx'], values['gain_vy'], values['gain_wz']])
+        bound = np.abs(twist[:, 0]) + np.abs(twist[:, 2]) * SLIP_LEVER_M
+        free = np.abs(change[:, 0]) <= bound
+        for c, j in enumerate(range(0, count, 5)):
+            np.testing.assert_array_equal(d_k[free, 0, c], phi[free, j] * gain)

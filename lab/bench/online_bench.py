@@ -18,18 +18,20 @@ the paired ratios.
 
 ``--augmented`` times an augmented model instead (``edd_asymmetric`` + speed_slip +
 ratio_yaw_slip, file without a parameter covariance, the drive with a speed-dependent slip and a
-ground change): online off, and online on with this checkout's learner; with ``--old CHECKOUT``
-also online on with that checkout's segment residuals and Jacobian
-(``AugmentedCalibrator._residuals`` of its ``skidkin_ros/core/online/augmented.py``, loaded beside
-this one), in the same turns. It prints the CPU per wheel sample, the learning's CPU per
-reference pose (on minus off, over the poses) and how far the old and new learned values,
-parameter covariances and poses are apart::
+ground change): online off, then on. With ``--old CHECKOUT`` each turn also runs this file in a
+child process on that checkout's code (``PYTHONPATH=CHECKOUT``: every module old, the shared
+kinematics included), off then on, so old and new alternate in one run; each side's ratios
+come from its own process. It prints the CPU per wheel sample, the learning's CPU per reference
+pose (on minus off, over the poses), the segment residuals' share, and how far the old and new
+learned values, parameter covariances and poses are apart::
 
-    python -m lab.bench.online_bench --augmented --seconds 60 --repeats 3 --old /work/main
+    python -m lab.bench.online_bench --augmented --seconds 60 --repeats 3 --old OLD_CHECKOUT
 
 ``--augmented --residual``: the augmented model is ``edd_asymmetric`` + a residual model with a
-rate term (its learning segments keep every wheel step: no 50 ms blocks); no ``--old`` (the
-residual model was not learned online before).
+rate term (its learning segments keep every wheel step, as pairs: no 50 ms blocks)::
+
+    python -m lab.bench.online_bench --augmented --residual --seconds 60 --repeats 3 \
+        --old OLD_CHECKOUT
 """
 
 from __future__ import annotations
@@ -37,7 +39,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib.util
+import json
+import os
 import pathlib
+import subprocess
 import sys
 import time
 
@@ -138,35 +143,6 @@ RESIDUAL = {**{k: v for k, v in AUGMENTED.items() if not k.startswith('augmented
             'augmented.residual_model.vx_dv_up': -0.05 * 3.0}
 
 
-def _old_learner(checkout: str):
-    """Return another checkout's ``skidkin_ros/core/online/augmented.py``, loaded beside."""
-    path = pathlib.Path(checkout) / 'skidkin_ros' / 'core' / 'online' / 'augmented.py'
-    spec = importlib.util.spec_from_file_location('_old_online_augmented', path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module   # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-@contextlib.contextmanager
-def _per_sample_code(module):
-    """Learn with ``module``'s learning segments and per-sample uncertainty (None: this one's).
-
-    What the augmented learner does per wheel sample and per segment besides the segment
-    residuals: :meth:`AugmentedCalibrator._segment` (how a segment's steps are laid out) and
-    the ``LayoutUncertainty`` its ``uncertainty`` builds (d twist / dk per sample).
-    """
-    from skidkin_ros.core.online import augmented as current
-    saved = current.AugmentedCalibrator._segment, current.LayoutUncertainty
-    if module is not None:
-        current.AugmentedCalibrator._segment = module.AugmentedCalibrator._segment
-        current.LayoutUncertainty = module.LayoutUncertainty
-    try:
-        yield
-    finally:
-        current.AugmentedCalibrator._segment, current.LayoutUncertainty = saved
-
-
 # CPU seconds and calls spent in the learner's segment residuals and Jacobian (_residuals).
 _SPENT = [0.0, 0]
 
@@ -218,62 +194,83 @@ def _run_learned(config: OdometryConfig, sim, reference) -> tuple[float, dict, t
     return seconds, dict(odometer.counters), learned + (np.array(last.pose),)
 
 
-def _augmented(args) -> None:
-    """Time an augmented model online: off, on (this checkout), on (--old's residuals)."""
+def _augmented_turn(args) -> dict:
+    """One turn of ``--augmented``: online off, then on, in this process (JSON-ready numbers)."""
     effects = (make_effect('speed_slip', 0.25),
                make_effect('terrain_regime', 0.25, mode='time', switch_frac=0.5, yaw=0.15))
     sim = simulate(SimConfig(duration_s=args.seconds, seed=1, wheel_rate_hz=1000.0,
                              effects=effects))
     reference = sim.truth_at(np.arange(sim.start_ns, sim.end_ns, 100_000_000))
     flat = RESIDUAL if args.residual else AUGMENTED
-    configs = {'off': OdometryConfig.from_flat(flat),
-               'on': OdometryConfig.from_flat({**flat, 'online.enabled': True})}
-    module = _old_learner(args.old) if args.old else None
-    old = None if module is None else module.AugmentedCalibrator._residuals
-    keys = ['off', 'on new'] + (['on old'] if old is not None else [])
-    runs = {key: [] for key in keys}
-    spent = {key: [] for key in keys}
-    out = {}
+    out = {'samples': len(sim.wheels), 'poses': len(reference)}
+    for key in ('off', 'on'):
+        config = OdometryConfig.from_flat({**flat, 'online.enabled': key == 'on'})
+        _SPENT[:] = [0.0, 0]
+        with _residuals(None):
+            seconds, counts, (k, covariance, pose) = _run_learned(config, sim, reference)
+        out[key] = {'cpu_s': seconds, 'counts': counts, 'residuals': list(_SPENT),
+                    'k': None if k is None else k.tolist(),
+                    'covariance': None if covariance is None else covariance.tolist(),
+                    'pose': pose.tolist()}
+    return out
+
+
+def _old_turn(args) -> dict:
+    """One turn of ``--augmented`` run by this file in a child process on ``--old``'s code."""
+    command = [sys.executable, str(pathlib.Path(__file__).resolve()), '--augmented', '--emit',
+               '--seconds', str(args.seconds)] + (['--residual'] if args.residual else [])
+    env = {**os.environ, 'PYTHONPATH': str(pathlib.Path(args.old).resolve())}
+    done = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _augmented(args) -> None:
+    """Time an augmented model online: off and on, this checkout's code and ``--old``'s."""
+    if args.emit:
+        print(json.dumps(_augmented_turn(args)))
+        return
+    turns = {'new': [], 'old': []}
     for _ in range(args.repeats):
-        for key in keys:
-            _SPENT[:] = [0.0, 0]
-            with (_residuals(old if key == 'on old' else None),
-                  _per_sample_code(module if key == 'on old' else None)):
-                seconds, counts, learned = _run_learned(configs[key.split()[0]], sim,
-                                                        reference)
-            runs[key].append(seconds)
-            spent[key].append(tuple(_SPENT))
-            out[key] = (counts, learned)
-    samples, poses = len(sim.wheels), len(reference)
-    cost = {key: float(np.median(v)) / samples * 1e6 for key, v in runs.items()}
+        turns['new'].append(_augmented_turn(args))
+        if args.old:
+            turns['old'].append(_old_turn(args))
+    first = turns['new'][0]
+    samples, poses = first['samples'], first['poses']
     print(f'{samples} wheel samples at 1 kHz, {poses} reference poses at 10 Hz, '
-          f'{out["on new"][0].get("online_segments", 0)} segments; medians of {args.repeats} '
-          'turns, process CPU:')
-    print('  us per wheel sample: ' + ', '.join(f'{k} {v:.2f}' for k, v in cost.items()))
-    off = np.array(runs['off'])
-    for key in keys[1:]:
-        learning = (np.array(runs[key]) - off) / poses * 1e6
-        ratio = float(np.median(np.array(runs[key]) / off))
-        residual = np.array([t for t, _ in spent[key]])
-        calls = spent[key][0][1]
-        print(f'  {key}: online us per reference pose (on - off): '
-              f'{float(np.median(learning)):.0f}; on/off {ratio:.3f}; segment residuals and '
-              f'Jacobian: {calls} calls, {float(np.median(residual)) / calls * 1e6:.0f} us '
-              f'per call, {float(np.median(residual)) / poses * 1e6:.0f} us per reference pose')
-    if old is not None:
-        new_on, old_on = np.array(runs['on new']), np.array(runs['on old'])
-        residuals = [a[0] / b[0] for a, b in zip(spent['on new'], spent['on old'])]
+          f'{first["on"]["counts"].get("online_segments", 0)} segments; medians of '
+          f'{args.repeats} turns, process CPU'
+          + (f' (old: {args.old}, in a child process):' if args.old else ':'))
+    for code, runs in turns.items():
+        if not runs:
+            continue
+        off = np.array([run['off']['cpu_s'] for run in runs])
+        on = np.array([run['on']['cpu_s'] for run in runs])
+        spent = np.array([run['on']['residuals'][0] for run in runs])
+        calls = runs[0]['on']['residuals'][1]
+        print(f'  {code}: us per wheel sample off {float(np.median(off)) / samples * 1e6:.2f}, '
+              f'on {float(np.median(on)) / samples * 1e6:.2f}; on/off (median of paired) '
+              f'{float(np.median(on / off)):.3f}; online us per reference pose (on - off) '
+              f'{float(np.median(on - off)) / poses * 1e6:.0f}; segment residuals and '
+              f'Jacobian: {calls} calls, {float(np.median(spent)) / max(calls, 1) * 1e6:.0f} us '
+              f'per call, {float(np.median(spent)) / poses * 1e6:.0f} us per reference pose')
+    if args.old:
+        new_on = np.array([run['on']['cpu_s'] for run in turns['new']])
+        old_on = np.array([run['on']['cpu_s'] for run in turns['old']])
+        new_off = np.array([run['off']['cpu_s'] for run in turns['new']])
+        old_off = np.array([run['off']['cpu_s'] for run in turns['old']])
         print('  medians of the paired ratios new/old: on '
-              f'{float(np.median(new_on / old_on)):.3f}, on - off '
-              f'{float(np.median((new_on - off) / (old_on - off))):.3f}, segment residuals '
-              f'and Jacobian {float(np.median(residuals)):.3f}')
-        (k_new, cov_new, pose_new), (k_old, cov_old, pose_old) = (out['on new'][1],
-                                                                  out['on old'][1])
+              f'{float(np.median(new_on / old_on)):.3f}, off '
+              f'{float(np.median(new_off / old_off)):.3f}, on - off '
+              f'{float(np.median((new_on - new_off) / (old_on - old_off))):.3f}')
+        new, old = turns['new'][-1]['on'], turns['old'][-1]['on']
+        k_new, k_old = np.array(new['k']), np.array(old['k'])
+        cov_new, cov_old = np.array(new['covariance']), np.array(old['covariance'])
         values = np.max(np.abs(k_new - k_old) / np.abs(k_old))
         covariance = np.max(np.abs(cov_new - cov_old)) / np.max(np.abs(cov_old))
+        pose = np.max(np.abs(np.array(new['pose']) - np.array(old['pose'])))
         print(f'  new vs old: values max rel diff {values:.2e}, covariance max rel diff '
-              f'{covariance:.2e}, last pose diff {np.max(np.abs(pose_new - pose_old)):.2e} '
-              f'(m, rad); counts equal: {out["on new"][0] == out["on old"][0]}')
+              f'{covariance:.2e}, last pose diff {pose:.2e} (m, rad); counts equal: '
+              f'{new["counts"] == old["counts"]}')
 
 
 def main(argv=None) -> int:
@@ -287,6 +284,7 @@ def main(argv=None) -> int:
                         help='time an augmented model learning online (see above)')
     parser.add_argument('--residual', action='store_true',
                         help='with --augmented: a residual model with a rate term instead')
+    parser.add_argument('--emit', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.augmented:
         _augmented(args)

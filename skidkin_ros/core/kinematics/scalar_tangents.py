@@ -114,6 +114,7 @@ def _acceleration_slip(k, x, wl, wr, rate, tangents, rate_tangents, own, prep):
         tangents[c][0] += -math.copysign(1.0, vx) * abs(up) if slipping else 0.0
 
 
+_TERM_VALUES = tuple(function for _, _, function, _ in residual.TERMS)
 _TERM_SLOPES = tuple(residual.TERM_GRADIENTS[name] for name, _, _, _ in residual.TERMS)
 
 
@@ -131,18 +132,16 @@ def _sign(x: float) -> float:
 
 def _residual_model(k, x, wl, wr, rate, tangents, rate_tangents, own, prep):
     """Carry the tangents through the residual model (gains free; coefficients, ranges held)."""
-    plan = prep
-    terms, outputs = plan
+    terms, outputs = prep
     ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES]
     vx, _, w = x
     p, sp = _scaled_slope(vx, ranges[0], ranges[1])
     q, sq = _scaled_slope(w, ranges[2], ranges[3])
     a, sa = _scaled_slope(rate[0], ranges[4], ranges[5])
     b, sb = _scaled_slope(rate[2], ranges[6], ranges[7])
-    # the correction before its gains, as scalar_planned_correction sums it
-    raw = residual.scalar_planned_correction(plan, ranges, vx, w, rate[0], rate[2])
-    slopes = {}
+    phi, slopes = {}, {}
     for j in terms:
+        phi[j] = _TERM_VALUES[j](p, q, a, b)
         g = _TERM_SLOPES[j](p, q, a, b)
         slopes[j] = (float(g[0]) * sp, float(g[1]) * sq, float(g[2]) * sa, float(g[3]) * sb)
     gains = k[_RESIDUAL_GAINS:_RESIDUAL_GAINS + 3]
@@ -150,17 +149,23 @@ def _residual_model(k, x, wl, wr, rate, tangents, rate_tangents, own, prep):
     linear = v_abs + w_abs * SLIP_LEVER_M
     angular = w_abs + v_abs / SLIP_LEVER_M
     sv, sw = _sign(vx), _sign(w)
-    # per output: (d/dv, d/dw) of the twist and (d/ddv, d/ddw) of the rate, and d/dgain
-    rows = []
+    # per output with a term in use: (output, d/dv, d/dw of the twist, d/ddv, d/ddw of the
+    # rate), and its slope by its gain (the correction before the gain; 0 when clipped)
+    rows, by_gain = [], [0.0, 0.0, 0.0]
     for o, pairs in enumerate(outputs):
-        change = raw[o] * gains[o]
+        if not pairs:
+            continue
+        raw = 0.0
+        for j, c in pairs:   # scalar_planned_correction's sum
+            raw = raw + phi[j] * c
+        change = raw * gains[o]
         bound = angular if o == 2 else linear
         if change > bound or change < -bound:
             side = 1.0 if change > bound else -1.0
             if o == 2:
-                rows.append((side * sv / SLIP_LEVER_M, side * sw, 0.0, 0.0, 0.0))
+                rows.append((o, side * sv / SLIP_LEVER_M, side * sw, 0.0, 0.0))
             else:
-                rows.append((side * sv, side * sw * SLIP_LEVER_M, 0.0, 0.0, 0.0))
+                rows.append((o, side * sv, side * sw * SLIP_LEVER_M, 0.0, 0.0))
             continue
         dv = dw = ddv = ddw = 0.0
         for j, c in pairs:
@@ -170,14 +175,15 @@ def _residual_model(k, x, wl, wr, rate, tangents, rate_tangents, own, prep):
             ddv += c * s[2]
             ddw += c * s[3]
         g = gains[o]
-        rows.append((g * dv, g * dw, g * ddv, g * ddw, raw[o]))
+        rows.append((o, g * dv, g * dw, g * ddv, g * ddw))
+        by_gain[o] = raw
     for t, r in zip(tangents, rate_tangents):
         t0, t2, r0, r2 = t[0], t[2], r[0], r[2]
-        for o, (dv, dw, ddv, ddw, _) in enumerate(rows):
+        for o, dv, dw, ddv, ddw in rows:
             t[o] = t[o] + dv * t0 + dw * t2 + ddv * r0 + ddw * r2
     for c, j in own:
         o = j - _RESIDUAL_GAINS
-        tangents[c][o] += rows[o][4]
+        tangents[c][o] += by_gain[o]
 
 
 # What a partial needs of its values, made once per bound model (the residual model's terms in
