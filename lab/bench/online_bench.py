@@ -180,18 +180,23 @@ def _run_learned(config: OdometryConfig, sim, reference) -> tuple[float, dict, t
     j, n = 0, len(rows)
     update, feed = odometer.update, odometer.reference_sample
     last = None
+    published = []   # every 100th published pose covariance (its upper triangle)
     tic = time.process_time()
-    for t, left, right in zip(sim.wheels.t_ns.tolist(), sim.wheels.omega_l.tolist(),
-                              sim.wheels.omega_r.tolist()):
+    for i, (t, left, right) in enumerate(zip(sim.wheels.t_ns.tolist(),
+                                             sim.wheels.omega_l.tolist(),
+                                             sim.wheels.omega_r.tolist())):
         while j < n and rows[j][0] <= t:
             feed(*rows[j])
             j += 1
         last = update(t, left, right) or last
+        if i % 100 == 99:
+            published.append(last.pose_covariance)
     seconds = time.process_time() - tic
     learner = odometer.learner
     learned = ((learner.k.copy(), learner.covariance.copy()) if learner is not None
                else (None, None))
-    return seconds, dict(odometer.counters), learned + (np.array(last.pose),)
+    upper = np.array(published)[:, [0, 1, 5, 7, 11, 35]]
+    return seconds, dict(odometer.counters), learned + (np.array(last.pose), upper)
 
 
 def _augmented_turn(args) -> dict:
@@ -207,11 +212,12 @@ def _augmented_turn(args) -> dict:
         config = OdometryConfig.from_flat({**flat, 'online.enabled': key == 'on'})
         _SPENT[:] = [0.0, 0]
         with _residuals(None):
-            seconds, counts, (k, covariance, pose) = _run_learned(config, sim, reference)
+            seconds, counts, (k, covariance, pose, published) = _run_learned(config, sim,
+                                                                             reference)
         out[key] = {'cpu_s': seconds, 'counts': counts, 'residuals': list(_SPENT),
                     'k': None if k is None else k.tolist(),
                     'covariance': None if covariance is None else covariance.tolist(),
-                    'pose': pose.tolist()}
+                    'pose': pose.tolist(), 'published': published.tolist()}
     return out
 
 
@@ -268,9 +274,12 @@ def _augmented(args) -> None:
         values = np.max(np.abs(k_new - k_old) / np.abs(k_old))
         covariance = np.max(np.abs(cov_new - cov_old)) / np.max(np.abs(cov_old))
         pose = np.max(np.abs(np.array(new['pose']) - np.array(old['pose'])))
-        print(f'  new vs old: values max rel diff {values:.2e}, covariance max rel diff '
-              f'{covariance:.2e}, last pose diff {pose:.2e} (m, rad); counts equal: '
-              f'{new["counts"] == old["counts"]}')
+        pub_new, pub_old = np.array(new['published']), np.array(old['published'])
+        published = np.max(np.abs(pub_new - pub_old) / np.abs(pub_old).max(axis=1)[:, None])
+        print(f'  new vs old: values max rel diff {values:.2e}, parameter covariance max rel '
+              f'diff {covariance:.2e}, last pose diff {pose:.2e} (m, rad), published pose '
+              f'covariance (every 100th sample) max diff {published:.2e} of its largest '
+              f'entry; counts equal: {new["counts"] == old["counts"]}')
 
 
 def main(argv=None) -> int:
