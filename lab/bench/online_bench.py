@@ -27,6 +27,11 @@ learned values, parameter covariances and poses are apart::
 
     python -m lab.bench.online_bench --augmented --seconds 60 --repeats 3 --old OLD_CHECKOUT
 
+``--split``: the cost with the node's default file (no parameter covariance) split into the
+parameter uncertainty it publishes and the learning, in the same turns::
+
+    python -m lab.bench.online_bench --split --seconds 60 --repeats 3
+
 ``--augmented --residual``: the augmented model is ``edd_asymmetric`` + a residual model with a
 rate term (its learning segments keep every wheel step, as pairs: no 50 ms blocks)::
 
@@ -282,6 +287,43 @@ def _augmented(args) -> None:
               f'entry; counts equal: {new["counts"] == old["counts"]}')
 
 
+def _split(args, sim, reference) -> None:
+    """Split online's cost with the node's default file (no parameter covariance) by part.
+
+    In the same turns: online off; on; on publishing no parameter uncertainty (the learner
+    learns, the propagator is given none); on with a learner that is fed no wheel step (it
+    learns nothing: what remains is the prior's parameter uncertainty, carried per sample).
+    """
+    from skidkin_ros.core.online.calibrator import OnlineCalibrator
+    propagator = odometer_module.PoseCovariancePropagator
+    flat = {k: v for k, v in FILE.items() if not k.endswith('parameter_covariance')}
+    off = OdometryConfig.from_flat(flat)
+    on = OdometryConfig.from_flat({**flat, 'online.enabled': True})
+    real_set, real_step = propagator.set_parameters, OnlineCalibrator.wheel_step
+    variants = {
+        'off': (off, real_set, real_step),
+        'on': (on, real_set, real_step),
+        'on, no parameter uncertainty published': (
+            on, lambda self, parameters: real_set(self, None), real_step),
+        'on, learner fed no wheel step': (
+            on, real_set, lambda self, t1_ns, wheels, twist: False)}
+    runs = {name: [] for name in variants}
+    for _ in range(args.repeats):
+        for name, (config, set_parameters, wheel_step) in variants.items():
+            propagator.set_parameters, OnlineCalibrator.wheel_step = set_parameters, wheel_step
+            try:
+                runs[name].append(_run(config, sim, reference)[0])
+            finally:
+                propagator.set_parameters, OnlineCalibrator.wheel_step = real_set, real_step
+    base = np.array(runs['off'])
+    print(f'the node default file (no parameter covariance), {len(sim.wheels)} wheel samples at '
+          f'1 kHz; medians of {args.repeats} turns, process CPU:')
+    for name, values in runs.items():
+        values = np.array(values)
+        print(f'  {name}: {float(np.median(values)) * 1e6:.2f} us per wheel sample, '
+              f'/off {float(np.median(values / base)):.3f}')
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seconds', type=float, default=60.0, help='drive length (s)')
@@ -294,6 +336,8 @@ def main(argv=None) -> int:
     parser.add_argument('--residual', action='store_true',
                         help='with --augmented: a residual model with a rate term instead')
     parser.add_argument('--emit', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--split', action='store_true',
+                        help="split online's cost with the node's default file by part")
     args = parser.parse_args(argv)
     if args.augmented:
         _augmented(args)
@@ -302,6 +346,9 @@ def main(argv=None) -> int:
     sim = simulate(SimConfig(duration_s=args.seconds, seed=1, wheel_rate_hz=1000.0,
                              effects=(effect,)))
     reference = sim.truth_at(np.arange(sim.start_ns, sim.end_ns, 100_000_000))
+    if args.split:
+        _split(args, sim, reference)
+        return 0
     if args.old:
         _compare_old(args, sim, reference)
         return 0
