@@ -53,7 +53,8 @@ from skidkin_ros.core.calibration.noise_fit import (mahalanobis, segment_covaria
                                                     segment_motion, SegmentMotion)
 from skidkin_ros.core.calibration.segments import SegmentSet
 from skidkin_ros.core.kinematics.augmented import BoundAugmented, rate_divisor
-from skidkin_ros.core.kinematics.augmented_tangents import interval_tangents
+from skidkin_ros.core.kinematics.augmented_tangents import (_apply_partials, base_tangents,
+                                                            interval_tangents)
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel, get_model, KinematicModel
 from skidkin_ros.core.kinematics.scalar_tangents import scalar_tangents, ScalarTangents
@@ -119,9 +120,17 @@ class LayoutModel(KinematicModel):
         if not self.paired:
             return np.asarray(self.source(k).twist(omega_l, omega_r), dtype=float)
         left, right, shape = _rows(omega_l, omega_r)
-        still, dt_s, restart = _pair_steps(left.shape)
-        twist = self.source(k).intervals(still, left, right, dt_s, restart)[1].copy()
-        twist[:, ::2] = 0.0   # the first column of a pair only gives the rate
+        bound = self.source(k)
+        base = np.asarray(bound.base.twist(left, right), dtype=float)
+        # BoundAugmented.intervals of the pairs (_pair_steps), on the second columns only:
+        # their rate is the difference of the pair's base twists over 1 s, the first column
+        # only gives the rate (no twist)
+        odd = (slice(None), slice(1, None, 2))
+        first = (slice(None), slice(0, left.shape[1] - 1, 2))   # a last lone column: no pair
+        rate = (base[odd] - base[first]) / 1.0
+        twist = np.zeros(base.shape)
+        twist[odd] = bound.memoryless(left[odd], right[odd], np.zeros(left[odd].shape), rate,
+                                      base[odd])
         return twist.reshape(shape + (3,))
 
     def twist_gradient(self, k: np.ndarray, geometry: Geometry, omega_l: np.ndarray,
@@ -135,16 +144,14 @@ class LayoutModel(KinematicModel):
         """
         left, right, shape = _rows(omega_l, omega_r)
         if self.paired:
-            still, dt_s, restart = _pair_steps(left.shape)
-        else:
-            still = np.zeros(left.shape, dtype=np.int64)
-            dt_s, restart = np.zeros(left.shape), np.zeros(left.shape, dtype=bool)
+            return _paired_gradient(self.source(k), left, right,
+                                    self.layout.free).reshape(shape + (3, -1))
+        still = np.zeros(left.shape, dtype=np.int64)
+        dt_s, restart = np.zeros(left.shape), np.zeros(left.shape, dtype=bool)
         # the tangents may live in the work arrays of base_tangents: stacked into a new array
         _, tangents = interval_tangents(self.source(k), still, left, right, dt_s, restart,
                                         self.layout.free)
         out = np.moveaxis(np.stack(tangents), (0, 1), (-2, -1))
-        if self.paired:
-            out[:, ::2] = 0.0
         return out.reshape(shape + (3, -1))
 
     def file_values(self, k: np.ndarray) -> dict[str, float]:
@@ -164,6 +171,44 @@ def _rows(omega_l, omega_r) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
     rows = (1, -1) if len(shape) != 2 else shape
     return (np.broadcast_to(omega_l, shape).reshape(rows),
             np.broadcast_to(omega_r, shape).reshape(rows), shape)
+
+
+def _paired_gradient(bound: BoundAugmented, left: np.ndarray, right: np.ndarray,
+                     free: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """Return d twist / dk (D, 2L, 3, P) of (D, 2L) pairs, on the second columns only.
+
+    :func:`interval_tangents`' forward mode over the pairs (:func:`_pair_steps`), each
+    extension's partials evaluated where a twist is (the first column of a pair only gives the
+    rate, and has none): half the columns. The rate's tangents are the difference of the
+    pair's base tangents over 1 s, as the rate is (twist-stage extensions only: the online
+    ones).
+    """
+    odd = (slice(None), slice(1, None, 2))
+    last = left.shape[1] - 1   # a last lone column (an odd width) has no pair: no twist
+    base = np.asarray(bound.base.twist(left, right), dtype=float)
+    d_base = base_tangents(bound.base, left, right, free)
+    d_x = [d[:, :, 1::2].copy() for d in d_base]
+    d_rate = [(d[:, :, 1::2] - d[:, :, 0:last:2]) / 1.0 for d in d_base]
+    x = base[odd]
+    rate = (base[odd] - base[:, 0:last:2]) / 1.0
+    wheels = left[odd], right[odd]
+    t_s = np.zeros(wheels[0].shape)
+    live = any(i < 0 for i, _ in free)
+    for index, (name, k) in enumerate(zip(bound.extensions, bound.values)):
+        ext = get_extension(name)
+        mine = [(c, j) for c, (i, j) in enumerate(free) if i == index]
+        d_twist, d_by_rate, d_k = ext.partials(k, x, *wheels, t_s, rate, [j for _, j in mine],
+                                               inputs=live)
+        if live:
+            d_x = _apply_partials(d_twist, d_x, d_by_rate, d_rate)
+        for n, (c, _) in enumerate(mine):
+            for m in range(3):
+                d_x[m][c] += d_k[..., m, n]
+        live = live or bool(mine)
+        x = ext.apply(k, x, *wheels, t_s, rate)
+    out = np.zeros(base.shape + (len(free),))
+    out[odd] = np.moveaxis(np.stack(d_x), (0, 1), (-2, -1))
+    return out
 
 
 def _pair_steps(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
