@@ -186,3 +186,20 @@ def test_the_batch_residual_model_computes_only_its_terms_in_use_bit_for_bit():
         free = np.abs(change[:, 0]) <= bound
         for c, j in enumerate(range(0, count, 5)):
             np.testing.assert_array_equal(d_k[free, 0, c], phi[free, j] * gain)
+
+
+def test_a_layouts_covariance_read_is_the_base_forms_to_rounding():
+    rng = np.random.default_rng(9)
+    model = _layout_model(('speed_slip', 'residual_model'), rng)
+    k = model.layout.vector()
+    for size in (k.size, 0):
+        q, _ = np.linalg.qr(rng.normal(size=(k.size, k.size)))
+        cov = (q * np.logspace(-3, -9, k.size)) @ q.T
+        if size == 0:
+            cov[:, 0] = cov[0, :] = 0.0   # a singular covariance
+        uncertainty = LayoutUncertainty.of_layout(model, k, GEOMETRY, cov)
+        for _ in range(20):
+            sens = [tuple(v) for v in rng.normal(0.0, 2.0, (k.size, 3)).tolist()]
+            fast = np.array(uncertainty.pose_covariance(sens))
+            base = np.array(super(LayoutUncertainty, uncertainty).pose_covariance(sens))
+            np.testing.assert_allclose(fast, base, rtol=0, atol=1e-13 * np.abs(base).max())

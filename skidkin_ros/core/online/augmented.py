@@ -409,6 +409,17 @@ class LayoutUncertainty(ParameterUncertainty):
         return cls(covariance, (), (model, tuple(k.tolist()), geometry, REL_STEP), tuple(pairs),
                    wheels_of, coefficients, tangents)
 
+    def pose_covariance(self, sens) -> tuple[float, ...]:
+        """Upper triangle of S Sigma_k S^T for S given as p columns, one product at a time.
+
+        The p columns as one (p, 3) array A: A^T (Sigma_k A), one array fewer to build than
+        the base form's; read once per wheel sample, equal to it to rounding (the file's
+        covariance keeps the base form, bit for bit as it was).
+        """
+        s = np.array(sens, dtype=float)   # (p, 3)
+        (c00, c01, c02), (_, c11, c12), (_, _, c22) = (s.T @ (self.covariance @ s)).tolist()
+        return c00, c01, c02, c11, c12, c22
+
     def state_jacobian(self, state) -> list[tuple[float, float, float]] | None:
         """Return d(twist)/dk at the step's source state, rate terms included (None: not used).
 
