@@ -9,7 +9,7 @@ PYTEST_ARGS ?=
 CONSTRAINTS ?= constraints.txt
 PIP_C := $(if $(CONSTRAINTS),PIP_CONSTRAINT=$(abspath $(CONSTRAINTS)),)
 
-.PHONY: demo test test-fast bench bench-smoke lint docs clean constraints
+.PHONY: demo test test-fast bench bench-smoke bench-online lint docs clean constraints
 
 $(STAMP): setup.py setup.cfg package.xml $(CONSTRAINTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -44,6 +44,15 @@ bench: $(STAMP)
 
 bench-smoke: $(STAMP)
 	$(PY) lab/bench/run.py --smoke --out lab/bench/results-smoke
+
+# Online calibration's cost per 1 kHz wheel sample, online on/off (process CPU, one run); with
+# `ONLINE_OLD=CHECKOUT` the augmented learners of that checkout run beside, in a child process.
+bench-online: $(STAMP)
+	$(PY) -m lab.bench.online_bench --seconds 60 --repeats 3
+	$(PY) -m lab.bench.online_bench --augmented --seconds 60 --repeats 3 \
+	  $(if $(ONLINE_OLD),--old $(ONLINE_OLD))
+	$(PY) -m lab.bench.online_bench --augmented --residual --seconds 60 --repeats 3 \
+	  $(if $(ONLINE_OLD),--old $(ONLINE_OLD))
 
 lint: $(STAMP)
 	$(PY) -m pytest -q test/test_lint.py

@@ -18,18 +18,25 @@ the paired ratios.
 
 ``--augmented`` times an augmented model instead (``edd_asymmetric`` + speed_slip +
 ratio_yaw_slip, file without a parameter covariance, the drive with a speed-dependent slip and a
-ground change): online off, and online on with this checkout's learner; with ``--old CHECKOUT``
-also online on with that checkout's segment residuals and Jacobian
-(``AugmentedCalibrator._residuals`` of its ``skidkin_ros/core/online/augmented.py``, loaded beside
-this one), in the same turns. It prints the CPU per wheel sample, the learning's CPU per
-reference pose (on minus off, over the poses) and how far the old and new learned values,
-parameter covariances and poses are apart::
+ground change): online off, then on. With ``--old CHECKOUT`` each turn also runs this file in a
+child process on that checkout's code (``PYTHONPATH=CHECKOUT``: every module old, the shared
+kinematics included), off then on, so old and new alternate in one run; each side's ratios
+come from its own process. It prints the CPU per wheel sample, the learning's CPU per reference
+pose (on minus off, over the poses), the segment residuals' share, and how far the old and new
+learned values, parameter covariances and poses are apart::
 
-    python -m lab.bench.online_bench --augmented --seconds 60 --repeats 3 --old /work/main
+    python -m lab.bench.online_bench --augmented --seconds 60 --repeats 3 --old OLD_CHECKOUT
+
+``--split``: the cost with the node's default file (no parameter covariance) split into the
+parameter uncertainty it publishes and the learning, in the same turns::
+
+    python -m lab.bench.online_bench --split --seconds 60 --repeats 3
 
 ``--augmented --residual``: the augmented model is ``edd_asymmetric`` + a residual model with a
-rate term (its learning segments keep every wheel step: no 50 ms blocks); no ``--old`` (the
-residual model was not learned online before).
+rate term (its learning segments keep every wheel step, as pairs: no 50 ms blocks)::
+
+    python -m lab.bench.online_bench --augmented --residual --seconds 60 --repeats 3 \
+        --old OLD_CHECKOUT
 """
 
 from __future__ import annotations
@@ -37,7 +44,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib.util
+import json
+import os
 import pathlib
+import subprocess
 import sys
 import time
 
@@ -138,16 +148,6 @@ RESIDUAL = {**{k: v for k, v in AUGMENTED.items() if not k.startswith('augmented
             'augmented.residual_model.vx_dv_up': -0.05 * 3.0}
 
 
-def _old_residuals(checkout: str):
-    """Return another checkout's AugmentedCalibrator._residuals, its module loaded beside."""
-    path = pathlib.Path(checkout) / 'skidkin_ros' / 'core' / 'online' / 'augmented.py'
-    spec = importlib.util.spec_from_file_location('_old_online_augmented', path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module   # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module.AugmentedCalibrator._residuals
-
-
 # CPU seconds and calls spent in the learner's segment residuals and Jacobian (_residuals).
 _SPENT = [0.0, 0]
 
@@ -185,74 +185,143 @@ def _run_learned(config: OdometryConfig, sim, reference) -> tuple[float, dict, t
     j, n = 0, len(rows)
     update, feed = odometer.update, odometer.reference_sample
     last = None
+    published = []   # every 100th published pose covariance (its upper triangle)
     tic = time.process_time()
-    for t, left, right in zip(sim.wheels.t_ns.tolist(), sim.wheels.omega_l.tolist(),
-                              sim.wheels.omega_r.tolist()):
+    for i, (t, left, right) in enumerate(zip(sim.wheels.t_ns.tolist(),
+                                             sim.wheels.omega_l.tolist(),
+                                             sim.wheels.omega_r.tolist())):
         while j < n and rows[j][0] <= t:
             feed(*rows[j])
             j += 1
         last = update(t, left, right) or last
+        if i % 100 == 99:
+            published.append(last.pose_covariance)
     seconds = time.process_time() - tic
     learner = odometer.learner
     learned = ((learner.k.copy(), learner.covariance.copy()) if learner is not None
                else (None, None))
-    return seconds, dict(odometer.counters), learned + (np.array(last.pose),)
+    upper = np.array(published)[:, [0, 1, 5, 7, 11, 35]]
+    return seconds, dict(odometer.counters), learned + (np.array(last.pose), upper)
 
 
-def _augmented(args) -> None:
-    """Time an augmented model online: off, on (this checkout), on (--old's residuals)."""
+def _augmented_turn(args) -> dict:
+    """One turn of ``--augmented``: online off, then on, in this process (JSON-ready numbers)."""
     effects = (make_effect('speed_slip', 0.25),
                make_effect('terrain_regime', 0.25, mode='time', switch_frac=0.5, yaw=0.15))
     sim = simulate(SimConfig(duration_s=args.seconds, seed=1, wheel_rate_hz=1000.0,
                              effects=effects))
     reference = sim.truth_at(np.arange(sim.start_ns, sim.end_ns, 100_000_000))
     flat = RESIDUAL if args.residual else AUGMENTED
-    configs = {'off': OdometryConfig.from_flat(flat),
-               'on': OdometryConfig.from_flat({**flat, 'online.enabled': True})}
-    old = _old_residuals(args.old) if args.old and not args.residual else None
-    keys = ['off', 'on new'] + (['on old'] if old is not None else [])
-    runs = {key: [] for key in keys}
-    spent = {key: [] for key in keys}
-    out = {}
+    out = {'samples': len(sim.wheels), 'poses': len(reference)}
+    for key in ('off', 'on'):
+        config = OdometryConfig.from_flat({**flat, 'online.enabled': key == 'on'})
+        _SPENT[:] = [0.0, 0]
+        with _residuals(None):
+            seconds, counts, (k, covariance, pose, published) = _run_learned(config, sim,
+                                                                             reference)
+        out[key] = {'cpu_s': seconds, 'counts': counts, 'residuals': list(_SPENT),
+                    'k': None if k is None else k.tolist(),
+                    'covariance': None if covariance is None else covariance.tolist(),
+                    'pose': pose.tolist(), 'published': published.tolist()}
+    return out
+
+
+def _old_turn(args) -> dict:
+    """One turn of ``--augmented`` run by this file in a child process on ``--old``'s code."""
+    command = [sys.executable, str(pathlib.Path(__file__).resolve()), '--augmented', '--emit',
+               '--seconds', str(args.seconds)] + (['--residual'] if args.residual else [])
+    env = {**os.environ, 'PYTHONPATH': str(pathlib.Path(args.old).resolve())}
+    done = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _augmented(args) -> None:
+    """Time an augmented model online: off and on, this checkout's code and ``--old``'s."""
+    if args.emit:
+        print(json.dumps(_augmented_turn(args)))
+        return
+    turns = {'new': [], 'old': []}
     for _ in range(args.repeats):
-        for key in keys:
-            _SPENT[:] = [0.0, 0]
-            with _residuals(old if key == 'on old' else None):
-                seconds, counts, learned = _run_learned(configs[key.split()[0]], sim,
-                                                        reference)
-            runs[key].append(seconds)
-            spent[key].append(tuple(_SPENT))
-            out[key] = (counts, learned)
-    samples, poses = len(sim.wheels), len(reference)
-    cost = {key: float(np.median(v)) / samples * 1e6 for key, v in runs.items()}
+        turns['new'].append(_augmented_turn(args))
+        if args.old:
+            turns['old'].append(_old_turn(args))
+    first = turns['new'][0]
+    samples, poses = first['samples'], first['poses']
     print(f'{samples} wheel samples at 1 kHz, {poses} reference poses at 10 Hz, '
-          f'{out["on new"][0].get("online_segments", 0)} segments; medians of {args.repeats} '
-          'turns, process CPU:')
-    print('  us per wheel sample: ' + ', '.join(f'{k} {v:.2f}' for k, v in cost.items()))
-    off = np.array(runs['off'])
-    for key in keys[1:]:
-        learning = (np.array(runs[key]) - off) / poses * 1e6
-        ratio = float(np.median(np.array(runs[key]) / off))
-        residual = np.array([t for t, _ in spent[key]])
-        calls = spent[key][0][1]
-        print(f'  {key}: online us per reference pose (on - off): '
-              f'{float(np.median(learning)):.0f}; on/off {ratio:.3f}; segment residuals and '
-              f'Jacobian: {calls} calls, {float(np.median(residual)) / calls * 1e6:.0f} us '
-              f'per call, {float(np.median(residual)) / poses * 1e6:.0f} us per reference pose')
-    if old is not None:
-        new_on, old_on = np.array(runs['on new']), np.array(runs['on old'])
-        residuals = [a[0] / b[0] for a, b in zip(spent['on new'], spent['on old'])]
+          f'{first["on"]["counts"].get("online_segments", 0)} segments; medians of '
+          f'{args.repeats} turns, process CPU'
+          + (f' (old: {args.old}, in a child process):' if args.old else ':'))
+    for code, runs in turns.items():
+        if not runs:
+            continue
+        off = np.array([run['off']['cpu_s'] for run in runs])
+        on = np.array([run['on']['cpu_s'] for run in runs])
+        spent = np.array([run['on']['residuals'][0] for run in runs])
+        calls = runs[0]['on']['residuals'][1]
+        print(f'  {code}: us per wheel sample off {float(np.median(off)) / samples * 1e6:.2f}, '
+              f'on {float(np.median(on)) / samples * 1e6:.2f}; on/off (median of paired) '
+              f'{float(np.median(on / off)):.3f}; online us per reference pose (on - off) '
+              f'{float(np.median(on - off)) / poses * 1e6:.0f}; segment residuals and '
+              f'Jacobian: {calls} calls, {float(np.median(spent)) / max(calls, 1) * 1e6:.0f} us '
+              f'per call, {float(np.median(spent)) / poses * 1e6:.0f} us per reference pose')
+    if args.old:
+        new_on = np.array([run['on']['cpu_s'] for run in turns['new']])
+        old_on = np.array([run['on']['cpu_s'] for run in turns['old']])
+        new_off = np.array([run['off']['cpu_s'] for run in turns['new']])
+        old_off = np.array([run['off']['cpu_s'] for run in turns['old']])
         print('  medians of the paired ratios new/old: on '
-              f'{float(np.median(new_on / old_on)):.3f}, on - off '
-              f'{float(np.median((new_on - off) / (old_on - off))):.3f}, segment residuals '
-              f'and Jacobian {float(np.median(residuals)):.3f}')
-        (k_new, cov_new, pose_new), (k_old, cov_old, pose_old) = (out['on new'][1],
-                                                                  out['on old'][1])
+              f'{float(np.median(new_on / old_on)):.3f}, off '
+              f'{float(np.median(new_off / old_off)):.3f}, on - off '
+              f'{float(np.median((new_on - new_off) / (old_on - old_off))):.3f}')
+        new, old = turns['new'][-1]['on'], turns['old'][-1]['on']
+        k_new, k_old = np.array(new['k']), np.array(old['k'])
+        cov_new, cov_old = np.array(new['covariance']), np.array(old['covariance'])
         values = np.max(np.abs(k_new - k_old) / np.abs(k_old))
         covariance = np.max(np.abs(cov_new - cov_old)) / np.max(np.abs(cov_old))
-        print(f'  new vs old: values max rel diff {values:.2e}, covariance max rel diff '
-              f'{covariance:.2e}, last pose diff {np.max(np.abs(pose_new - pose_old)):.2e} '
-              f'(m, rad); counts equal: {out["on new"][0] == out["on old"][0]}')
+        pose = np.max(np.abs(np.array(new['pose']) - np.array(old['pose'])))
+        pub_new, pub_old = np.array(new['published']), np.array(old['published'])
+        published = np.max(np.abs(pub_new - pub_old) / np.abs(pub_old).max(axis=1)[:, None])
+        print(f'  new vs old: values max rel diff {values:.2e}, parameter covariance max rel '
+              f'diff {covariance:.2e}, last pose diff {pose:.2e} (m, rad), published pose '
+              f'covariance (every 100th sample) max diff {published:.2e} of its largest '
+              f'entry; counts equal: {new["counts"] == old["counts"]}')
+
+
+def _split(args, sim, reference) -> None:
+    """Split online's cost with the node's default file (no parameter covariance) by part.
+
+    In the same turns: online off; on; on publishing no parameter uncertainty (the learner
+    learns, the propagator is given none); on with a learner that is fed no wheel step (it
+    learns nothing: what remains is the prior's parameter uncertainty, carried per sample).
+    """
+    from skidkin_ros.core.online.calibrator import OnlineCalibrator
+    propagator = odometer_module.PoseCovariancePropagator
+    flat = {k: v for k, v in FILE.items() if not k.endswith('parameter_covariance')}
+    off = OdometryConfig.from_flat(flat)
+    on = OdometryConfig.from_flat({**flat, 'online.enabled': True})
+    real_set, real_step = propagator.set_parameters, OnlineCalibrator.wheel_step
+    variants = {
+        'off': (off, real_set, real_step),
+        'on': (on, real_set, real_step),
+        'on, no parameter uncertainty published': (
+            on, lambda self, parameters: real_set(self, None), real_step),
+        'on, learner fed no wheel step': (
+            on, real_set, lambda self, t1_ns, wheels, twist: False)}
+    runs = {name: [] for name in variants}
+    for _ in range(args.repeats):
+        for name, (config, set_parameters, wheel_step) in variants.items():
+            propagator.set_parameters, OnlineCalibrator.wheel_step = set_parameters, wheel_step
+            try:
+                runs[name].append(_run(config, sim, reference)[0])
+            finally:
+                propagator.set_parameters, OnlineCalibrator.wheel_step = real_set, real_step
+    base = np.array(runs['off'])
+    print(f'the node default file (no parameter covariance), {len(sim.wheels)} wheel samples at '
+          f'1 kHz; medians of {args.repeats} turns, process CPU:')
+    for name, values in runs.items():
+        values = np.array(values)
+        print(f'  {name}: {float(np.median(values)) * 1e6:.2f} us per wheel sample, '
+              f'/off {float(np.median(values / base)):.3f}')
 
 
 def main(argv=None) -> int:
@@ -266,6 +335,9 @@ def main(argv=None) -> int:
                         help='time an augmented model learning online (see above)')
     parser.add_argument('--residual', action='store_true',
                         help='with --augmented: a residual model with a rate term instead')
+    parser.add_argument('--emit', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--split', action='store_true',
+                        help="split online's cost with the node's default file by part")
     args = parser.parse_args(argv)
     if args.augmented:
         _augmented(args)
@@ -274,6 +346,9 @@ def main(argv=None) -> int:
     sim = simulate(SimConfig(duration_s=args.seconds, seed=1, wheel_rate_hz=1000.0,
                              effects=(effect,)))
     reference = sim.truth_at(np.arange(sim.start_ns, sim.end_ns, 100_000_000))
+    if args.split:
+        _split(args, sim, reference)
+        return 0
     if args.old:
         _compare_old(args, sim, reference)
         return 0

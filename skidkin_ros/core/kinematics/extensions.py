@@ -507,8 +507,9 @@ _RESIDUAL_GAINS = _RESIDUAL_COEFS + _RESIDUAL_RANGES + 1  # after the level
 def _residual_model(k, twist, omega_l, omega_r, t_s, rate):
     k = np.asarray(k, dtype=float)
     ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES].tolist()
-    phi = residual.features(ranges, twist, rate)
-    change = residual.correction(k[:_RESIDUAL_COEFS].tolist(), phi)
+    terms = residual.used_terms(k[:_RESIDUAL_COEFS])   # only these: the sum is the same
+    phi = residual.features(ranges, twist, rate, terms)
+    change = residual.correction(k[:_RESIDUAL_COEFS].tolist(), phi, terms)
     gains = k[_RESIDUAL_GAINS:_RESIDUAL_GAINS + 3]
     change = np.stack([change[..., 0] * gains[0], change[..., 1] * gains[1],
                        change[..., 2] * gains[2]], axis=-1)
@@ -519,7 +520,11 @@ def _residual_model_partials(k, twist, omega_l, omega_r, t_s, rate, wanted, inpu
     ranges = k[_RESIDUAL_COEFS:_RESIDUAL_COEFS + _RESIDUAL_RANGES].tolist()
     coef = k[:_RESIDUAL_COEFS].reshape(len(residual.OUTPUTS), len(residual.TERMS))
     gains = k[_RESIDUAL_GAINS:_RESIDUAL_GAINS + 3]
-    phi = residual.features(ranges, twist, rate)  # (..., T)
+    # the terms in use and those of the wanted coefficients (the others' values are not read)
+    count = len(residual.TERMS)
+    terms = sorted(set(residual.used_terms(k[:_RESIDUAL_COEFS]))
+                   | {j % count for j in wanted if j < _RESIDUAL_COEFS})
+    phi = residual.features(ranges, twist, rate, terms)  # (..., T)
     raw = np.einsum('ot,...t->...o', coef, phi)
     change = raw * gains
     d_change_twist = np.zeros(np.shape(twist) + (3,))

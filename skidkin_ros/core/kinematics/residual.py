@@ -56,7 +56,7 @@ __all__ = ['INPUTS', 'TERMS', 'LEVELS', 'TERM_INPUTS', 'INPUT_SIGNALS', 'OUTPUTS
            'scalar_features', 'correction', 'scalar_correction', 'correction_plan',
            'scalar_planned_correction', 'scalar_terms', 'coefficient_names',
            'range_names', 'input_values', 'LEGACY_TERMS', 'LEGACY_LAYOUTS', 'upgrade_covariance',
-           'TERM_GRADIENTS', 'feature_gradients', 'correction_gradient']
+           'TERM_GRADIENTS', 'feature_gradients', 'correction_gradient', 'used_terms']
 
 # The state the correction is a function of: (name, unit, what it is).
 INPUTS: tuple[tuple[str, str, str], ...] = (
@@ -305,16 +305,22 @@ def _scaled(x, lo: float, hi: float):
     return min(max(x, lo), hi) / scale
 
 
-def features(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarray | None
-             ) -> np.ndarray:
+def features(ranges: Sequence[float], twist: np.ndarray, rate: np.ndarray | None,
+             terms: Sequence[int] | None = None) -> np.ndarray:
     """Return the library terms (..., T) of base twists and rates, inputs clamped and scaled.
 
-    ``ranges``: (v_lo, v_hi, w_lo, w_hi, dv_lo, dv_hi, dw_lo, dw_hi).
+    ``ranges``: (v_lo, v_hi, w_lo, w_hi, dv_lo, dv_hi, dw_lo, dw_hi); ``terms``: only these
+    terms are computed (by index; the others are 0), None: all.
     """
     raw = input_values(twist, rate)
     scaled = [_scaled(np.asarray(x, dtype=float), ranges[2 * i], ranges[2 * i + 1])
               for i, x in enumerate(raw)]
     shape = np.shape(scaled[0])
+    if terms is not None:
+        out = np.zeros(shape + (len(TERMS),))
+        for j in terms:
+            out[..., j] = _FUNCTIONS[j](*scaled)
+        return out
     return np.stack([np.broadcast_to(np.asarray(fn(*scaled), dtype=float), shape)
                      for fn in _FUNCTIONS], axis=-1)
 
@@ -402,23 +408,37 @@ def scalar_features(ranges: Sequence[float], v: float, w: float, dv: float, dw: 
     return tuple(fn(p, q, a, b) for fn in _FUNCTIONS)
 
 
-def correction(coef: Sequence[float], phi: np.ndarray) -> np.ndarray:
+def correction(coef: Sequence[float], phi: np.ndarray,
+               terms: Sequence[int] | None = None) -> np.ndarray:
     """Return C phi (..., 3): each output's terms summed in library order (no BLAS).
 
     The terms are read from one contiguous copy, term by term (a strided term is slower to
-    read), and summed in place: the same operations in the same order.
+    read), and summed in place: the same operations in the same order. ``terms``: only these
+    (increasing; every term with a non-zero coefficient among them, :func:`used_terms`): a
+    term left out adds 0.0, so the sum is the full one's bit for bit (up to the sign of an
+    exact zero), as :func:`scalar_planned_correction` has it.
     """
     count = len(TERMS)
-    columns = np.ascontiguousarray(np.moveaxis(np.asarray(phi, dtype=float), -1, 0))
+    phi = np.asarray(phi, dtype=float)
+    used = list(range(count)) if terms is None else list(terms)
+    if not used:
+        return np.zeros(phi.shape[:-1] + (len(OUTPUTS),))
+    columns = np.ascontiguousarray(np.moveaxis(phi if terms is None else phi[..., used], -1, 0))
     out = np.empty(columns.shape[1:] + (len(OUTPUTS),))
     part = np.empty(columns.shape[1:])
     for o in range(len(OUTPUTS)):
-        total = np.multiply(columns[0], coef[o * count], out=np.empty(part.shape))
-        for j in range(1, count):
-            np.multiply(columns[j], coef[o * count + j], out=part)
+        total = np.multiply(columns[0], coef[o * count + used[0]], out=np.empty(part.shape))
+        for n, j in enumerate(used[1:], 1):
+            np.multiply(columns[n], coef[o * count + j], out=part)
             np.add(total, part, out=total)
         out[..., o] = total
     return out
+
+
+def used_terms(coef: Sequence[float]) -> tuple[int, ...]:
+    """Return the indices of the terms with a non-zero coefficient for some output."""
+    matrix = np.asarray(coef, dtype=float).reshape(len(OUTPUTS), len(TERMS))
+    return tuple(np.flatnonzero(np.any(matrix != 0.0, axis=0)).tolist())
 
 
 def scalar_correction(coef: Sequence[float], phi: Sequence[float]) -> tuple[float, float, float]:
