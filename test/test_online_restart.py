@@ -172,3 +172,44 @@ def test_node_and_predict_agree_with_a_file_carrying_grounds(tmp_path, learned_d
     for cause in ('online_segments', 'online_change', 'online_switch',
                   'online_grounds_remembered'):
         assert result.counters.get(cause, 0) == odometer.counters[cause], cause
+
+
+@pytest.mark.ros
+def test_node_refuses_unfit_grounds_at_start_with_what_to_do():
+    from node_harness import NodeRig
+
+    bad = _grounds(**{'online.grounds.covariance': [1e-4] * 25})
+    with pytest.raises(ConfigError) as err:
+        NodeRig(bad)
+    assert 'not positive definite' in str(err.value) and 'online.grounds' in str(err.value)
+    rig = NodeRig(_grounds())   # sound grounds: the node starts knowing them
+    try:
+        assert len(rig.node._odometer.learner.grounds) == 2
+    finally:
+        rig.close()
+
+
+def test_a_remembered_ground_todays_drive_refutes_is_forgotten():
+    """Yesterday's second ground on a drive whose second ground is another: dropped at the
+    change that starts the new ground, so it cannot win the recognition there."""
+    base = DEFAULT_TRUE_PARAMS
+    second = {'alpha_l': base['alpha_l'] * 0.75, 'alpha_r': base['alpha_r'] * 0.75,
+              'x_v': base['x_v'] / 0.85, 'y_l': base['y_l'] * 0.75 / 0.85,
+              'y_r': base['y_r'] * 0.75 / 0.85}
+    flat = _grounds(**{'online.grounds.parameters': list(second.values()),
+                       'online.grounds.covariance': (np.eye(5) * 1e-5).ravel().tolist()})
+    third = (make_effect('terrain_regime', 0.4, mode='alternate', period_m=4.0, yaw=0.02),)
+    sim = simulate(SimConfig(duration_s=60.0, seed=7, effects=third))
+    odometer = online_odometer(OdometryConfig.from_flat(flat))
+    remembered = odometer.learner.grounds[1]
+    odometer.predict(sim.wheels, reference=_reference(sim, 7))
+    assert odometer.counters['online_change'] >= 1
+    assert odometer.counters['online_grounds_forgotten'] == 1
+    assert remembered not in odometer.learner.grounds
+    # the same file on a drive over its own two grounds: taken back and learned, never dropped
+    same = simulate(SimConfig(duration_s=60.0, seed=7, effects=ALTERNATING))
+    odometer = online_odometer(OdometryConfig.from_flat(flat))
+    remembered = odometer.learner.grounds[1]
+    odometer.predict(same.wheels, reference=_reference(same, 7))
+    assert odometer.counters['online_switch'] >= 1 and remembered.segments >= 1
+    assert 'online_grounds_forgotten' not in odometer.counters

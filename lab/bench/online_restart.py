@@ -9,6 +9,8 @@ B (another seed) is then run, in one process, from four starts:
 * **active only**: the saved file without its ``online.grounds.*`` (what the save wrote before
   the remembered grounds: the active ground's parameters only);
 * **grounds**: the saved file as written (every remembered ground);
+* **grounds kept**: the same, with a remembered ground never forgotten (in the product, one
+  not learned on yet is forgotten when a new ground starts: ``GroundBank._forget_unconfirmed``);
 * **true**: the simulator's true model of the ground under the robot (the floor).
 
 Cases (A -> B): ``alternating`` and ``long stretches`` (the same two grounds in A and B, the
@@ -59,7 +61,7 @@ CASES = {  # name: (A's drive, B's drive, B's second ground)
     'third long': ('time', 'time', THIRD),
     'effect-free': ('alternate', None, None),
 }
-STARTS = ('fixed', 'active only', 'grounds')
+STARTS = ('fixed', 'active only', 'grounds', 'grounds kept')
 
 
 def _effects(mode: str | None, ground: tuple[float, float]) -> tuple:
@@ -123,6 +125,10 @@ def _known_at(log: list, grounds: list[np.ndarray]) -> int | None:
     return None
 
 
+def _never() -> None:
+    """Forget nothing (the 'grounds kept' start)."""
+
+
 def _path_at(sim, path: np.ndarray, t_ns: int | None) -> float:
     if t_ns is None:
         return math.inf
@@ -141,7 +147,8 @@ def run_pair(case: str, seed: int, fixed: OdometryConfig, folder: Path) -> dict:
     saved = OdometryConfig.from_file(saved_path)
     active_only = OdometryConfig.from_flat({k: v for k, v in saved.values.items()
                                             if k not in GROUND_NAMES})
-    starts = {'fixed': online_fixed, 'active only': active_only, 'grounds': saved}
+    starts = {'fixed': online_fixed, 'active only': active_only, 'grounds': saved,
+              'grounds kept': saved}
     b_seed = seed + 500
     sim_b = simulate(SimConfig(duration_s=DURATION_S, seed=b_seed,
                                effects=_effects(b_mode, b_ground or SECOND)))
@@ -160,11 +167,13 @@ def run_pair(case: str, seed: int, fixed: OdometryConfig, folder: Path) -> dict:
     if b_mode is not None:
         truths.append(model.vector(_ground_values(b_ground), fixed.geometry))
     for name, config in starts.items():
-        run = online_odometer(config)
+        run, drop = online_odometer(config), online_odometer(config)
+        if name == 'grounds kept':
+            for odometer in (run, drop):
+                odometer.learner._forget_unconfirmed = _never
         log = _watch(run)
         eps_t, eps_th = study._scores(sim_b, run.predict(sim_b.wheels, reference=reference).poses)
-        drop_t = study._scores(sim_b, online_odometer(config).predict(
-            sim_b.wheels, reference=dropped).poses)[0]
+        drop_t = study._scores(sim_b, drop.predict(sim_b.wheels, reference=dropped).poses)[0]
         out[name] = {'eps_t': float(eps_t.mean()), 'eps_th': float(eps_th.mean()),
                      'early': float(eps_t[:early].mean()),
                      'known_m': _path_at(sim_b, path, _known_at(log, truths)),
@@ -198,7 +207,8 @@ def summary(rows: list[tuple[str, int, dict]]) -> str:
     """Per case: the mean over seeds of grounds / active only and grounds / fixed ratios."""
     lines = ['| case | seeds | eps_t grounds / active only | grounds / fixed | early eps_t '
              'grounds / active only | known at m (median): fixed, active only, grounds | '
-             'dropout eps_t grounds / active only |', '|' + '---|' * 7]
+             'dropout eps_t grounds / active only | eps_t grounds kept / active only |',
+             '|' + '---|' * 8]
     for case in CASES:
         mine = [out for c, _, out in rows if c == case]
         if not mine:
@@ -206,13 +216,14 @@ def summary(rows: list[tuple[str, int, dict]]) -> str:
 
         def ratio(key, a, b):
             return float(np.mean([o[a][key] / o[b][key] for o in mine]))
-        unknown = [float(np.median([o[s]['known_m'] for o in mine])) for s in STARTS]
+        unknown = [float(np.median([o[s]['known_m'] for o in mine])) for s in STARTS[:3]]
         lines.append(
             f'| {case} | {len(mine)} | {ratio("eps_t", "grounds", "active only"):.2f} | '
             f'{ratio("eps_t", "grounds", "fixed"):.2f} | '
             f'{ratio("early", "grounds", "active only"):.2f} | '
             + ', '.join(f'{u:.1f}' for u in unknown)
-            + f' | {ratio("drop_t", "grounds", "active only"):.2f} |')
+            + f' | {ratio("drop_t", "grounds", "active only"):.2f} | '
+            f'{ratio("eps_t", "grounds kept", "active only"):.2f} |')
     return '\n'.join(lines)
 
 

@@ -43,6 +43,7 @@ def remember(learner: OnlineCalibrator, saved: SavedGrounds) -> None:
         info = 0.5 * (info + info.T)
         ground = Ground(learner._next_ident, np.asarray(k, dtype=float).copy(), info)
         ground.learned_m = float(metres)
+        ground.remembered = True
         learner._next_ident += 1
         learner.grounds.append(ground)
     learner.counters['online_grounds_remembered'] += len(saved)
