@@ -190,8 +190,10 @@ def test_node_refuses_unfit_grounds_at_start_with_what_to_do():
 
 
 def test_a_remembered_ground_todays_drive_refutes_is_forgotten():
-    """Yesterday's second ground on a drive whose second ground is another: dropped at the
-    change that starts the new ground, so it cannot win the recognition there."""
+    """Drop yesterday's second ground where today's second ground is another.
+
+    It goes at the change that starts the new ground, so it cannot win the recognition there.
+    """
     base = DEFAULT_TRUE_PARAMS
     second = {'alpha_l': base['alpha_l'] * 0.75, 'alpha_r': base['alpha_r'] * 0.75,
               'x_v': base['x_v'] / 0.85, 'y_l': base['y_l'] * 0.75 / 0.85,
