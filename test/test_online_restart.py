@@ -215,3 +215,22 @@ def test_a_remembered_ground_todays_drive_refutes_is_forgotten():
     odometer.predict(same.wheels, reference=_reference(same, 7))
     assert odometer.counters['online_switch'] >= 1 and remembered.segments >= 1
     assert 'online_grounds_forgotten' not in odometer.counters
+
+
+def test_an_augmented_models_grounds_round_trip():
+    from skidkin_ros.core.online.grounds import Ground
+
+    flat = {**FILE, 'model': 'augmented', 'augmented.base': 'edd_asymmetric',
+            'augmented.extensions': 'lateral_skid, speed_slip'}
+    config = OdometryConfig.from_flat(flat)
+    learner = online_odometer(config).learner
+    other = Ground(1, learner.active.k * 0.95, 2.0 * learner.active.info)
+    learner.grounds.append(other)
+    values = learned_values(config, learner)
+    assert values['online.grounds.parameter_names'] == ('alpha_l, alpha_r, x_v, y_l, y_r, '
+                                                        'speed_slip.k, lateral_skid.k')
+    restarted = online_odometer(OdometryConfig.from_flat(values)).learner
+    assert len(restarted.grounds) == 2 and np.array_equal(restarted.grounds[1].k, other.k)
+    # the same grounds under other extensions: refused, naming what the learner learns
+    with pytest.raises(ConfigError, match='online calibration of this model learns'):
+        OdometryConfig.from_flat({**values, 'augmented.extensions': 'lateral_skid'})
