@@ -78,6 +78,8 @@ def _default_text(entry: SchemaEntry) -> str:
                                for v in entry.default) + ']'
     if entry.kind == 'matrix':
         return 'zeros (not known)'
+    if entry.kind == 'double_list':
+        return 'empty (none)'
     if entry.kind == 'double':
         return f'{entry.default:g}'
     return f'`{entry.default}`' if entry.default != '' else "''"

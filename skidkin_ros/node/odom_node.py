@@ -89,6 +89,7 @@ from skidkin_ros.core.odometry.config import (check_model_given, default_paramet
                                               missing_parameters, models_held, OdometryConfig,
                                               switches_model)
 from skidkin_ros.core.odometry.odometer import Estimate
+from skidkin_ros.core.odometry.saved_grounds import GROUND_NAMES
 from skidkin_ros.core.online import attach_online, online_odometer
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 from skidkin_ros.errors import ConfigError
@@ -228,13 +229,15 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
         """Switch to a validated configuration; the pose and its covariance are kept.
 
         Online calibration goes on with what it learned when neither the model, its parameters
-        nor online.* changed; otherwise it restarts from the parameters given.
+        nor online.* (the remembered grounds included) changed; otherwise it restarts from the
+        parameters given.
         """
         old = self._config
         learner = self._odometer.learner
         self._odometer.configure(config)
         if (learner is not None and config.online == old.online and config.model == old.model
-                and config.model_values == old.model_values):
+                and config.model_values == old.model_values
+                and all(config[name] == old[name] for name in GROUND_NAMES)):
             self._odometer.attach_learner(learner)
         else:
             attach_online(self._odometer, config, self._warn)

@@ -41,7 +41,7 @@ def parameter_descriptor(entry: SchemaEntry) -> ParameterDescriptor:
     """
     descriptor = ParameterDescriptor(name=entry.name, description=entry.description,
                                      read_only=entry.name in READ_ONLY)
-    if entry.kind in ('double', 'double_array', 'matrix'):
+    if entry.kind in ('double', 'double_array', 'matrix', 'double_list'):
         descriptor.dynamic_typing = True
         descriptor.additional_constraints = 'integers are accepted and converted to floats'
     spec = entry.spec
@@ -56,6 +56,8 @@ def parameter_descriptor(entry: SchemaEntry) -> ParameterDescriptor:
         descriptor.additional_constraints = 'one of: ' + ', '.join(entry.choices)
     if entry.kind == 'double_array':
         descriptor.additional_constraints += f'; exactly {entry.length} values > 0'
+    if entry.kind == 'double_list':
+        descriptor.additional_constraints += '; any number of finite values (empty: none)'
     if entry.kind == 'matrix':
         descriptor.additional_constraints += (f'; exactly {entry.length} values, a symmetric '
                                               'positive semi-definite matrix')

@@ -38,6 +38,7 @@ from skidkin_ros.core.odometry.reference import (ONLINE_EXTENSIONS, OnlineParams
                                                  rate_extensions)
 from skidkin_ros.core.odometry.residual_uncertainty import (coefficient_count, RESIDUAL_EXTENSION,
                                                             ResidualUncertainty)
+from skidkin_ros.core.odometry.saved_grounds import check_list, saved_grounds
 from skidkin_ros.core.odometry.schema import (DEFAULT_LEFT_JOINTS,  # noqa: F401
                                               DEFAULT_RIGHT_JOINTS, INPUT_MODES, MIN_RATE_HZ,
                                               node_default, NODE_SPECS, parameter_schema,
@@ -133,9 +134,12 @@ def _check_magnitude(entry: SchemaEntry, value: Any) -> None:
     Covariances beyond VARIANCE_LIMIT, open-ended values beyond MAGNITUDE_LIMIT; checked
     before anything adds or multiplies them (1e308 + 1e308 is inf).
     """
-    variance = entry.kind in ('matrix', 'double_array') or '.noise.' in entry.name
-    if not variance and (entry.spec is None or entry.kind != 'double'
-                         or math.isfinite(entry.spec.lower) and math.isfinite(entry.spec.upper)):
+    variance = (entry.kind in ('matrix', 'double_array') or '.noise.' in entry.name
+                or entry.name == 'online.grounds.covariance')
+    open_ended = entry.kind == 'double_list' or (
+        entry.spec is not None and entry.kind == 'double'
+        and not (math.isfinite(entry.spec.lower) and math.isfinite(entry.spec.upper)))
+    if not variance and not open_ended:
         return
     items = value if isinstance(value, (list, tuple)) else [value]
     numbers = [float(v) for v in items if isinstance(v, (int, float)) and not isinstance(v, bool)]
@@ -186,6 +190,8 @@ def _check_entry(entry: SchemaEntry, value: Any) -> Any:
         if entry.name == f'augmented.{RESIDUAL_EXTENSION}.covariance':
             value = upgrade_covariance(value) or value   # an earlier library's 60 x 60
         return check_parameter_covariance(entry.name, value, size).ravel().tolist()
+    if entry.kind == 'double_list':
+        return check_list(entry.name, value)
     if entry.kind == 'double_array':
         if (not isinstance(value, (list, tuple)) or len(value) != entry.length
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
@@ -407,14 +413,14 @@ class OdometryConfig:
             ext.vector(augmented_values[ext.name])
         if values['model'] != AUGMENTED_NAME:
             get_model(values['model'])
-        _check_online(values)
+        _check_online(values, geometry)
         given = models_given(flat)
         return cls(values['model'], geometry, model_values, noise, values,
                    values['augmented.base'], extensions, augmented_values, given,
                    augmented_given(flat))
 
 
-def _check_online(values: Mapping[str, Any]) -> None:
+def _check_online(values: Mapping[str, Any], geometry: Geometry) -> None:
     """Refuse online calibration where it cannot run (a clear message instead of a surprise)."""
     if not values['online.enabled']:
         return
@@ -448,6 +454,7 @@ def _check_online(values: Mapping[str, Any]) -> None:
     if model and not get_model(model).params:
         raise ConfigError(f'online.enabled: model {model} has no parameter to learn; choose a '
                           'calibrated model (e.g. edd_asymmetric, full_linear)')
+    saved_grounds(values, geometry)   # the remembered grounds fit the model learned
     if values['imu.mode'] == 'adapt':
         raise ConfigError('online.enabled with imu.mode adapt: both would learn the yaw rate; '
                           'use imu.mode fuse or off with online calibration')

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from skidkin_ros import __version__
+from skidkin_ros.core.odometry.saved_grounds import GROUND_NAMES
 from skidkin_ros.core.odometry.schema import parameter_schema, SCHEMA_VERSION
 from skidkin_ros.errors import brief, ConfigError
 import yaml
@@ -197,8 +198,10 @@ def params_document(config_values: Mapping[str, Any],
         entry = schema.get(name)
         if entry is not None and entry.kind == 'double':
             value = _yaml_float(value)
-        elif entry is not None and entry.kind in ('double_array', 'matrix'):
-            value = [float(v) for v in value]
+        elif entry is not None and entry.kind in ('double_array', 'matrix', 'double_list'):
+            value = [float(v) for v in value or ()]
+        if name in GROUND_NAMES and not value:
+            continue   # no remembered ground (and rcl reads an empty list as not set)
         flat[name] = value
     prov = dict(provenance or {})
     prov.setdefault('tool', f'skidkin_ros {__version__}')

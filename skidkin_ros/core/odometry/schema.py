@@ -21,6 +21,7 @@ from skidkin_ros.core.odometry.noise import (FALLBACK_POSE_DIAGONAL, FALLBACK_TW
                                              NOISE_SPECS)
 from skidkin_ros.core.odometry.reference import HEADING_MODES, ONLINE_SPECS
 from skidkin_ros.core.odometry.residual_uncertainty import coefficient_count, RESIDUAL_EXTENSION
+from skidkin_ros.core.odometry.saved_grounds import ground_entries
 from skidkin_ros.core.odometry.wheels import WHEEL_SIGNALS
 
 __all__ = [
@@ -47,7 +48,8 @@ MIN_RATE_HZ = 0.1
 class SchemaEntry:
     """One node parameter: name, type, default, description and range.
 
-    ``kind`` is one of 'double', 'int', 'bool', 'string', 'string_array', 'double_array';
+    ``kind`` is one of 'double', 'int', 'bool', 'string', 'string_array', 'double_array',
+    'matrix' or 'double_list' (finite numbers, any length; empty: none);
     ``spec`` gives numeric ranges, ``choices`` the allowed strings.
     """
 
@@ -236,6 +238,8 @@ def _online_entries() -> list[SchemaEntry]:
     entries += [SchemaEntry(f'online.{spec.name}', 'double', spec.default_for(None),
                             f'{spec.description} [{spec.unit}], range {spec.range_text()}', spec)
                 for spec in ONLINE_SPECS]
+    entries += [SchemaEntry(name, kind, default, text)
+                for name, kind, default, text in ground_entries()]
     return entries
 
 

@@ -14,8 +14,10 @@ from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.gyro import GyroStatus
 from skidkin_ros.core.odometry.odometer import Odometer
+from skidkin_ros.core.odometry.saved_grounds import saved_grounds
 from skidkin_ros.core.online.augmented import AugmentedCalibrator, LayoutModel, online_layout
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
+from skidkin_ros.core.online.remembered import remember
 
 __all__ = ['attach_online', 'online_odometer', 'make_calibrator']
 
@@ -29,6 +31,7 @@ def make_calibrator(config: OdometryConfig,
     (models.<m>.parameter_covariance), when the file has one, is the first ground's information
     on top of the broad prior (online.prior_sigma). An augmented model learns its base model's
     parameters and its extensions' fitted ones (:mod:`skidkin_ros.core.online.augmented`).
+    The file's remembered grounds (``online.grounds.*``) are known from the start.
     """
     if config.model == AUGMENTED_NAME:
         layout = online_layout(config.augmented_base, config.geometry,
@@ -40,14 +43,18 @@ def make_calibrator(config: OdometryConfig,
                                       config['interval'], None, counters, warn)
         # a residual model's coefficients are held: their file covariance is carried as is
         learner.coefficient_covariance = config.residual_coefficient_covariance()
-        return learner
-    model = get_model(config.model)
-    flat = config.values.get(f'models.{model.name}.parameter_covariance')
-    size = len(model.params)
-    prior = None if flat is None else np.asarray(flat, dtype=float).reshape(size, size)
-    return OnlineCalibrator(model, config.model_values[model.name], config.geometry,
-                            config.active_noise, config.online, config['interval'], prior,
-                            counters, warn)
+    else:
+        model = get_model(config.model)
+        flat = config.values.get(f'models.{model.name}.parameter_covariance')
+        size = len(model.params)
+        prior = None if flat is None else np.asarray(flat, dtype=float).reshape(size, size)
+        learner = OnlineCalibrator(model, config.model_values[model.name], config.geometry,
+                                   config.active_noise, config.online, config['interval'],
+                                   prior, counters, warn)
+    saved = saved_grounds(config.values, config.geometry)
+    if saved is not None:   # the grounds a saved calibration remembered (remembered.py)
+        remember(learner, saved)
+    return learner
 
 
 def attach_online(odometer: Odometer, config: OdometryConfig,

@@ -50,6 +50,7 @@ class Ground:
     learned_m: float = 0.0
     segments: int = 0
     last_used: int = 0
+    remembered: bool = False   # from the file's online.grounds.* (remembered.py)
 
     def __post_init__(self) -> None:
         if self.anchor is None:
@@ -95,6 +96,7 @@ class GroundBank:
             return
         ground = Ground(self._next_ident, self.active.k.copy(), self.prior_info.copy())
         self._next_ident += 1
+        self._forget_unconfirmed()   # remembered grounds today's ground refuted (remembered.py)
         if len(self.grounds) >= int(self.params.max_grounds):
             oldest = min((g for g in self.grounds if g is not self.active),
                          key=lambda g: g.last_used, default=None)
@@ -108,6 +110,20 @@ class GroundBank:
         self._activate(ground, 'online_change')
         self._warn('online_change', f'change of ground detected: learning ground {ground.ident} '
                    f'from the current parameters ({len(self.grounds)} grounds known)')
+
+    def _forget_unconfirmed(self) -> None:
+        """Forget the file's remembered grounds not learned on yet: a new ground refuted them.
+
+        A new ground starts only where no remembered ground explains the segment; one from the
+        file that was never learned on today (the active one included: the recognition took it
+        on a short window) is yesterday's, not today's: kept, it won the recognition's window
+        on today's ground and flickered with the new one, neither learning (a third ground's
+        drive: 1.25x the eps_t of starting without it).
+        """
+        keep = [g for g in self.grounds if not g.remembered or g.segments]
+        if len(keep) < len(self.grounds):
+            self.counters['online_grounds_forgotten'] += len(self.grounds) - len(keep)
+            self.grounds[:] = keep
 
     def _note_error(self, seg: SegmentSet, residual: np.ndarray) -> None:
         """Keep the error the old ground made on the segment that revealed the change.

@@ -11,6 +11,7 @@ import numpy as np
 from skidkin_ros.atomic import check_writable
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.online.calibrator import OnlineCalibrator
+from skidkin_ros.core.online.remembered import remembered_values
 from skidkin_ros.errors import OutputError
 
 __all__ = ['learned_values', 'save_learned']
@@ -19,7 +20,8 @@ __all__ = ['learned_values', 'save_learned']
 def learned_values(config: OdometryConfig, learner: OnlineCalibrator) -> dict[str, Any]:
     """Return the configuration's parameters with the active model's replaced by the learned ones.
 
-    The parameter covariance is the learner's (what the published covariance carries).
+    The parameter covariance is the learner's (what the published covariance carries); the
+    other grounds it remembers are ``online.grounds.*`` (:mod:`.remembered`).
     """
     values = dict(config.values)
     name = learner.model.name
@@ -35,6 +37,7 @@ def learned_values(config: OdometryConfig, learner: OnlineCalibrator) -> dict[st
             values[f'models.{name}.{key}'] = float(value)
     if cov.size:
         values[f'models.{name}.parameter_covariance'] = (0.5 * (cov + cov.T)).ravel().tolist()
+    values.update(remembered_values(config.model, learner))   # the other grounds (remembered.py)
     return values
 
 
