@@ -5,7 +5,7 @@ unchanging ground its last fit is the calibrator's fit on the whole drive; cutti
 short changes nothing before the cut (it never uses data after its time).
 """
 
-from lab.bench.online_causal import causal_fits, causal_poses
+from lab.bench.online_causal import causal_fits, causal_poses, prior_fits
 from lab.studies import online as study
 import numpy as np
 import pytest
@@ -14,6 +14,7 @@ from skidkin_ros.core.calibration.weighting import fit_model_iterated
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL
+from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
 
 
@@ -77,3 +78,30 @@ def test_it_never_uses_data_after_its_time(drive):
     first = int(np.searchsorted(sim.wheels.t_ns, full_fits[1][0][0], side='left'))
     np.testing.assert_array_equal(plain[:first + 1], full[:first + 1])
     assert np.abs(plain[first + 1] - full[first + 1]).max() > 0
+
+
+def test_the_prior_refit_learns_from_the_first_metres_and_only_from_the_past(drive):
+    sim, reference = drive
+    geometry = sim.config.geometry
+    names = get_model(study.MODEL).param_names
+    start = {n: DEFAULT_TRUE_PARAMS[n] * (0.8 if n.startswith('alpha') else 1.0) for n in names}
+    noise = NoiseModel(1e-3, 1e-3, 1e-4, 1e-3)
+    cut = sim.start_ns + 20_000_000_000
+    full = prior_fits(sim.wheels, reference, geometry, sim.start_ns, sim.end_ns + 1, start,
+                      noise, 0.5)
+    on = reference.t_ns <= cut
+    n = int(np.searchsorted(sim.wheels.t_ns, cut, side='right'))
+    short = prior_fits(
+        WheelSamples(sim.wheels.t_ns[:n], sim.wheels.omega_l[:n], sim.wheels.omega_r[:n]),
+        PoseTrack(reference.t_ns[on], reference.x[on], reference.y[on], reference.yaw[on]),
+        geometry, sim.start_ns, cut + 1, start, noise, 0.5)
+    assert 0 < len(short) < len(full)
+    # the same fits (to rounding: the segments are padded to the longest of each cut)
+    assert [t for t, _, _ in short] == [t for t, _, _ in full[:len(short)]]
+    for (_, v, _), (_, w, _) in zip(short, full):
+        assert [v[n] for n in names] == pytest.approx([w[n] for n in names], rel=1e-7)
+    # a probe inside the first segment already moves alpha from the 20 % wrong start; at the
+    # end the speed gains are within 2 % of the truth
+    assert full[0][2] < 2.0 and full[0][1]['alpha_l'] > start['alpha_l'] + 0.02
+    for name in ('alpha_l', 'alpha_r'):
+        assert full[-1][1][name] == pytest.approx(DEFAULT_TRUE_PARAMS[name], rel=0.02)

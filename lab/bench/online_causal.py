@@ -38,7 +38,10 @@ from typing import Sequence
 from lab.studies import online as study
 import numpy as np
 
-from skidkin_ros.core.calibration.segments import HorizonOptions, usable_segments
+from skidkin_ros.core.calibration.fitting import parameter_scales, segment_errors
+from skidkin_ros.core.calibration.noise_fit import (parameter_sensitivity, segment_covariances,
+                                                    segment_motion)
+from skidkin_ros.core.calibration.segments import cut_segments, HorizonOptions, usable_segments
 from skidkin_ros.core.calibration.weighting import fit_model_iterated
 from skidkin_ros.core.drive import Drive, PoseTrack, WheelSamples
 from skidkin_ros.core.kinematics.models import BoundModel, get_model
@@ -46,6 +49,8 @@ from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.integrator import StreamingIntegrator
 from skidkin_ros.core.online import online_odometer
+from skidkin_ros.core.online.adapt import PROBE_M, PROBE_RAD
+from skidkin_ros.core.online.window import _stack
 from skidkin_ros.errors import DataError
 from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate, Simulation
 
@@ -94,6 +99,82 @@ def causal_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, 
     return fits
 
 
+def prior_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t0_ns: int,
+               t1_ns: int, start: dict, noise, prior_sigma: float, model: str = study.MODEL,
+               iterations: int = 3, probes: bool = True) -> list[tuple[int, dict, float]]:
+    """Return the causal MAP refits of one ground: the same segments, with a prior.
+
+    Each new segment refits all the ground's segments so far (Gauss-Newton, ``iterations``
+    steps from the last refit), weighted like the online learner (the noise model's covariance
+    of each segment plus the reference's noise at both ends), with ``start`` as the prior's mean
+    and ``prior_sigma`` of each parameter's typical magnitude as its spread (the online learner's
+    new-ground prior): usable from the first segment on, no forgetting. ``probes``: also refit
+    every PROBE_M of path or PROBE_RAD of turning inside a segment, with the segment in progress
+    (from the last segment's end to the current pose) as one more segment, as the online learner
+    probes (:mod:`skidkin_ros.core.online.adapt`).
+    """
+    keep = (wheels.t_ns >= t0_ns) & (wheels.t_ns < t1_ns)
+    on = (reference.t_ns >= t0_ns) & (reference.t_ns < t1_ns)
+    if on.sum() < 2 or not keep.any():
+        return []
+    track = PoseTrack(reference.t_ns[on], reference.x[on], reference.y[on], reference.yaw[on])
+    drive = Drive('ground', WheelSamples(wheels.t_ns[keep], wheels.omega_l[keep],
+                                         wheels.omega_r[keep]), track)
+    options = HorizonOptions().train_segments()
+    try:
+        segments = usable_segments([drive], options, 'training')
+    except DataError:
+        return []
+    kin = get_model(model)
+    scale = parameter_scales(kin, geometry)
+    anchor = kin.vector(dict(start), geometry)
+    prior = np.eye(anchor.size) / prior_sigma ** 2
+    ref = np.diag([2 * study.REF_SIGMA_M ** 2, 2 * study.REF_SIGMA_M ** 2,
+                   2 * study.REF_SIGMA_RAD ** 2])
+    path = track.path_length()
+    rows = [segments.subset([j]) for j in range(len(segments))]
+    k = anchor.copy()
+    fits = []
+    done, last = 0, (-np.inf, 0.0)
+    for c in range(1, len(track)):
+        t_c = int(track.t_ns[c])
+        if t_c >= t1_ns:
+            break
+        ended = done
+        while ended < len(segments) and int(segments.t_b_ns[ended]) <= t_c:
+            ended += 1
+        batch = rows[:ended]
+        if ended == done:   # inside a segment: a probe every PROBE_M or PROBE_RAD
+            if not probes or (path[c] - last[0] < PROBE_M
+                              and abs(track.yaw[c] - last[1]) < PROBE_RAD):
+                continue
+            a = (0 if done == 0 else
+                 int(np.searchsorted(track.t_ns, int(segments.t_b_ns[done - 1]))))
+            if options.too_still(path[c] - path[a], track.yaw[c] - track.yaw[a]):
+                continue
+            part = Drive('part', drive.wheels, PoseTrack(track.t_ns[[a, c]], track.x[[a, c]],
+                                                         track.y[[a, c]], track.yaw[[a, c]]))
+            partial = cut_segments([part], options)
+            if len(partial) == 0:
+                continue
+            batch = batch + [partial]
+        done = ended
+        last = (path[c], track.yaw[c])
+        stacked = _stack(batch)
+        for _ in range(iterations):
+            values = kin.mapping(k)
+            e = segment_errors(kin, k, geometry, stacked)
+            sens = parameter_sensitivity(kin.name, values, geometry, stacked) * scale
+            inverse = np.linalg.inv(segment_covariances(
+                noise, segment_motion(kin.name, values, geometry, stacked)) + ref)
+            info = np.einsum('nip,nij,njq->pq', sens, inverse, sens) + prior
+            gradient = (np.einsum('nip,nij,nj->p', sens, inverse, e)
+                        - prior @ ((k - anchor) / scale))
+            k = k + np.linalg.solve(info, gradient) * scale
+        fits.append((t_c, kin.mapping(k), float(path[c])))
+    return fits
+
+
 def causal_poses(wheels: WheelSamples, on_new: np.ndarray, starts: Sequence[BoundModel],
                  schedules: Sequence[Sequence[tuple[int, BoundModel]]], interval: str
                  ) -> np.ndarray:
@@ -138,7 +219,7 @@ def increment_parts(sim: Simulation, n: int, switch_ns: int, learn_m: float) -> 
 
 
 def _true_models(sim: Simulation) -> tuple[BoundModel, BoundModel]:
-    """The true model's two grounds, as lab.studies.online's _true_poses binds them."""
+    """Return the true model's two grounds, as lab.studies.online's _true_poses binds them."""
     model, geometry = get_model(study.MODEL), sim.config.geometry
     base = dict(DEFAULT_TRUE_PARAMS)
     ratio = (1.0 - study.SLIP) / (1.0 - study.YAW_SLIP)
@@ -160,7 +241,9 @@ def causal_floor(seed: int, fixed: OdometryConfig, duration_s: float = 240.0,
                              effects=study._effects('long stretches')))
     reference = study._reference(sim, np.random.default_rng(seed))
     config = OdometryConfig.from_flat({**fixed.values, 'online.enabled': True})
-    online = online_odometer(config).predict(sim.wheels, reference=reference)
+    odometer = online_odometer(config)
+    noise, prior_sigma = odometer.learner.noise, odometer.learner.params.prior_sigma
+    online = odometer.predict(sim.wheels, reference=reference)
     switch = sim.start_ns + int(0.5 * duration_s * 1e9)
     model, geometry = get_model(study.MODEL), sim.config.geometry
     mask = sim.trace.masks['terrain_regime']
@@ -168,8 +251,10 @@ def causal_floor(seed: int, fixed: OdometryConfig, duration_s: float = 240.0,
     fits = [causal_fits(sim.wheels, reference, geometry, sim.start_ns, switch),
             causal_fits(sim.wheels, reference, geometry, switch, sim.end_ns + 1)]
     schedules = [[(t, model.bind(v, geometry)) for t, v, _ in f] for f in fits]
-    file_model = model.bind({k: fixed[f'models.{study.MODEL}.{k}'] for k in model.param_names},
-                            geometry)
+    file_values = {k: fixed[f'models.{study.MODEL}.{k}'] for k in model.param_names}
+    file_model = model.bind(file_values, geometry)
+    with_prior = prior_fits(sim.wheels, reference, geometry, switch, sim.end_ns + 1,
+                            file_values, noise, prior_sigma)
     previous = schedules[0][-1][1] if schedules[0] else file_model
     true_models = _true_models(sim)
     # the last causal fit of a ground uses all its segments: the non-causal floor's fit
@@ -182,6 +267,9 @@ def causal_floor(seed: int, fixed: OdometryConfig, duration_s: float = 240.0,
                                     schedules, fixed['interval']),
         'file, causal true': causal_poses(sim.wheels, on_new, (file_model, true_models[1]),
                                           ([], schedules[1]), fixed['interval']),
+        'file, causal prior': causal_poses(
+            sim.wheels, on_new, (file_model, file_model),
+            ([], [(t, model.bind(v, geometry)) for t, v, _ in with_prior]), fixed['interval']),
         'non-causal': study.ground_poses(sim, whole, fixed['interval']),
         'true': study._true_poses(sim, fixed['interval'])}
     scores = {name: study._scores(sim, p) for name, p in poses.items()}
@@ -195,12 +283,14 @@ def causal_floor(seed: int, fixed: OdometryConfig, duration_s: float = 240.0,
     return out
 
 
-HEADER = ('| seed | ε_t online / causal previous / causal true / file, causal true / non-causal '
-          '/ true | ε_t ratios to true: the first five | ε_θ the same | ε_θ ratios to true | '
-          'online / causal previous ε_t, ε_θ | on the parts before, straddle, change, after: '
-          'online / true ε_t; ε_θ | causal previous / true | causal true / true | file, causal '
-          'true / true | first fit m |\n' + '|---' * 12 + '|')
-ORDER = ('online', 'causal previous', 'causal true', 'file, causal true', 'non-causal', 'true')
+HEADER = ('| seed | ε_t online / causal previous / causal true / file, causal true / file, '
+          'causal prior / non-causal / true | ε_t ratios to true: the first six | ε_θ the same | '
+          'ε_θ ratios to true | online / causal previous ε_t, ε_θ | on the parts before, '
+          'straddle, change, after: online / true ε_t; ε_θ | causal previous / true | causal '
+          'true / true | file, causal true / true | file, causal prior / true | first fit m |\n'
+          + '|---' * 13 + '|')
+ORDER = ('online', 'causal previous', 'causal true', 'file, causal true', 'file, causal prior',
+         'non-causal', 'true')
 
 
 def row(r: dict) -> str:
@@ -208,10 +298,11 @@ def row(r: dict) -> str:
     cells = [str(r['seed'])]
     for col in (0, 1):
         cells.append(' / '.join(f'{r[k][col]:.4f}' for k in ORDER))
-        cells.append(', '.join(f'{r[k][col] / r["true"][col]:.2f}' for k in ORDER[:5]))
+        cells.append(', '.join(f'{r[k][col] / r["true"][col]:.2f}' for k in ORDER[:6]))
     o, c = r['online'], r['causal previous']
     cells.append(f'{o[0] / c[0]:.2f}, {o[1] / c[1]:.2f}')
-    for name in ('online', 'causal previous', 'causal true', 'file, causal true'):
+    for name in ('online', 'causal previous', 'causal true', 'file, causal true',
+                 'file, causal prior'):
         cells.append(', '.join(f'{r[(name, p)][0]:.2f}' for p in PARTS) + '; '
                      + ', '.join(f'{r[(name, p)][1]:.2f}' for p in PARTS))
     cells.append(f'{r["first_fit_m"]:.1f}')
@@ -221,7 +312,7 @@ def row(r: dict) -> str:
 def summary(results: list[dict]) -> str:
     """Means and counts within 1.5x of the true model, per odometry."""
     lines = []
-    for name in ORDER[:5]:
+    for name in ORDER[:6]:
         for col, what in ((0, 'ε_t'), (1, 'ε_θ')):
             ratios = np.array([r[name][col] / r['true'][col] for r in results])
             lines.append(f'{name} {what}/true: {ratios.min():.2f}-{ratios.max():.2f}, mean '
