@@ -17,7 +17,22 @@ fits on the *current ground's* reference data up to that sample:
   (what the online odometry starts from); the new ground from **previous** (the first ground's
   last causal fit: what a learner that knows a change happened, but nothing of the new ground,
   has) or **true** (the simulator's parameters of the new ground: an optimistic start, a
-  perfect prior).
+  perfect prior). Variants (columns):
+
+  - *causal previous*, *causal true*: both grounds refitted causally, the new one started
+    as said;
+  - *file, causal true*: the first ground (the calibration's own) runs the fixed file
+    throughout, the new one is refitted causally from the true start: what a learner of
+    these data gets when handed the new ground's parameters at the change (optimistic; not
+    a strict bound: blending that start with the data, as a prior, would do a little better);
+  - *file, causal prior*: the first ground the file, the new one a data-only causal refit
+    (:func:`prior_fits`): a MAP fit (Gauss-Newton steps kept inside the parameters' ranges) of the new ground's segments so far with the online
+    learner's new-ground prior (the file's values, ``online.prior_sigma`` of each
+    parameter's typical magnitude), refitted at every new segment and, like the online
+    learner's probes, every ``PROBE_M`` or ``PROBE_RAD`` inside one (the segment in progress as
+    one more segment), no forgetting: a learner that knows the change's instant but nothing of
+    the new ground. The calibrator itself cannot start a ground before p + 1 segments and has
+    no prior, so *causal previous* runs the old ground's parameters for the first 3-7 m.
 
 It is scored over the whole drive like the study (ε_t, ε_θ over 2 m increments of true path,
 :mod:`lab.studies.online`), beside online, the non-causal floor (each ground fitted on its
@@ -129,6 +144,11 @@ def prior_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t
     scale = parameter_scales(kin, geometry)
     anchor = kin.vector(dict(start), geometry)
     prior = np.eye(anchor.size) / prior_sigma ** 2
+    # inside the parameters' ranges, as the online learner keeps them
+    lo = np.array([p.lower + (1e-6 * c if p.lower_open else 0.0)
+                   for p, c in zip(kin.params, scale)])
+    hi = np.array([p.upper - (1e-6 * c if p.upper_open else 0.0)
+                   for p, c in zip(kin.params, scale)])
     ref = np.diag([2 * study.REF_SIGMA_M ** 2, 2 * study.REF_SIGMA_M ** 2,
                    2 * study.REF_SIGMA_RAD ** 2])
     path = track.path_length()
@@ -170,7 +190,7 @@ def prior_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t
             info = np.einsum('nip,nij,njq->pq', sens, inverse, sens) + prior
             gradient = (np.einsum('nip,nij,nj->p', sens, inverse, e)
                         - prior @ ((k - anchor) / scale))
-            k = k + np.linalg.solve(info, gradient) * scale
+            k = np.clip(k + np.linalg.solve(info, gradient) * scale, lo, hi)
         fits.append((t_c, kin.mapping(k), float(path[c])))
     return fits
 
@@ -216,6 +236,15 @@ def increment_parts(sim: Simulation, n: int, switch_ns: int, learn_m: float) -> 
     return {'before': end < switch, 'straddle': (start < switch) & (end >= switch),
             'change': (start >= switch) & (path[start] < path[switch] + learn_m),
             'after': path[start] >= path[switch] + learn_m}
+
+
+def part_weights(true: tuple[np.ndarray, np.ndarray], parts: dict) -> dict:
+    """Return each part's share of the true model's summed ε_t and ε_θ.
+
+    An odometry's ratio r on a part of weight w adds (r - 1) w to its whole-drive ratio.
+    """
+    return {p: (float(true[0][m].sum() / true[0].sum()), float(true[1][m].sum() / true[1].sum()))
+            for p, m in parts.items()}
 
 
 def _true_models(sim: Simulation) -> tuple[BoundModel, BoundModel]:
@@ -274,7 +303,8 @@ def causal_floor(seed: int, fixed: OdometryConfig, duration_s: float = 240.0,
         'true': study._true_poses(sim, fixed['interval'])}
     scores = {name: study._scores(sim, p) for name, p in poses.items()}
     parts = increment_parts(sim, scores['true'][0].size, switch, learn_m)
-    out = {'seed': seed, 'first_fit_m': fits[1][0][2] if fits[1] else float('inf')}
+    out = {'seed': seed, 'first_fit_m': fits[1][0][2] if fits[1] else float('inf'),
+           'weights': part_weights(scores['true'], parts)}
     for name, (eps_t, eps_th) in scores.items():
         out[name] = (float(eps_t.mean()), float(eps_th.mean()))
         for part, m in parts.items():
