@@ -26,9 +26,9 @@ fits on the *current ground's* reference data up to that sample:
     these data gets when handed the new ground's parameters at the change (optimistic; not
     a strict bound: blending that start with the data, as a prior, would do a little better);
   - *file, causal prior*: the first ground the file, the new one a data-only causal refit
-    (:func:`prior_fits`): a MAP fit (Gauss-Newton steps kept inside the parameters' ranges) of the new ground's segments so far with the online
-    learner's new-ground prior (the file's values, ``online.prior_sigma`` of each
-    parameter's typical magnitude), refitted at every new segment and, like the online
+    (:func:`prior_fits`): a MAP fit (Gauss-Newton steps kept inside the parameters'
+    ranges) of the new ground's segments so far with the online learner's new-ground prior
+    (the file's values, ``online.prior_sigma`` of each parameter's typical magnitude), refitted at every new segment and, like the online
     learner's probes, every ``PROBE_M`` or ``PROBE_RAD`` inside one (the segment in progress as
     one more segment), no forgetting: a learner that knows the change's instant but nothing of
     the new ground. The calibrator itself cannot start a ground before p + 1 segments and has
