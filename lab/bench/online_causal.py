@@ -28,11 +28,12 @@ fits on the *current ground's* reference data up to that sample:
   - *file, causal prior*: the first ground the file, the new one a data-only causal refit
     (:func:`prior_fits`): a MAP fit (Gauss-Newton steps kept inside the parameters'
     ranges) of the new ground's segments so far with the online learner's new-ground prior
-    (the file's values, ``online.prior_sigma`` of each parameter's typical magnitude), refitted at every new segment and, like the online
-    learner's probes, every ``PROBE_M`` or ``PROBE_RAD`` inside one (the segment in progress as
-    one more segment), no forgetting: a learner that knows the change's instant but nothing of
-    the new ground. The calibrator itself cannot start a ground before p + 1 segments and has
-    no prior, so *causal previous* runs the old ground's parameters for the first 3-7 m.
+    (the file's values, ``online.prior_sigma`` of each parameter's typical magnitude),
+    refitted at every new segment and, like the online learner's probes, every ``PROBE_M``
+    or ``PROBE_RAD`` inside one (the segment in progress as one more segment), no
+    forgetting: a learner that knows the change's instant but nothing of the new ground.
+    The calibrator itself cannot start a ground before p + 1 segments and has no prior, so
+    *causal previous* runs the old ground's parameters for the first 2.9-10.2 m (21 drives).
 
 It is scored over the whole drive like the study (ε_t, ε_θ over 2 m increments of true path,
 :mod:`lab.studies.online`), beside online, the non-causal floor (each ground fitted on its
