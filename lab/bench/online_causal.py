@@ -33,7 +33,7 @@ fits on the *current ground's* reference data up to that sample:
     or ``PROBE_RAD`` inside one (the segment in progress as one more segment), no
     forgetting: a learner that knows the change's instant but nothing of the new ground.
     The calibrator itself cannot start a ground before p + 1 segments and has no prior, so
-    *causal previous* runs the old ground's parameters for the first 2.9-10.2 m (21 drives).
+    *causal previous* runs the old ground's parameters for the first 2.9-13.0 m (27 drives).
 
 It is scored over the whole drive like the study (ε_t, ε_θ over 2 m increments of true path,
 :mod:`lab.studies.online`), beside online, the non-causal floor (each ground fitted on its
