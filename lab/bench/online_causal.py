@@ -68,11 +68,32 @@ from skidkin_ros.core.online import online_odometer
 from skidkin_ros.core.online.adapt import PROBE_M, PROBE_RAD
 from skidkin_ros.core.online.window import _stack
 from skidkin_ros.errors import DataError
-from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate, Simulation
+from skidkin_ros.sim.simulate import SimConfig, simulate, Simulation
 
 __all__ = ['causal_fits', 'causal_poses', 'causal_floor', 'increment_parts']
 
 PARTS = ('before', 'straddle', 'change', 'after')
+
+
+TRAINING = HorizonOptions().train_segments()   # the calibrator's training segments
+
+
+def _ground_segments(wheels: WheelSamples, reference: PoseTrack, t0_ns: int, t1_ns: int):
+    """Return one ground's reference track, its drive and its training segments, or None.
+
+    The ground is [t0_ns, t1_ns) of the wheels and the reference.
+    """
+    keep = (wheels.t_ns >= t0_ns) & (wheels.t_ns < t1_ns)
+    on = (reference.t_ns >= t0_ns) & (reference.t_ns < t1_ns)
+    if on.sum() < 2 or not keep.any():
+        return None
+    track = PoseTrack(reference.t_ns[on], reference.x[on], reference.y[on], reference.yaw[on])
+    drive = Drive('ground', WheelSamples(wheels.t_ns[keep], wheels.omega_l[keep],
+                                         wheels.omega_r[keep]), track)
+    try:
+        return track, drive, usable_segments([drive], TRAINING, 'training')
+    except DataError:
+        return None
 
 
 def causal_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t0_ns: int,
@@ -85,18 +106,10 @@ def causal_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, 
     the i-th fit uses the first i segments and is usable from its last end pose on. Only the
     calibrator's valid fits are returned; ``path m``: the ground's reference path at that pose.
     """
-    keep = (wheels.t_ns >= t0_ns) & (wheels.t_ns < t1_ns)
-    on = (reference.t_ns >= t0_ns) & (reference.t_ns < t1_ns)
-    if on.sum() < 2 or not keep.any():
+    cut = _ground_segments(wheels, reference, t0_ns, t1_ns)
+    if cut is None:
         return []
-    track = PoseTrack(reference.t_ns[on], reference.x[on], reference.y[on], reference.yaw[on])
-    drive = Drive('ground', WheelSamples(wheels.t_ns[keep], wheels.omega_l[keep],
-                                         wheels.omega_r[keep]), track)
-    options = HorizonOptions().train_segments()
-    try:
-        segments = usable_segments([drive], options, 'training')
-    except DataError:
-        return []
+    track, drive, segments = cut
     path = track.path_length()
     fits = []
     needed = len(get_model(model).params) + 1
@@ -129,18 +142,10 @@ def prior_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t
     (from the last segment's end to the current pose) as one more segment, as the online learner
     probes (:mod:`skidkin_ros.core.online.adapt`).
     """
-    keep = (wheels.t_ns >= t0_ns) & (wheels.t_ns < t1_ns)
-    on = (reference.t_ns >= t0_ns) & (reference.t_ns < t1_ns)
-    if on.sum() < 2 or not keep.any():
+    cut = _ground_segments(wheels, reference, t0_ns, t1_ns)
+    if cut is None:
         return []
-    track = PoseTrack(reference.t_ns[on], reference.x[on], reference.y[on], reference.yaw[on])
-    drive = Drive('ground', WheelSamples(wheels.t_ns[keep], wheels.omega_l[keep],
-                                         wheels.omega_r[keep]), track)
-    options = HorizonOptions().train_segments()
-    try:
-        segments = usable_segments([drive], options, 'training')
-    except DataError:
-        return []
+    track, drive, segments = cut
     kin = get_model(model)
     scale = parameter_scales(kin, geometry)
     anchor = kin.vector(dict(start), geometry)
@@ -171,11 +176,11 @@ def prior_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t
                 continue
             a = (0 if done == 0 else
                  int(np.searchsorted(track.t_ns, int(segments.t_b_ns[done - 1]))))
-            if options.too_still(path[c] - path[a], track.yaw[c] - track.yaw[a]):
+            if TRAINING.too_still(path[c] - path[a], track.yaw[c] - track.yaw[a]):
                 continue
             part = Drive('part', drive.wheels, PoseTrack(track.t_ns[[a, c]], track.x[[a, c]],
                                                          track.y[[a, c]], track.yaw[[a, c]]))
-            partial = cut_segments([part], options)
+            partial = cut_segments([part], TRAINING)
             if len(partial) == 0:
                 continue
             batch = batch + [partial]
@@ -251,12 +256,7 @@ def part_weights(true: tuple[np.ndarray, np.ndarray], parts: dict) -> dict:
 def _true_models(sim: Simulation) -> tuple[BoundModel, BoundModel]:
     """Return the true model's two grounds, as lab.studies.online's _true_poses binds them."""
     model, geometry = get_model(study.MODEL), sim.config.geometry
-    base = dict(DEFAULT_TRUE_PARAMS)
-    ratio = (1.0 - study.SLIP) / (1.0 - study.YAW_SLIP)
-    other = {'alpha_l': base['alpha_l'] * (1 - study.SLIP),
-             'alpha_r': base['alpha_r'] * (1 - study.SLIP),
-             'x_v': base['x_v'] / (1.0 - study.YAW_SLIP), 'y_l': base['y_l'] * ratio,
-             'y_r': base['y_r'] * ratio}
+    base, other = study.true_grounds()
     return model.bind(base, geometry), model.bind(other, geometry)
 
 

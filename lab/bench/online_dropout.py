@@ -42,7 +42,7 @@ from skidkin_ros.core.kinematics.models import get_model
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.sim.effects import make_effect
-from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
+from skidkin_ros.sim.simulate import SimConfig, simulate
 
 DURATION_S = 240.0
 
@@ -66,13 +66,7 @@ def splice(poses: np.ndarray, other: np.ndarray, i0: int, i1: int) -> np.ndarray
 
 
 def _grounds() -> tuple[dict, dict]:
-    base = dict(DEFAULT_TRUE_PARAMS)
-    ratio = (1.0 - study.SLIP) / (1.0 - study.YAW_SLIP)
-    other = {'alpha_l': base['alpha_l'] * (1 - study.SLIP),
-             'alpha_r': base['alpha_r'] * (1 - study.SLIP),
-             'x_v': base['x_v'] / (1.0 - study.YAW_SLIP), 'y_l': base['y_l'] * ratio,
-             'y_r': base['y_r'] * ratio}
-    return base, other
+    return study.true_grounds()
 
 
 def biased_gyro(imu: ImuSamples, bias: float) -> ImuSamples:

@@ -20,16 +20,11 @@ import numpy as np
 
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.online import online_odometer
-from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
+from skidkin_ros.sim.simulate import SimConfig, simulate
 
 
 def _new_ground() -> dict[str, float]:
-    base = DEFAULT_TRUE_PARAMS
-    ratio = (1.0 - study.SLIP) / (1.0 - study.YAW_SLIP)
-    return {'alpha_l': base['alpha_l'] * (1 - study.SLIP),
-            'alpha_r': base['alpha_r'] * (1 - study.SLIP),
-            'x_v': base['x_v'] / (1.0 - study.YAW_SLIP), 'y_l': base['y_l'] * ratio,
-            'y_r': base['y_r'] * ratio}
+    return study.true_grounds()[1]
 
 
 def profile(seed: int, fixed: OdometryConfig, settings: dict[str, float]) -> str:

@@ -109,15 +109,25 @@ def calibrated_file(seeds: Sequence[int] = (101, 102), held_out: int = 103,
     return OdometryConfig.from_flat(flat)
 
 
-def _true_poses(sim: Simulation, interval: str) -> np.ndarray:
-    """Integrate the wheels with the true parameters of the ground under the robot."""
-    model = get_model(MODEL)
-    geometry = sim.config.geometry
+def true_grounds() -> tuple[dict[str, float], dict[str, float]]:
+    """Return the true parameters of the two grounds (MODEL's): the simulator's, and the other.
+
+    The other ground loses SLIP of its forward speed and YAW_SLIP of its yaw rate: both
+    alphas scale by 1 - SLIP, and x_v, y_l, y_r so that v / omega keeps the ratio of the two.
+    """
     base = dict(DEFAULT_TRUE_PARAMS)
     ratio = (1.0 - SLIP) / (1.0 - YAW_SLIP)
     other = {'alpha_l': base['alpha_l'] * (1 - SLIP), 'alpha_r': base['alpha_r'] * (1 - SLIP),
              'x_v': base['x_v'] / (1.0 - YAW_SLIP), 'y_l': base['y_l'] * ratio,
              'y_r': base['y_r'] * ratio}
+    return base, other
+
+
+def _true_poses(sim: Simulation, interval: str) -> np.ndarray:
+    """Integrate the wheels with the true parameters of the ground under the robot."""
+    model = get_model(MODEL)
+    geometry = sim.config.geometry
+    base, other = true_grounds()
     return ground_poses(sim, (model.bind(base, geometry), model.bind(other, geometry)),
                         interval)
 

@@ -42,7 +42,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
-from lab.studies.online import _reference, _scores, ground_poses
+from lab.studies.online import _reference, _scores, ground_poses, true_grounds
 import numpy as np
 
 from skidkin_ros.core.kinematics.augmented import AugmentedModel
@@ -127,12 +127,7 @@ def _flat(model: str, online: bool, effect: str = 'speed_slip') -> dict:
 
 def _new_ground(effect: str = 'speed_slip') -> tuple[dict, float]:
     """Return the new ground's true base values and the extension's k (module docstring)."""
-    base = dict(DEFAULT_TRUE_PARAMS)
-    ratio = (1.0 - SLIP) / (1.0 - YAW_SLIP)
-    values = {'alpha_l': base['alpha_l'] * (1 - SLIP), 'alpha_r': base['alpha_r'] * (1 - SLIP),
-              'x_v': base['x_v'] / (1.0 - YAW_SLIP), 'y_l': base['y_l'] * ratio,
-              'y_r': base['y_r'] * ratio}
-    return values, EFFECTS[effect][1]
+    return true_grounds()[1], EFFECTS[effect][1]
 
 
 def _true_poses(sim: Simulation, interval: str, effect: str) -> np.ndarray:

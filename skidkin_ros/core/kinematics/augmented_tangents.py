@@ -23,7 +23,7 @@ from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel
 from skidkin_ros.core.scratch import scratch
 
-__all__ = ['interval_tangents', 'base_tangents']
+__all__ = ['interval_tangents', 'base_tangents', 'chain_partials']
 
 
 def interval_tangents(bound: BoundAugmented, t_ns: np.ndarray, omega_l: np.ndarray,
@@ -68,12 +68,7 @@ def interval_tangents(bound: BoundAugmented, t_ns: np.ndarray, omega_l: np.ndarr
         d_twist, d_by_rate, d_k = ext.partials(
             k, x, omega_l, omega_r, t_s, np.zeros(base.shape) if rate is None else rate,
             [j for _, j in mine], inputs=live)
-        if live:
-            d_x = _apply_partials(d_twist, d_x, d_by_rate, d_rate)
-        for n, (c, _) in enumerate(mine):
-            for m in range(3):
-                d_x[m][c] += d_k[..., m, n]
-        live = live or bool(mine)
+        d_x, live = chain_partials((d_twist, d_by_rate, d_k), d_x, d_rate, mine, live)
         x = ext.apply(k, x, omega_l, omega_r, t_s, rate)
     taus = bound.taus
     lags = _free_lags(bound, free)
@@ -202,6 +197,23 @@ def _rate_tangents(tangent: np.ndarray, dt_s: np.ndarray, restart: np.ndarray) -
     usable, safe = rate_steps(dt_s, restart)
     rate[..., 1:] = np.where(usable, (tangent[..., 1:] - tangent[..., :-1]) / safe, 0.0)
     return rate
+
+
+def chain_partials(partials: tuple, d_x: list[np.ndarray], d_rate: list[np.ndarray] | None,
+                   mine: list[tuple[int, int]], live: bool) -> tuple[list[np.ndarray], bool]:
+    """Carry the tangents d_x through one extension; return them and whether any is live.
+
+    ``partials``: the extension's (d_twist, d_by_rate, d_k) (``Extension.partials``); ``mine``:
+    (column, own parameter index) of its free parameters; ``live``: whether an earlier
+    extension already made the tangents non-zero (before that, only d_k adds).
+    """
+    d_twist, d_by_rate, d_k = partials
+    if live:
+        d_x = _apply_partials(d_twist, d_x, d_by_rate, d_rate)
+    for n, (c, _) in enumerate(mine):
+        for m in range(3):
+            d_x[m][c] += d_k[..., m, n]
+    return d_x, live or bool(mine)
 
 
 def _apply_partials(d_twist: np.ndarray | None, d_x: list[np.ndarray],

@@ -55,7 +55,7 @@ from skidkin_ros.core.calibration.noise_fit import (mahalanobis, segment_covaria
                                                     segment_motion, SegmentMotion)
 from skidkin_ros.core.calibration.segments import SegmentSet
 from skidkin_ros.core.kinematics.augmented import BoundAugmented, rate_divisor
-from skidkin_ros.core.kinematics.augmented_tangents import (_apply_partials, base_tangents,
+from skidkin_ros.core.kinematics.augmented_tangents import (base_tangents, chain_partials,
                                                             interval_tangents)
 from skidkin_ros.core.kinematics.extensions import get_extension
 from skidkin_ros.core.kinematics.models import BoundModel, get_model, KinematicModel
@@ -201,12 +201,7 @@ def _paired_gradient(bound: BoundAugmented, left: np.ndarray, right: np.ndarray,
         mine = [(c, j) for c, (i, j) in enumerate(free) if i == index]
         d_twist, d_by_rate, d_k = ext.partials(k, x, *wheels, t_s, rate, [j for _, j in mine],
                                                inputs=live)
-        if live:
-            d_x = _apply_partials(d_twist, d_x, d_by_rate, d_rate)
-        for n, (c, _) in enumerate(mine):
-            for m in range(3):
-                d_x[m][c] += d_k[..., m, n]
-        live = live or bool(mine)
+        d_x, live = chain_partials((d_twist, d_by_rate, d_k), d_x, d_rate, mine, live)
         x = ext.apply(k, x, *wheels, t_s, rate)
     out = np.zeros(base.shape + (len(free),))
     out[odd] = np.moveaxis(np.stack(d_x), (0, 1), (-2, -1))
