@@ -23,7 +23,8 @@ Once not measured, it stays so (the decision is logged, with its cause, and name
 /diagnostics as ``online.reference_heading``): every later pose is counted
 ``reference_no_heading``; by the covariance, until ``HEADING_CONFIRM`` poses in a row have a
 yaw variance under ``HEADING_VARIANCE`` (a localizer that was lost: measured again, logged).
-A heading found constant stays not measured until ``online.*`` changes or the node restarts. With ``online.position_only`` its position is learned from
+A heading found constant stays not measured until ``online.*`` changes or the node restarts.
+With ``online.position_only`` its position is learned from
 (:mod:`skidkin_ros.core.online.position`); without it (the default) the pose is not used, the
 state is ``holding``, and the odometry goes on with the parameters in force.
 """
@@ -138,14 +139,14 @@ class HeadingRule:
         super()._probe(ref)
 
     def _heading_measured_again(self) -> None:
-        """The covariance says the heading is measured again: learn from full poses again."""
+        """Take the heading as measured again (by the covariance): learn from full poses."""
         self.no_heading = ''
         self._measured_run = 0
         self._flat = None
         self._seg_start = None   # a position-only segment's start has no heading
         self._refs.clear()
         self._positions = None
-        self._warn('reference_heading_measured', 'online calibration: the reference\'s yaw '
+        self._warn('reference_heading_measured', "online calibration: the reference's yaw "
                    f'variance stayed under {HEADING_VARIANCE:g} rad^2 for {HEADING_CONFIRM} '
                    'poses: its heading is measured again and learned from')
 

@@ -308,8 +308,8 @@ class PositionLearner:
         miss = float(np.hypot(*(((seg.u - shift) @ np.array([[c, -s], [s, c]])) - q).T).max())
         if miss > self.params.max_jump + 0.5 * path:   # the full-pose learner's rule
             self.counters['online_inconsistent'] += 1
-            self._warn('online_inconsistent', f'a {path:.2f} m segment\'s positions miss the '
-                       f'wheels\' path by {miss:.2f} m however placed: beyond any ground '
+            self._warn('online_inconsistent', f"a {path:.2f} m segment's positions miss the "
+                       f"wheels' path by {miss:.2f} m however placed: beyond any ground "
                        '(max_jump; online.mount_x/y wrong?); not learned')
             return
         if self._position_window is None:
