@@ -41,7 +41,7 @@ from skidkin_ros.core.kinematics.models import KinematicModel, MODELS
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.reference import ReferenceStatus
-from skidkin_ros.core.online.gates import _Ref
+from skidkin_ros.core.online.gates import _Ref, JUMP_CONFIRM
 from skidkin_ros.core.timeunits import NS_PER_S
 
 __all__ = ['PositionSegment', 'PositionLearner', 'position_residuals', 'MAX_POINTS']
@@ -234,7 +234,7 @@ class PositionLearner:
             self._position_jumps += 1
             self._count(ReferenceStatus.JUMP, f'reference moved {dist:.2f} m where the wheels '
                         f'say {wheel_dist:.2f} m: refused')
-            if self._position_jumps >= 3:
+            if self._position_jumps >= JUMP_CONFIRM:
                 self._start_positions(t_ns, x, y)
             return
         self._position_jumps = 0
