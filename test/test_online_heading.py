@@ -280,12 +280,15 @@ def test_n175_a_real_node_fed_navsat_odometry_says_why_it_does_not_learn(covaria
         ref_pub = rig.driver.create_publisher(Odometry, 'reference/odom', RELIABLE)
         rig.wait_matched(ref_pub)
         t0 = wall_ns() - 30 * 1_000_000_000
+        # the receiver's 2 cm of noise: a pose repeated whole is a frozen reference (N188)
+        noise = np.random.default_rng(2).normal(0.0, 0.02, (30, 2))
         for i in range(120):   # 6 s at 20 Hz, turning left about 0.5 rad/s
             t = t0 + i * 50_000_000
             rig.send_joint(t, -2.0, 2.0)
             if i % 4 == 0:   # 5 Hz, the robot turns on the spot
                 before = rig.node.counters['reference_received']
-                ref_pub.publish(_gnss_msg(t, 10.0, 5.0, covariance))
+                ref_pub.publish(_gnss_msg(t, 10.0 + noise[i // 4, 0], 5.0 + noise[i // 4, 1],
+                                          covariance))
                 rig.spin_until(lambda: rig.node.counters['reference_received'] > before,
                                what='reference pose')
         rig.drain()

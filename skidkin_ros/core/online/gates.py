@@ -152,7 +152,9 @@ class ReferenceGates:
         if self.no_heading and self.position_learning():   # positions alone (position.py)
             self._judge_position(t_ns, x, y)
             return
-        if self._heading_flat(t_ns, yaw):   # a heading constant while the wheels turn
+        if math.isnan(yaw):   # a position kept before the heading was measured again
+            return
+        if self._heading_flat(t_ns, x, y, yaw):   # a heading constant while the wheels turn
             return
         seen, self._last_seen = self._last_seen, (t_ns, x, y, yaw)
         if seen is not None and seen[1:] == (x, y, yaw):

@@ -41,7 +41,7 @@ from skidkin_ros.core.kinematics.models import KinematicModel, MODELS
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.reference import ReferenceStatus
-from skidkin_ros.core.online.gates import _Ref
+from skidkin_ros.core.online.gates import _Ref, JUMP_CONFIRM
 from skidkin_ros.core.timeunits import NS_PER_S
 
 __all__ = ['PositionSegment', 'PositionLearner', 'position_residuals', 'MAX_POINTS']
@@ -234,7 +234,7 @@ class PositionLearner:
             self._position_jumps += 1
             self._count(ReferenceStatus.JUMP, f'reference moved {dist:.2f} m where the wheels '
                         f'say {wheel_dist:.2f} m: refused')
-            if self._position_jumps >= 3:
+            if self._position_jumps >= JUMP_CONFIRM:
                 self._start_positions(t_ns, x, y)
             return
         self._position_jumps = 0
@@ -301,6 +301,17 @@ class PositionLearner:
             self.counters['online_wheel_gap'] += 1
             return
         ground = self.active
+        mount = (self.params.mount_x, self.params.mount_y)
+        q = _rollout(self.model, ground.k, self.geometry, seg, mount)[0]
+        theta, shift = _align(q, seg.u)
+        c, s = math.cos(theta), math.sin(theta)
+        miss = float(np.hypot(*(((seg.u - shift) @ np.array([[c, -s], [s, c]])) - q).T).max())
+        if miss > self.params.max_jump + 0.5 * path:   # the full-pose learner's rule
+            self.counters['online_inconsistent'] += 1
+            self._warn('online_inconsistent', f"a {path:.2f} m segment's positions miss the "
+                       f"wheels' path by {miss:.2f} m however placed: beyond any ground "
+                       '(max_jump; online.mount_x/y wrong?); not learned')
+            return
         if self._position_window is None:
             # no change of ground is detected on positions alone: the ground learned on them
             # starts from the parameters in force with the broad prior (online.prior_sigma), not
@@ -317,7 +328,6 @@ class PositionLearner:
         self.counters['online_position_segments'] += 1
         ground.segments += 1
         ground.learned_m += path
-        mount = (self.params.mount_x, self.params.mount_y)
         errors, sens = position_residuals(self.model, ground.k, self.geometry,
                                           [item[0] for item in window], mount, self.scale,
                                           self.noise, self.params.sigma_xy)
