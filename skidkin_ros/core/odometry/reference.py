@@ -176,6 +176,17 @@ class OnlineParams:
     def time_offset_ns(self) -> int:
         return s_to_ns(self.time_offset)
 
+    def disagrees(self, miss_m: float, travel_m: float, miss_rad: float = 0.0,
+                  turn_rad: float = 0.0, slack_m: float = 0.0) -> bool:
+        """Return whether the reference misses the wheels beyond any ground (``max_jump``).
+
+        The one rule for a pose (the gates) and a segment (the learner): ``max_jump`` plus half
+        the wheels' travel (plus ``slack_m``, e.g. an antenna's lever on a turn), or
+        ``max_jump_rad`` plus half their turn.
+        """
+        return (miss_m > self.max_jump + 0.5 * travel_m + slack_m
+                or abs(miss_rad) > self.max_jump_rad + 0.5 * abs(turn_rad))
+
     def frames_match(self, frame_id: str, child_frame_id: str) -> bool:
         """Return whether a pose's frames are the configured ones (empty: any)."""
         return ((not self.reference_frame_id or frame_id == self.reference_frame_id)

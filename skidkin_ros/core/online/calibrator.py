@@ -356,8 +356,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
         nees = float(mahalanobis(predictive[None], e[None])[0])
         path, rot = b.path_m - a.path_m, b.yaw - a.yaw
         params = self.params
-        if (math.hypot(e[0], e[1]) > params.max_jump + 0.5 * path
-                or abs(e[2]) > params.max_jump_rad + 0.5 * abs(rot)):
+        if params.disagrees(math.hypot(e[0], e[1]), path, e[2], rot):
             self.counters['online_inconsistent'] += 1
             self._warn('online_inconsistent', f'a {path:.2f} m segment disagrees with the '
                        f'wheels by {math.hypot(e[0], e[1]):.2f} m / {e[2]:+.2f} rad: beyond any '

@@ -186,9 +186,8 @@ class ReferenceGates:
         dist = float(np.hypot(x - last.x, y - last.y))
         wheel_dist, wheel_rot = motion
         params = self.params
-        if (abs(dist - wheel_dist) > params.max_jump + 0.5 * wheel_dist
-                or abs((yaw - last.yaw) - wheel_rot) > params.max_jump_rad
-                + 0.5 * abs(wheel_rot)):
+        if params.disagrees(abs(dist - wheel_dist), wheel_dist, (yaw - last.yaw) - wheel_rot,
+                            wheel_rot):
             self._jumps += 1
             self._count(ReferenceStatus.JUMP, f'reference moved {dist:.2f} m / '
                         f'{yaw - last.yaw:+.2f} rad where the wheels say {wheel_dist:.2f} m / '

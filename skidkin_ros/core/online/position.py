@@ -230,7 +230,7 @@ class PositionLearner:
             self._stall_m = 0.0
         # an antenna off the axis moves as the robot turns on the spot
         lever = math.hypot(params.mount_x, params.mount_y) * abs(wheel_rot)
-        if abs(dist - wheel_dist) > params.max_jump + 0.5 * wheel_dist + lever:
+        if params.disagrees(abs(dist - wheel_dist), wheel_dist, slack_m=lever):
             self._position_jumps += 1
             self._count(ReferenceStatus.JUMP, f'reference moved {dist:.2f} m where the wheels '
                         f'say {wheel_dist:.2f} m: refused')
@@ -306,7 +306,7 @@ class PositionLearner:
         theta, shift = _align(q, seg.u)
         c, s = math.cos(theta), math.sin(theta)
         miss = float(np.hypot(*(((seg.u - shift) @ np.array([[c, -s], [s, c]])) - q).T).max())
-        if miss > self.params.max_jump + 0.5 * path:   # the full-pose learner's rule
+        if self.params.disagrees(miss, path):   # the full-pose learner's rule
             self.counters['online_inconsistent'] += 1
             self._warn('online_inconsistent', f"a {path:.2f} m segment's positions miss the "
                        f"wheels' path by {miss:.2f} m however placed: beyond any ground "
