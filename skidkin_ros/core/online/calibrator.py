@@ -70,6 +70,7 @@ from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.reference import OnlineParams
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.core.online.adapt import ChangeLearner
+from skidkin_ros.core.online.delay import DelayCheck
 from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
@@ -143,6 +144,8 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         self._lo, self._hi = self._bounds()
         self._offset_ns = params.time_offset_ns
         self._min_period_ns = NS_PER_S / params.max_rate
+        self._delay = DelayCheck(params.time_offset, params.delay_tolerance,
+                                 geometry.track_width, self.counters, self._warn)
         self._restart_buffers()
 
     # ------------------------------------------------------------------ state
@@ -171,6 +174,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         # the last stamp accepted on arrival; forgotten with the buffers, or a clock that
         # jumped back (a bag replayed in a loop) would refuse every later pose as older
         self._last_arrival_ns: int | None = None
+        self._delay.forget()
 
     def restart(self) -> None:
         """Forget the buffered wheel steps and reference poses (a reset); keep the grounds."""
@@ -208,6 +212,8 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
             return 'holding'
         if now - self.gyro_refused_ns <= self.params.max_gap * NS_PER_S:
             return 'holding'   # the gyro refused the reference lately: learning paused
+        if self._delay.pausing:
+            return 'holding'   # the reference's delay is not time_offset (delay.py)
         return 'adapting' if self.travel_m < self._adapt_until_m else 'learning'
 
     def summary(self) -> dict[str, float | str]:
@@ -221,6 +227,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
                                        'noise_scale': self.noise_scale,
                                        'hold_weight': self.hold_weight()}
         out['reference_sigma_xy'], out['reference_sigma_yaw'] = self.reference_sigmas()
+        out.update(self._delay.summary())
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
         for name, value, sd in zip(self.model.param_names, self.active.k, sigma):
             out[f'{name}'] = float(value)
@@ -275,8 +282,11 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
                 self._trim(t1_ns)
         before = self.version
         pending = self._pending
+        delay = self._delay
+        delay.wheels(self._t1, self._rows)
         while pending and pending[0][0] <= t1_ns:
             self._judge(*pending.popleft())
+            delay.seen(self._refs)
         self._due_ns = pending[0][0] if pending else NEVER_NS
         if not pending:
             self._trim_old()
@@ -314,6 +324,9 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
 
     def _learn(self, a: _Ref, b: _Ref) -> None:
         """One learning segment: gates, change detection, the update (module docstring)."""
+        if self._delay.pausing:   # the reference's delay is not time_offset (delay.py)
+            self.counters['online_reference_delay'] += 1
+            return
         if self.options.too_still(b.path_m - a.path_m, b.yaw - a.yaw):
             self.counters['online_still'] += 1
             return

@@ -1,0 +1,187 @@
+"""The reference's delay, checked online with the offline lag rule.
+
+``online.time_offset`` (the reference stamp minus the wheel stamp of the same motion) is taken
+as given by the learner; a lidar odometry or a SLAM is typically 50-300 ms late, and a wrong
+value makes every turn look like a change of ground. This check measures the delay while
+driving, by :mod:`skidkin_ros.core.calibration.lag`'s rule (the one ``skidkin diagnose`` uses
+on a recording):
+
+* **Data, bounded**: the wheel model's running travel and rotation (the learner's wheel steps,
+  ``steps.py``: read once per reference pose, kept every ``WHEEL_EVERY_S`` at most) and the
+  accepted reference poses (already in wheel time: stamp minus ``time_offset``) of the last
+  ``WINDOW_S`` seconds.
+* **Cost at a lag**: over each interval between two accepted reference poses of one chain, the
+  reference's speed and yaw rate against the wheel model's over the same interval read ``lag``
+  earlier (:func:`~skidkin_ros.core.calibration.lag.velocity_cost`; the lateral component is
+  zero on both sides). Only intervals the wheels cover at every lag scanned are used.
+* **When**: every ``CHECK_EVERY_S`` of reference time (not per wheel sample): a scan of
+  ``RANGE_S`` each way costs about 40 interpolations of a few hundred values.
+* **Verdict**: the lag found is the error of ``time_offset``; the measured delay is
+  ``time_offset`` plus it. With enough turning in the window (the reference's yaw rate varies by
+  ``MIN_YAW_RATE_SD`` at least) and a sigma at most a quarter of ``online.delay_tolerance``: a
+  lag beyond the tolerance pauses learning (every segment not learned is counted
+  ``online_reference_delay``; the odometry goes on with what was learned) and warns once with
+  the value to set; a lag within it resumes learning. Without enough turning the verdict in
+  force stays. ``delay_tolerance`` 0: not checked.
+
+It does not correct the delay itself: learning a wrong stamp shift into the parameters is what
+it prevents, and a changed offset would move every pose the learner already holds; the value to
+set is said (``/diagnostics``: ``online.measured_delay``), and ``skidkin predict --reference``
+with it replays a recording's learning. Where the configured value is right the check never
+pauses, so learning is unchanged bit for bit.
+"""
+
+from __future__ import annotations
+
+import bisect
+import collections
+import math
+
+import numpy as np
+
+from skidkin_ros.core.calibration.lag import lag_sigma, scan, velocity_cost
+from skidkin_ros.core.online.steps import CHAIN, TRAVEL, TURN
+
+__all__ = ['DelayCheck', 'RANGE_S', 'WINDOW_S', 'CHECK_EVERY_S', 'MIN_YAW_RATE_SD']
+
+# Lags scanned each way (s): time_offset's error, beyond the 50-300 ms of a lidar odometry.
+RANGE_S = 0.6
+# Seconds of reference poses the lag is measured over.
+WINDOW_S = 30.0
+# Reference time between two measurements.
+CHECK_EVERY_S = 1.0
+# Wheel samples kept at most this often (s): fine against the 10 ms lag step.
+WHEEL_EVERY_S = 0.005
+# Turning needed for a verdict: the standard deviation of the reference's yaw rate (rad/s).
+MIN_YAW_RATE_SD = 0.05
+# Intervals needed for a verdict.
+MIN_INTERVALS = 50
+_NS = 1_000_000_000
+
+
+class DelayCheck:
+    """The online check of a learner's reference delay (module docstring)."""
+
+    def __init__(self, time_offset_s: float, tolerance_s: float, track_width: float,
+                 counters, warn) -> None:
+        self.offset_s = time_offset_s
+        self.tolerance_s = tolerance_s
+        self.track_width = track_width
+        self.counters = counters
+        self._warn = warn
+        self.measured_s = math.nan       # time_offset + the lag found (the last measurement)
+        self.sigma_s = math.nan
+        self.pausing = False
+        self._wheels: collections.deque[tuple[int, float, float]] = collections.deque()
+        self._wheel_chain: int | None = None
+        self._wheel_last_ns = -(1 << 62)
+        self._refs: collections.deque[tuple[int, float, float]] = collections.deque()
+        self._intervals: collections.deque[tuple[int, int, float, float]] = collections.deque()
+        self._next_check_ns: int | None = None
+        self._last_ref = None
+
+    @property
+    def enabled(self) -> bool:
+        return self.tolerance_s > 0.0
+
+    def forget(self) -> None:
+        """Forget the data (the learner's buffers restarted); keep the verdict in force."""
+        self._wheels.clear()
+        self._wheel_chain = None
+        self._wheel_last_ns = -(1 << 62)
+        self._refs.clear()
+        self._intervals.clear()
+        self._last_ref = None
+
+    def summary(self) -> dict[str, float | str]:
+        """Return what /diagnostics adds: the measured delay, its sigma and the verdict."""
+        verdict = ('off' if not self.enabled else 'paused' if self.pausing
+                   else 'unknown' if math.isnan(self.measured_s) else 'ok')
+        return {'measured_delay': self.measured_s, 'measured_delay.sigma': self.sigma_s,
+                'delay_check': verdict}
+
+    def seen(self, refs) -> None:
+        """Take the newest accepted reference pose of the learner's deque, once (gates.py)."""
+        if not refs or refs[-1] is self._last_ref:
+            return
+        ref = self._last_ref = refs[-1]
+        # a chain starts with one pose (gates.py: _start_chain); later accepts keep two or more
+        self.reference(ref.t_ns, ref.path_m, ref.yaw, len(refs) == 1)
+
+    def wheels(self, t1: list[int], rows: list) -> None:
+        """Keep the wheel steps not seen yet (the learner's lists, steps.py)."""
+        i = bisect.bisect_right(t1, self._wheel_last_ns)
+        kept = self._wheels
+        every = int(WHEEL_EVERY_S * _NS)
+        for j in range(i, len(t1)):
+            row = rows[j]
+            if row[CHAIN] != self._wheel_chain:   # a wheel gap: nothing to read across it
+                self._wheel_chain = row[CHAIN]
+                kept.clear()
+            t = t1[j]
+            if kept and t - kept[-1][0] < every and j != len(t1) - 1:
+                continue
+            kept.append((t, row[TRAVEL], row[TURN]))
+        if i < len(t1):
+            self._wheel_last_ns = t1[-1]
+        horizon = (WINDOW_S + 2.0 * RANGE_S + 1.0) * _NS
+        while kept and kept[0][0] < kept[-1][0] - horizon:
+            kept.popleft()
+
+    def reference(self, t_ns: int, path_m: float, yaw: float, new_chain: bool) -> None:
+        """Take one accepted reference pose (wheel time); measure every CHECK_EVERY_S."""
+        if new_chain or not self._refs:
+            self._refs.clear()
+        elif t_ns > self._refs[-1][0]:
+            a = self._refs[-1]
+            self._intervals.append((a[0], t_ns, path_m - a[1], yaw - a[2]))
+        self._refs.append((t_ns, path_m, yaw))
+        if len(self._refs) > 2:
+            self._refs.popleft()
+        while self._intervals and self._intervals[0][0] < t_ns - WINDOW_S * _NS:
+            self._intervals.popleft()
+        if self._next_check_ns is None:
+            self._next_check_ns = t_ns + int(CHECK_EVERY_S * _NS)
+        elif t_ns >= self._next_check_ns:
+            self._next_check_ns = t_ns + int(CHECK_EVERY_S * _NS)
+            self.measure()
+
+    def measure(self) -> None:
+        """Measure the lag over the window; update the verdict (module docstring)."""
+        if not self._wheels or not self._intervals:
+            return
+        w = np.array(self._wheels)
+        iv = np.array(self._intervals)
+        t_a, t_b = iv[:, 0], iv[:, 1]
+        reach = (RANGE_S + 0.01) * _NS
+        ok = (t_a - reach >= w[0, 0]) & (t_b + reach <= w[-1, 0])
+        if ok.sum() < MIN_INTERVALS:
+            return
+        t_a, t_b, dt_s = t_a[ok], t_b[ok], (t_b[ok] - t_a[ok]) * 1e-9
+        v_ref, w_ref = iv[ok, 2] / dt_s, iv[ok, 3] / dt_s
+        wt, travel, turn = w[:, 0] - w[0, 0], w[:, 1], w[:, 2]
+        t_a, t_b = t_a - w[0, 0], t_b - w[0, 0]
+        residual = np.zeros((v_ref.size, 3))
+
+        def cost(lag: float) -> float:
+            shift = lag * _NS
+            a, b = t_a - shift, t_b - shift
+            residual[:, 0] = v_ref - (np.interp(b, wt, travel) - np.interp(a, wt, travel)) / dt_s
+            residual[:, 2] = w_ref - (np.interp(b, wt, turn) - np.interp(a, wt, turn)) / dt_s
+            return velocity_cost(residual, self.track_width)
+
+        lag, lags, curve = scan(cost, RANGE_S)
+        sigma = lag_sigma(lags, curve, int(v_ref.size))
+        self.measured_s, self.sigma_s = self.offset_s + lag, sigma
+        if not self.enabled or np.std(w_ref) < MIN_YAW_RATE_SD:
+            return
+        if not sigma <= 0.25 * self.tolerance_s:
+            return
+        off = abs(lag) > self.tolerance_s
+        if off and not self.pausing:
+            self.counters['online_delay_warnings'] += 1
+            self._warn('reference_delay', f'the reference is {self.measured_s * 1e3:+.0f} ms '
+                       f'(+- {sigma * 1e3:.0f}) late against the wheels, online.time_offset '
+                       f'is {self.offset_s * 1e3:+.0f} ms: learning paused; set '
+                       f'online.time_offset: {self.measured_s:.2f}')
+        self.pausing = off
