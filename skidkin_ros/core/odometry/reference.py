@@ -111,7 +111,7 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               lower_open=True),
     ParamSpec('max_grounds', '', 4.0, 1.0, 16.0,
               'grounds remembered at once (the least recently used is forgotten)'),
-    ParamSpec('delay_tolerance', 's', 0.08, 0.0, 1.0,
+    ParamSpec('delay_tolerance', 's', 0.12, 0.0, 1.0,
               "the reference's delay is measured online (offline lag rule); beyond "
               'time_offset by more than this, learning pauses (counted online_reference_delay) '
               'and the value to set is said; 0: not checked'),
@@ -151,7 +151,7 @@ class OnlineParams:
     switch_window: float = 0.5
     switch_margin: float = 12.0
     max_grounds: float = 4.0
-    delay_tolerance: float = 0.08
+    delay_tolerance: float = 0.12
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], prefix: str = 'online.') -> 'OnlineParams':

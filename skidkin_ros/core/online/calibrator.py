@@ -282,16 +282,19 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
                 self._trim(t1_ns)
         before = self.version
         pending = self._pending
-        delay = self._delay
-        delay.wheels(self._t1, self._rows)
         while pending and pending[0][0] <= t1_ns:
             self._judge(*pending.popleft())
-            delay.seen(self._refs)
         self._due_ns = pending[0][0] if pending else NEVER_NS
         if not pending:
             self._trim_old()
         self._hold_check(t1_ns)
         return self.version != before
+
+    def _judge(self, t_ns: int, x: float, y: float, yaw: float) -> None:
+        """Judge a covered reference pose (gates.py); the delay check sees it (delay.py)."""
+        self._delay.wheels(self._t1, self._rows)
+        super()._judge(t_ns, x, y, yaw)
+        self._delay.seen(self._refs)
 
     def _trim_old(self) -> None:
         keep = self._seg_start.t_ns if self._seg_start is not None else self._last_t1
