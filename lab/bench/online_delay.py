@@ -4,11 +4,12 @@ Simulated drives of lab.studies.online (``long stretches``: a change of ground a
 drive, and ``effect-free``), the 10 Hz reference stamped ``delay`` seconds late (negative:
 early) while ``online.time_offset`` stays 0 (a user who does not know it). Three odometries on
 the same wheel samples: ``before`` (``online.delay_tolerance`` 0: today's learner, nothing
-checked), ``after`` (the default tolerance: learning pauses while the measured delay is off)
-and ``fixed`` (the calibrated file, no learning); ``set`` is the learner with time_offset set to
-the delay (what the warning says to do). Scores: eps_t (m), eps_th (rad), changes of ground
-detected (``online_change``; long stretches: 1 is right), segments paused
-(``online_reference_delay``) and the delay measured at the end. Run::
+checked), ``pause`` (``online.delay_learn`` 0: learning pauses while the measured delay is
+off), ``after`` (the defaults: the measured delay taken in force) and ``fixed`` (the calibrated
+file, no learning); ``set`` is the learner with time_offset set to the true delay (what the
+warning says to do). Scores: eps_t (m), eps_th (rad), changes of ground detected
+(``online_change``; long stretches: 1 is right) and, for ``after``, the time_offset in force at
+the end and the corrections made. Run::
 
     python -m lab.bench.online_delay [--seeds 1 8 9] [--duration 120]
 """
@@ -47,7 +48,8 @@ def run(case: str, seed: int, delay_s: float, fixed: OdometryConfig, duration_s:
     out = {}
     plain = Odometer.from_config(fixed).predict(sim.wheels)
     out['fixed'] = (*(float(v.mean()) for v in _scores(sim, plain.poses)), 0, 0, float('nan'))
-    for name, extra in (('before', {'online.delay_tolerance': 0.0}), ('after', {}),
+    for name, extra in (('before', {'online.delay_tolerance': 0.0}),
+                        ('pause', {'online.delay_learn': 0.0}), ('after', {}),
                         ('set', {'online.time_offset': delay_s})):
         config = OdometryConfig.from_flat({**fixed.values, 'online.enabled': True, **extra})
         odometer = online_odometer(config)
@@ -56,7 +58,8 @@ def run(case: str, seed: int, delay_s: float, fixed: OdometryConfig, duration_s:
         learner = odometer.learner
         out[name] = (eps_t, eps_th, learner.counters['online_change'],
                      learner.counters['online_reference_delay'],
-                     learner.summary()['measured_delay'])
+                     learner.summary()['measured_delay'],
+                     learner.counters['online_delay_corrected'])
     return out
 
 
@@ -69,18 +72,21 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     tic = time.perf_counter()
     fixed = calibrated_file()
-    print('| case | seed | delay s | eps_t fixed | eps_t before / after / set | '
-          'eps_th before / after / set | changes before / after | paused segs | measured s |')
-    print('|---|---|---|---|---|---|---|---|---|')
+    print('| case | seed | delay s | eps_t fixed | eps_t before / pause / after / set | '
+          'eps_th before / pause / after / set | changes before / pause / after / set | '
+          'corrected to s (times) |')
+    print('|---|---|---|---|---|---|---|---|')
     for case in args.cases:
         for seed in args.seeds:
             for delay in args.delays:
                 r = run(case, seed, delay, fixed, args.duration)
-                b, a, s = r['before'], r['after'], r['set']
+                runs = [r[k] for k in ('before', 'pause', 'after', 'set')]
+                a = r['after']
                 print(f'| {case} | {seed} | {delay:+.1f} | {r["fixed"][0]:.3f} | '
-                      f'{b[0]:.3f} / {a[0]:.3f} / {s[0]:.3f} | '
-                      f'{b[1]:.4f} / {a[1]:.4f} / {s[1]:.4f} | {b[2]} / {a[2]} | {a[3]} | '
-                      f'{a[4]:+.3f} |', flush=True)
+                      + ' / '.join(f'{x[0]:.3f}' for x in runs) + ' | '
+                      + ' / '.join(f'{x[1]:.3f}' for x in runs) + ' | '
+                      + ' / '.join(f'{x[2]}' for x in runs) + ' | '
+                      f'{a[4]:+.2f} ({a[5]}) |', flush=True)
     print(f'\n({time.perf_counter() - tic:.0f} s)')
     return 0
 

@@ -115,6 +115,10 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               "the reference's delay is measured online (offline lag rule); beyond "
               'time_offset by more than this, learning pauses (counted online_reference_delay) '
               'and the value to set is said; 0: not checked'),
+    ParamSpec('delay_learn', '', 1.0, 0.0, 1.0,
+              '1: a measured delay beyond delay_tolerance becomes the time_offset in force '
+              '(learning restarts its buffers with it, at most 3 times, within -1 to 1 s); '
+              '0: learning only pauses'),
 )
 _ATTR = {spec.name: spec.name for spec in ONLINE_SPECS}
 
@@ -152,6 +156,7 @@ class OnlineParams:
     switch_margin: float = 12.0
     max_grounds: float = 4.0
     delay_tolerance: float = 0.12
+    delay_learn: float = 1.0
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], prefix: str = 'online.') -> 'OnlineParams':

@@ -80,7 +80,7 @@ from skidkin_ros.core.online.noise import NoiseLearner
 from skidkin_ros.core.online.refnoise import RefNoiseLearner
 from skidkin_ros.core.online.steps import WheelSteps
 from skidkin_ros.core.online.window import WindowSolver
-from skidkin_ros.core.timeunits import NS_PER_S
+from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['OnlineCalibrator', 'Ground', 'MAX_STEPS', 'STATES']
@@ -133,6 +133,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
             scaled = np.asarray(prior_covariance, float) / np.outer(self.scale, self.scale)
             info = info + np.linalg.pinv(scaled)
         self.grounds = [Ground(0, self.k0.copy(), info)]
+        self._start_info = info.copy()   # a corrected delay restarts learning here (delay.py)
         self.active = self.grounds[0]
         self._next_ident = 1
         self._error = np.zeros((3, 3))
@@ -145,7 +146,8 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         self._offset_ns = params.time_offset_ns
         self._min_period_ns = NS_PER_S / params.max_rate
         self._delay = DelayCheck(params.time_offset, params.delay_tolerance,
-                                 geometry.track_width, self.counters, self._warn)
+                                 geometry.track_width, self.counters, self._warn,
+                                 params.delay_learn > 0.5)
         self._restart_buffers()
 
     # ------------------------------------------------------------------ state
@@ -294,7 +296,21 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         """Judge a covered reference pose (gates.py); the delay check sees it (delay.py)."""
         self._delay.wheels(self._t1, self._rows)
         super()._judge(t_ns, x, y, yaw)
-        self._delay.seen(self._refs)
+        delay = self._delay
+        delay.seen(self._refs)
+        if delay.correction is not None:   # a measured delay taken in force: stamps move
+            self._offset_ns = s_to_ns(delay.correction)
+            delay.correction = None
+            self._pending.clear()          # converted with the old offset (the same deque)
+            self._restart_buffers()
+            # what was learned under the wrong stamps is dropped: the file's parameters again
+            self.grounds = [Ground(0, self.k0.copy(), self._start_info.copy())]
+            self.active = self.grounds[0]
+            self._next_ident = 1
+            self.cusum = 0.0
+            self._adapt_until_m = -1.0
+            self._blend = None
+            self.version += 1
 
     def _trim_old(self) -> None:
         keep = self._seg_start.t_ns if self._seg_start is not None else self._last_t1

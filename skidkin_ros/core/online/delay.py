@@ -39,7 +39,7 @@ import math
 
 import numpy as np
 
-from skidkin_ros.core.calibration.lag import lag_sigma, scan, velocity_cost
+from skidkin_ros.core.calibration.lag import LAG_STEP_S, lag_sigma, scan, velocity_cost
 from skidkin_ros.core.online.steps import CHAIN, TRAVEL, TURN
 
 __all__ = ['DelayCheck', 'RANGE_S', 'WINDOW_S', 'CHECK_EVERY_S', 'MIN_YAW_RATE_SD']
@@ -56,6 +56,8 @@ WHEEL_EVERY_S = 0.005
 MIN_YAW_RATE_SD = 0.05
 # Intervals needed for a verdict.
 MIN_INTERVALS = 50
+# Corrections of time_offset at most (delay_learn): a delay that keeps moving is paused on.
+MAX_CORRECTIONS = 3
 _NS = 1_000_000_000
 
 
@@ -63,9 +65,13 @@ class DelayCheck:
     """The online check of a learner's reference delay (module docstring)."""
 
     def __init__(self, time_offset_s: float, tolerance_s: float, track_width: float,
-                 counters, warn) -> None:
+                 counters, warn, learn: bool = False) -> None:
         self.offset_s = time_offset_s
         self.tolerance_s = tolerance_s
+        self.learn = learn
+        self.corrections = 0
+        # a time_offset the learner takes in force after the pose being judged (None: none)
+        self.correction: float | None = None
         self.track_width = track_width
         self.counters = counters
         self._warn = warn
@@ -178,6 +184,16 @@ class DelayCheck:
         if not sigma <= 0.25 * self.tolerance_s:
             return
         off = abs(lag) > self.tolerance_s
+        if off and self.learn and self.corrections < MAX_CORRECTIONS:
+            new = min(max(round(self.measured_s / LAG_STEP_S) * LAG_STEP_S, -1.0), 1.0)
+            self.corrections += 1
+            self.counters['online_delay_corrected'] += 1
+            self._warn('reference_delay', f'the reference is {self.measured_s * 1e3:+.0f} ms '
+                       f'(+- {sigma * 1e3:.0f}) late against the wheels, online.time_offset '
+                       f'was {self.offset_s * 1e3:+.0f} ms: {new:.2f} s taken in force, learning '
+                       f'goes on; set online.time_offset: {new:.2f} in the file')
+            self.correction, self.offset_s, self.pausing = new, new, False
+            return
         if off and not self.pausing:
             self.counters['online_delay_warnings'] += 1
             self._warn('reference_delay', f'the reference is {self.measured_s * 1e3:+.0f} ms '
