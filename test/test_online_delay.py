@@ -44,19 +44,38 @@ def _run(sim, reference, **online):
     return odometer, result, warnings
 
 
-def test_a_late_reference_pauses_learning_and_says_the_value_to_set():
+def test_a_late_reference_is_taken_in_force_once_and_said():
     sim, reference = _drive(0.4)
     odometer, _, warnings = _run(sim, reference)
-    learner = odometer.learner
-    summary = learner.summary()
+    summary = odometer.learner.summary()
+    assert odometer.counters['online_delay_corrected'] == 1
+    said = [msg for cause, msg in warnings if cause == 'reference_delay']
+    assert len(said) == 1 and 'set online.time_offset: 0.' in said[0]
+    # the offset in force, checked again after the correction: within the tolerance
+    assert summary['measured_delay'] == pytest.approx(0.4, abs=0.1)
+    assert summary['delay_check'] == 'ok'
+    assert odometer.counters['online_reference_delay'] == 0
+    # and it learns about as the right constant would: told, the user sets it
+    told, _, _ = _run(sim, reference, time_offset=0.4)
+    assert told.counters['online_delay_corrected'] == 0
+    assert odometer.counters['online_segments'] >= 0.7 * told.counters['online_segments']
+
+
+def test_without_delay_learn_learning_pauses_and_says_the_value_to_set():
+    sim, reference = _drive(0.4)
+    odometer, _, warnings = _run(sim, reference, delay_learn=0.0)
+    summary = odometer.learner.summary()
     assert summary['measured_delay'] == pytest.approx(0.4, abs=0.1)
     assert summary['measured_delay.sigma'] < 0.05
-    assert summary['delay_check'] == 'paused' and summary['state'] == 'holding'
+    assert summary['delay_check'] == 'paused'
+    assert odometer.learner.state(sim.wheels.t_ns[-1] - 1_500_000_000) == 'holding'
     assert odometer.counters['online_reference_delay'] > 0
+    assert odometer.counters['online_delay_corrected'] == 0
     said = [msg for cause, msg in warnings if cause == 'reference_delay']
-    assert len(said) == 1 and 'online.time_offset: 0.' in said[0]
+    assert len(said) == 1 and 'set online.time_offset: 0.' in said[0]
     # told, the user sets it: the check passes and learning goes on
-    fixed, _, warnings = _run(sim, reference, time_offset=round(summary['measured_delay'], 2))
+    fixed, _, _ = _run(sim, reference, time_offset=round(summary['measured_delay'], 2),
+                       delay_learn=0.0)
     assert fixed.counters['online_reference_delay'] == 0
     assert fixed.learner.summary()['delay_check'] == 'ok'
     assert fixed.counters['online_segments'] > odometer.counters['online_segments']
@@ -64,7 +83,7 @@ def test_a_late_reference_pauses_learning_and_says_the_value_to_set():
 
 def test_an_early_reference_is_measured_negative():
     sim, reference = _drive(-0.3, seed=5)
-    odometer, _, _ = _run(sim, reference)
+    odometer, _, _ = _run(sim, reference, delay_learn=0.0)
     assert odometer.learner.summary()['measured_delay'] == pytest.approx(-0.3, abs=0.1)
     assert odometer.counters['online_reference_delay'] > 0
 
@@ -85,5 +104,6 @@ def test_delay_tolerance_zero_never_pauses():
     odometer, _, warnings = _run(sim, reference, delay_tolerance=0.0)
     assert odometer.counters['online_reference_delay'] == 0
     assert not [w for w in warnings if w[0] == 'reference_delay']
-    # still measured, and said in /diagnostics
-    assert odometer.learner.summary()['measured_delay'] == pytest.approx(0.4, abs=0.1)
+    assert odometer.counters['online_delay_corrected'] == 0
+    summary = odometer.learner.summary()
+    assert summary['delay_check'] == 'off' and math.isnan(summary['measured_delay'])

@@ -147,7 +147,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         self._min_period_ns = NS_PER_S / params.max_rate
         self._delay = DelayCheck(params.time_offset, params.delay_tolerance,
                                  geometry.track_width, self.counters, self._warn,
-                                 params.delay_learn > 0.5)
+                                 params.delay_learn > 0.5, model.rows(self.k0, geometry))
         self._restart_buffers()
 
     # ------------------------------------------------------------------ state

@@ -40,7 +40,7 @@ import math
 import numpy as np
 
 from skidkin_ros.core.calibration.lag import LAG_STEP_S, lag_sigma, scan, velocity_cost
-from skidkin_ros.core.online.steps import CHAIN, TRAVEL, TURN
+from skidkin_ros.core.online.steps import CHAIN, LEFT, RIGHT, T0, TRAVEL, TURN
 
 __all__ = ['DelayCheck', 'RANGE_S', 'WINDOW_S', 'CHECK_EVERY_S', 'MIN_YAW_RATE_SD']
 
@@ -65,8 +65,13 @@ class DelayCheck:
     """The online check of a learner's reference delay (module docstring)."""
 
     def __init__(self, time_offset_s: float, tolerance_s: float, track_width: float,
-                 counters, warn, learn: bool = False) -> None:
+                 counters, warn, learn: bool = False,
+                 file_rows: np.ndarray | None = None) -> None:
         self.offset_s = time_offset_s
+        # J of the file's model (3, 2) when it is linear: the wheels' motion the reference is
+        # aligned with (what is learned under a wrong delay must not bias its measurement)
+        self.file_rows = None if file_rows is None else np.asarray(file_rows, float)
+        self._sums = (0.0, 0.0)
         self.tolerance_s = tolerance_s
         self.learn = learn
         self.corrections = 0
@@ -108,7 +113,7 @@ class DelayCheck:
 
     def seen(self, refs) -> None:
         """Take the newest accepted reference pose of the learner's deque, once (gates.py)."""
-        if not refs or refs[-1] is self._last_ref:
+        if not self.enabled or not refs or refs[-1] is self._last_ref:
             return
         ref = self._last_ref = refs[-1]
         # a chain starts with one pose (gates.py: _start_chain); later accepts keep two or more
@@ -116,20 +121,38 @@ class DelayCheck:
 
     def wheels(self, t1: list[int], rows: list) -> None:
         """Keep the wheel steps not seen yet (the learner's lists, steps.py)."""
+        if not self.enabled:
+            return
         i = bisect.bisect_right(t1, self._wheel_last_ns)
+        if i >= len(t1):
+            return
+        self._wheel_last_ns = t1[-1]
         kept = self._wheels
+        new = rows[i:]
+        count = len(new)
+        ends = np.array(t1[i:], dtype=np.int64)
+        chains = np.fromiter((row[CHAIN] for row in new), np.int64, count)
+        if self.file_rows is None:   # a non-linear model: the learner's model in force
+            travel = np.fromiter((row[TRAVEL] for row in new), float, count)
+            turn = np.fromiter((row[TURN] for row in new), float, count)
+        else:                        # the file's linear model: independent of what is learned
+            left = np.fromiter((row[LEFT] for row in new), float, count)
+            right = np.fromiter((row[RIGHT] for row in new), float, count)
+            starts = np.fromiter((row[T0] for row in new), np.int64, count)
+            dt_s = (ends - starts) * 1e-9
+            m = self.file_rows
+            travel = self._sums[0] + np.cumsum(np.abs(m[0, 0] * left + m[0, 1] * right) * dt_s)
+            turn = self._sums[1] + np.cumsum((m[2, 0] * left + m[2, 1] * right) * dt_s)
+            self._sums = (float(travel[-1]), float(turn[-1]))
         every = int(WHEEL_EVERY_S * _NS)
-        for j in range(i, len(t1)):
-            row = rows[j]
-            if row[CHAIN] != self._wheel_chain:   # a wheel gap: nothing to read across it
-                self._wheel_chain = row[CHAIN]
+        for j in range(count):
+            if chains[j] != self._wheel_chain:   # a wheel gap: nothing to read across it
+                self._wheel_chain = int(chains[j])
                 kept.clear()
-            t = t1[j]
-            if kept and t - kept[-1][0] < every and j != len(t1) - 1:
+            t = int(ends[j])
+            if kept and t - kept[-1][0] < every and j != count - 1:
                 continue
-            kept.append((t, row[TRAVEL], row[TURN]))
-        if i < len(t1):
-            self._wheel_last_ns = t1[-1]
+            kept.append((t, float(travel[j]), float(turn[j])))
         horizon = (WINDOW_S + 2.0 * RANGE_S + 1.0) * _NS
         while kept and kept[0][0] < kept[-1][0] - horizon:
             kept.popleft()
@@ -179,10 +202,12 @@ class DelayCheck:
         lag, lags, curve = scan(cost, RANGE_S)
         sigma = lag_sigma(lags, curve, int(v_ref.size))
         self.measured_s, self.sigma_s = self.offset_s + lag, sigma
-        if not self.enabled or np.std(w_ref) < MIN_YAW_RATE_SD:
+        if np.std(w_ref) < MIN_YAW_RATE_SD or abs(lag) >= RANGE_S - 2 * LAG_STEP_S:
+            return   # too little turning, or the best lag at the scan's edge: no verdict
+        if not sigma <= 0.5 * self.tolerance_s:
             return
-        if not sigma <= 0.25 * self.tolerance_s:
-            return
+        if self.tolerance_s < abs(lag) <= self.tolerance_s + sigma:
+            return   # beyond the tolerance, not clearly: the verdict in force stays
         off = abs(lag) > self.tolerance_s
         if off and self.learn and self.corrections < MAX_CORRECTIONS:
             new = min(max(round(self.measured_s / LAG_STEP_S) * LAG_STEP_S, -1.0), 1.0)
