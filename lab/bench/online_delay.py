@@ -11,7 +11,7 @@ warning says to do). Scores: eps_t (m), eps_th (rad), changes of ground detected
 (``online_change``; long stretches: 1 is right) and, for ``after``, the time_offset in force at
 the end and the corrections made. Run::
 
-    python -m lab.bench.online_delay [--seeds 1 8 9] [--duration 120]
+    python -m lab.bench.online_delay [--seeds 1 8 9] [--duration 120] [--tolerance 0.06]
 """
 
 from __future__ import annotations
@@ -20,9 +20,8 @@ import argparse
 import sys
 import time
 
-import numpy as np
-
 from lab.studies.online import _effects, _scores, calibrated_file, REF_SIGMA_M, REF_SIGMA_RAD
+import numpy as np
 from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.odometer import Odometer
@@ -42,7 +41,8 @@ def late_reference(sim, rng: np.random.Generator, delay_s: float) -> PoseTrack:
                      truth.yaw + rng.normal(0, REF_SIGMA_RAD, n))
 
 
-def run(case: str, seed: int, delay_s: float, fixed: OdometryConfig, duration_s: float) -> dict:
+def run(case: str, seed: int, delay_s: float, fixed: OdometryConfig, duration_s: float,
+        tolerance: float | None = None) -> dict:
     sim = simulate(SimConfig(duration_s=duration_s, seed=seed, effects=_effects(case)))
     reference = late_reference(sim, np.random.default_rng(seed), delay_s)
     out = {}
@@ -51,6 +51,8 @@ def run(case: str, seed: int, delay_s: float, fixed: OdometryConfig, duration_s:
     for name, extra in (('before', {'online.delay_tolerance': 0.0}),
                         ('pause', {'online.delay_learn': 0.0}), ('after', {}),
                         ('set', {'online.time_offset': delay_s})):
+        if tolerance is not None and name != 'before':
+            extra = {'online.delay_tolerance': tolerance, **extra}
         config = OdometryConfig.from_flat({**fixed.values, 'online.enabled': True, **extra})
         odometer = online_odometer(config)
         result = odometer.predict(sim.wheels, reference=reference)
@@ -69,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--cases', nargs='+', default=['long stretches', 'effect-free'])
     parser.add_argument('--delays', type=float, nargs='+', default=list(DELAYS))
     parser.add_argument('--duration', type=float, default=120.0)
+    parser.add_argument('--tolerance', type=float, help='online.delay_tolerance (s) of pause, '
+                        "after and set (default: the parameter's)")
     args = parser.parse_args(argv)
     tic = time.perf_counter()
     fixed = calibrated_file()
@@ -79,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     for case in args.cases:
         for seed in args.seeds:
             for delay in args.delays:
-                r = run(case, seed, delay, fixed, args.duration)
+                r = run(case, seed, delay, fixed, args.duration, args.tolerance)
                 runs = [r[k] for k in ('before', 'pause', 'after', 'set')]
                 a = r['after']
                 print(f'| {case} | {seed} | {delay:+.1f} | {r["fixed"][0]:.3f} | '

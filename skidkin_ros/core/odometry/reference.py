@@ -112,13 +112,13 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('max_grounds', '', 4.0, 1.0, 16.0,
               'grounds remembered at once (the least recently used is forgotten)'),
     ParamSpec('delay_tolerance', 's', 0.12, 0.0, 1.0,
-              "the reference's delay is measured online (offline lag rule); beyond "
-              'time_offset by more than this, learning pauses (counted online_reference_delay) '
-              'and the value to set is said; 0: not checked'),
+              "the reference's delay is measured online (the offline lag rule); clearly beyond "
+              'time_offset by more than this: taken in force (delay_learn) or learning paused '
+              '(counted online_reference_delay), and the value to set said; 0: not checked'),
     ParamSpec('delay_learn', '', 1.0, 0.0, 1.0,
               '1: a measured delay beyond delay_tolerance becomes the time_offset in force '
-              '(learning restarts its buffers with it, at most 3 times, within -1 to 1 s); '
-              '0: learning only pauses'),
+              "(learning restarts from the file's parameters with it; at most 3 times, within "
+              '-1 to 1 s); 0: learning only pauses'),
 )
 _ATTR = {spec.name: spec.name for spec in ONLINE_SPECS}
 

@@ -6,29 +6,33 @@ value makes every turn look like a change of ground. This check measures the del
 driving, by :mod:`skidkin_ros.core.calibration.lag`'s rule (the one ``skidkin diagnose`` uses
 on a recording):
 
-* **Data, bounded**: the wheel model's running travel and rotation (the learner's wheel steps,
-  ``steps.py``: read once per reference pose, kept every ``WHEEL_EVERY_S`` at most) and the
-  accepted reference poses (already in wheel time: stamp minus ``time_offset``) of the last
-  ``WINDOW_S`` seconds.
+* **Data, bounded**: the wheels' running travel and rotation (the learner's wheel steps,
+  ``steps.py``, read once per judged reference pose: through the file's model when it is linear,
+  so that what is learned under a wrong delay does not bias the measurement; else the model in
+  force), kept every ``WHEEL_EVERY_S`` at most, and the accepted reference poses (already in
+  wheel time: stamp minus the ``time_offset`` in force) of the last ``WINDOW_S`` seconds.
 * **Cost at a lag**: over each interval between two accepted reference poses of one chain, the
-  reference's speed and yaw rate against the wheel model's over the same interval read ``lag``
+  reference's speed and yaw rate against the wheels' over the same interval read ``lag``
   earlier (:func:`~skidkin_ros.core.calibration.lag.velocity_cost`; the lateral component is
   zero on both sides). Only intervals the wheels cover at every lag scanned are used.
 * **When**: every ``CHECK_EVERY_S`` of reference time (not per wheel sample): a scan of
   ``RANGE_S`` each way costs about 40 interpolations of a few hundred values.
-* **Verdict**: the lag found is the error of ``time_offset``; the measured delay is
-  ``time_offset`` plus it. With enough turning in the window (the reference's yaw rate varies by
-  ``MIN_YAW_RATE_SD`` at least) and a sigma at most a quarter of ``online.delay_tolerance``: a
-  lag beyond the tolerance pauses learning (every segment not learned is counted
-  ``online_reference_delay``; the odometry goes on with what was learned) and warns once with
-  the value to set; a lag within it resumes learning. Without enough turning the verdict in
-  force stays. ``delay_tolerance`` 0: not checked.
+* **Verdict**: the lag found is the error of the ``time_offset`` in force; the measured delay is
+  that offset plus it. A verdict needs turning in the window (the reference's yaw rate varies by
+  ``MIN_YAW_RATE_SD`` at least), a best lag inside the scan (not at its edge) and a sigma at
+  most half ``online.delay_tolerance``. A lag beyond the tolerance (by more than its sigma) is
+  said once (WARN ``reference_delay``: the value to set) and, with ``online.delay_learn``
+  (default), taken in force: the offset becomes the measured delay (10 ms steps, within -1 to
+  1 s, at most ``MAX_CORRECTIONS`` times), the learner's buffers restart and its grounds go back
+  to the file's parameters (what was learned under the wrong stamps is dropped), counted
+  ``online_delay_corrected``; without it, learning pauses (each segment not learned counted
+  ``online_reference_delay``, state ``holding``) until a verdict within the tolerance. Without
+  a verdict the one in force stays. ``delay_tolerance`` 0: not checked, nothing measured.
 
-It does not correct the delay itself: learning a wrong stamp shift into the parameters is what
-it prevents, and a changed offset would move every pose the learner already holds; the value to
-set is said (``/diagnostics``: ``online.measured_delay``), and ``skidkin predict --reference``
-with it replays a recording's learning. Where the configured value is right the check never
-pauses, so learning is unchanged bit for bit.
+Why learn it: a field roboticist expects not to lose a day of learning to a wrong constant, and
+pausing keeps the robot on the ground it was on (on the simulator's drives with a change of
+ground, pausing was worse than not checking at all). Where the configured value is right the
+check never acts, so learning is unchanged bit for bit (the check only reads).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ import math
 
 import numpy as np
 
-from skidkin_ros.core.calibration.lag import LAG_STEP_S, lag_sigma, scan, velocity_cost
+from skidkin_ros.core.calibration.lag import lag_sigma, LAG_STEP_S, scan, velocity_cost
 from skidkin_ros.core.online.steps import CHAIN, LEFT, RIGHT, T0, TRAVEL, TURN
 
 __all__ = ['DelayCheck', 'RANGE_S', 'WINDOW_S', 'CHECK_EVERY_S', 'MIN_YAW_RATE_SD']

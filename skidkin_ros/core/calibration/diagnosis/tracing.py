@@ -24,11 +24,11 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
-from skidkin_ros.core.calibration.lag import (COARSE_STEPS, LAG_STEP_S,  # noqa: F401
-                                              scan, velocity_cost)
 from skidkin_ros.core.calibration.diagnosis.residuals import (COMPONENTS, model_rollouts,
                                                               pose_residuals, PoseSamples)
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
+from skidkin_ros.core.calibration.lag import (COARSE_STEPS, LAG_STEP_S,  # noqa: F401
+                                              scan, velocity_cost)
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.augmented import AugmentedModel
 from skidkin_ros.core.kinematics.models import BoundModel
