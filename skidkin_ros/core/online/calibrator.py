@@ -294,10 +294,9 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
 
     def _judge(self, t_ns: int, x: float, y: float, yaw: float) -> None:
         """Judge a covered reference pose (gates.py); the delay check sees it (delay.py)."""
-        self._delay.wheels(self._t1, self._rows)
         super()._judge(t_ns, x, y, yaw)
         delay = self._delay
-        delay.seen(self._refs)
+        delay.seen(self._refs, self._t1, self._rows)
         if delay.correction is not None:   # a measured delay taken in force: stamps move
             self._offset_ns = s_to_ns(delay.correction)
             delay.correction = None
@@ -323,6 +322,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, ChangeLearner, NoiseLearner, Re
         """Drop the wheel steps that end before keep_ns (amortised: in halves)."""
         n = bisect.bisect_left(self._t1, keep_ns)
         if n > 256 and (n > len(self._t1) // 2 or len(self._t1) > MAX_STEPS):
+            self._delay.wheels(self._t1, self._rows)   # the delay check reads them first
             self._steps.drop(n)
 
     # ------------------------------------------------------------------ segments

@@ -15,8 +15,9 @@ on a recording):
   reference's speed and yaw rate against the wheels' over the same interval read ``lag``
   earlier (:func:`~skidkin_ros.core.calibration.lag.velocity_cost`; the lateral component is
   zero on both sides). Only intervals the wheels cover at every lag scanned are used.
-* **When**: every ``CHECK_EVERY_S`` of reference time (not per wheel sample): a scan of
-  ``RANGE_S`` each way costs about 40 interpolations of a few hundred values.
+* **When**: every ``CHECK_EVERY_S`` of reference time (not per wheel sample or per pose): a
+  scan of ``RANGE_S`` each way is about 35 costs of a few hundred interpolated values; the wheel
+  steps are read then and before the learner drops any.
 * **Verdict**: the lag found is the error of the ``time_offset`` in force; the measured delay is
   that offset plus it. A verdict needs turning in the window (the reference's yaw rate varies by
   ``MIN_YAW_RATE_SD`` at least), a best lag inside the scan (not at its edge) and a sigma at
@@ -53,9 +54,9 @@ RANGE_S = 0.6
 # Seconds of reference poses the lag is measured over.
 WINDOW_S = 30.0
 # Reference time between two measurements.
-CHECK_EVERY_S = 1.0
+CHECK_EVERY_S = 2.0
 # Wheel samples kept at most this often (s): fine against the 10 ms lag step.
-WHEEL_EVERY_S = 0.005
+WHEEL_EVERY_S = 0.01
 # Turning needed for a verdict: the standard deviation of the reference's yaw rate (rad/s).
 MIN_YAW_RATE_SD = 0.05
 # Intervals needed for a verdict.
@@ -87,7 +88,8 @@ class DelayCheck:
         self.measured_s = math.nan       # time_offset + the lag found (the last measurement)
         self.sigma_s = math.nan
         self.pausing = False
-        self._wheels: collections.deque[tuple[int, float, float]] = collections.deque()
+        # chunks of (end stamps, travel, turn) arrays, one per read of the learner's steps
+        self._wheels: collections.deque[tuple[np.ndarray, ...]] = collections.deque()
         self._wheel_chain: int | None = None
         self._wheel_last_ns = -(1 << 62)
         self._refs: collections.deque[tuple[int, float, float]] = collections.deque()
@@ -115,16 +117,26 @@ class DelayCheck:
         return {'measured_delay': self.measured_s, 'measured_delay.sigma': self.sigma_s,
                 'delay_check': verdict}
 
-    def seen(self, refs) -> None:
-        """Take the newest accepted reference pose of the learner's deque, once (gates.py)."""
+    def seen(self, refs, t1: list[int], rows: list) -> None:
+        """Take the newest accepted reference pose of the learner's deque, once (gates.py).
+
+        ``t1``, ``rows``: the learner's wheel steps (steps.py), read when a measurement is due
+        (and before the learner drops any: :meth:`wheels`).
+        """
         if not self.enabled or not refs or refs[-1] is self._last_ref:
             return
         ref = self._last_ref = refs[-1]
         # a chain starts with one pose (gates.py: _start_chain); later accepts keep two or more
-        self.reference(ref.t_ns, ref.path_m, ref.yaw, len(refs) == 1)
+        if self.reference(ref.t_ns, ref.path_m, ref.yaw, len(refs) == 1):
+            self.wheels(t1, rows)
+            self.measure()
 
     def wheels(self, t1: list[int], rows: list) -> None:
-        """Keep the wheel steps not seen yet (the learner's lists, steps.py)."""
+        """Keep the wheel steps not read yet (the learner's lists, steps.py).
+
+        Called when a measurement is due and before the learner drops steps (calibrator.py:
+        ``_trim``), not per reference pose: a few hundred steps at a time at 1 kHz.
+        """
         if not self.enabled:
             return
         i = bisect.bisect_right(t1, self._wheel_last_ns)
@@ -132,37 +144,40 @@ class DelayCheck:
             return
         self._wheel_last_ns = t1[-1]
         kept = self._wheels
-        new = rows[i:]
-        count = len(new)
+        cols = list(zip(*rows[i:]))   # the steps' fields, transposed in one pass
         ends = np.array(t1[i:], dtype=np.int64)
-        chains = np.fromiter((row[CHAIN] for row in new), np.int64, count)
+        chains = np.array(cols[CHAIN], dtype=np.int64)
         if self.file_rows is None:   # a non-linear model: the learner's model in force
-            travel = np.fromiter((row[TRAVEL] for row in new), float, count)
-            turn = np.fromiter((row[TURN] for row in new), float, count)
+            travel = np.array(cols[TRAVEL], dtype=float)
+            turn = np.array(cols[TURN], dtype=float)
         else:                        # the file's linear model: independent of what is learned
-            left = np.fromiter((row[LEFT] for row in new), float, count)
-            right = np.fromiter((row[RIGHT] for row in new), float, count)
-            starts = np.fromiter((row[T0] for row in new), np.int64, count)
-            dt_s = (ends - starts) * 1e-9
+            left = np.array(cols[LEFT], dtype=float)
+            right = np.array(cols[RIGHT], dtype=float)
+            dt_s = (ends - np.array(cols[T0], dtype=np.int64)) * 1e-9
             m = self.file_rows
             travel = self._sums[0] + np.cumsum(np.abs(m[0, 0] * left + m[0, 1] * right) * dt_s)
             turn = self._sums[1] + np.cumsum((m[2, 0] * left + m[2, 1] * right) * dt_s)
             self._sums = (float(travel[-1]), float(turn[-1]))
-        every = int(WHEEL_EVERY_S * _NS)
-        for j in range(count):
-            if chains[j] != self._wheel_chain:   # a wheel gap: nothing to read across it
-                self._wheel_chain = int(chains[j])
-                kept.clear()
-            t = int(ends[j])
-            if kept and t - kept[-1][0] < every and j != count - 1:
-                continue
-            kept.append((t, float(travel[j]), float(turn[j])))
-        horizon = (WINDOW_S + 2.0 * RANGE_S + 1.0) * _NS
-        while kept and kept[0][0] < kept[-1][0] - horizon:
+        cut = np.flatnonzero(chains != (chains[0] if self._wheel_chain is None
+                                        else self._wheel_chain))
+        if cut.size:   # a wheel gap: nothing to read across it (the last chain's steps only)
+            start = int(np.flatnonzero(chains != chains[-1])[-1]) + 1 if np.any(
+                chains != chains[-1]) else 0
+            self._wheel_chain = int(chains[-1])
+            kept.clear()
+            ends, travel, turn = ends[start:], travel[start:], turn[start:]
+        elif self._wheel_chain is None:
+            self._wheel_chain = int(chains[0])
+        # one value per WHEEL_EVERY_S (and the last): the lag step is 10 ms
+        slot = ends // int(WHEEL_EVERY_S * _NS)
+        pick = np.flatnonzero(np.diff(slot, append=slot[-1] + 1))
+        kept.append((ends[pick], travel[pick], turn[pick]))
+        horizon = int((WINDOW_S + 2.0 * RANGE_S + 1.0) * _NS)
+        while len(kept) > 1 and kept[0][0][-1] < ends[-1] - horizon:
             kept.popleft()
 
-    def reference(self, t_ns: int, path_m: float, yaw: float, new_chain: bool) -> None:
-        """Take one accepted reference pose (wheel time); measure every CHECK_EVERY_S."""
+    def reference(self, t_ns: int, path_m: float, yaw: float, new_chain: bool) -> bool:
+        """Take one accepted reference pose (wheel time); True: a measurement is due."""
         if new_chain or not self._refs:
             self._refs.clear()
         elif t_ns > self._refs[-1][0]:
@@ -177,13 +192,14 @@ class DelayCheck:
             self._next_check_ns = t_ns + int(CHECK_EVERY_S * _NS)
         elif t_ns >= self._next_check_ns:
             self._next_check_ns = t_ns + int(CHECK_EVERY_S * _NS)
-            self.measure()
+            return True
+        return False
 
     def measure(self) -> None:
         """Measure the lag over the window; update the verdict (module docstring)."""
         if not self._wheels or not self._intervals:
             return
-        w = np.array(self._wheels)
+        w = np.column_stack([np.concatenate(part) for part in zip(*self._wheels)])
         iv = np.array(self._intervals)
         t_a, t_b = iv[:, 0], iv[:, 1]
         reach = (RANGE_S + 0.01) * _NS
