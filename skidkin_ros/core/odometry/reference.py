@@ -111,7 +111,7 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               lower_open=True),
     ParamSpec('max_grounds', '', 4.0, 1.0, 16.0,
               'grounds remembered at once (the least recently used is forgotten)'),
-    ParamSpec('delay_tolerance', 's', 0.12, 0.0, 1.0,
+    ParamSpec('delay_tolerance', 's', 0.06, 0.0, 1.0,
               "the reference's delay is measured online (the offline lag rule); clearly beyond "
               'time_offset by more than this: taken in force (delay_learn) or learning paused '
               '(counted online_reference_delay), and the value to set said; 0: not checked'),
@@ -155,7 +155,7 @@ class OnlineParams:
     switch_window: float = 0.5
     switch_margin: float = 12.0
     max_grounds: float = 4.0
-    delay_tolerance: float = 0.12
+    delay_tolerance: float = 0.06
     delay_learn: float = 1.0
 
     @classmethod

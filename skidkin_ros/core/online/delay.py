@@ -21,7 +21,7 @@ on a recording):
 * **Verdict**: the lag found is the error of the ``time_offset`` in force; the measured delay is
   that offset plus it. A verdict needs turning in the window (the reference's yaw rate varies by
   ``MIN_YAW_RATE_SD`` at least), a best lag inside the scan (not at its edge) and a sigma at
-  most half ``online.delay_tolerance``. A lag beyond the tolerance (by more than its sigma) is
+  most ``MAX_SIGMA_S``. A lag beyond the tolerance (by more than its sigma) is
   said once (WARN ``reference_delay``: the value to set) and, with ``online.delay_learn``
   (default), taken in force: the offset becomes the measured delay (10 ms steps, within -1 to
   1 s, at most ``MAX_CORRECTIONS`` times), the learner's buffers restart and its grounds go back
@@ -59,6 +59,8 @@ CHECK_EVERY_S = 2.0
 WHEEL_EVERY_S = 0.01
 # Turning needed for a verdict: the standard deviation of the reference's yaw rate (rad/s).
 MIN_YAW_RATE_SD = 0.05
+# A verdict needs the lag's standard deviation at most this (s).
+MAX_SIGMA_S = 0.06
 # Intervals needed for a verdict.
 MIN_INTERVALS = 50
 # Corrections of time_offset at most (delay_learn): a delay that keeps moving is paused on.
@@ -224,7 +226,7 @@ class DelayCheck:
         self.measured_s, self.sigma_s = self.offset_s + lag, sigma
         if np.std(w_ref) < MIN_YAW_RATE_SD or abs(lag) >= RANGE_S - 2 * LAG_STEP_S:
             return   # too little turning, or the best lag at the scan's edge: no verdict
-        if not sigma <= 0.5 * self.tolerance_s:
+        if not sigma <= MAX_SIGMA_S:
             return
         if self.tolerance_s < abs(lag) <= self.tolerance_s + sigma:
             return   # beyond the tolerance, not clearly: the verdict in force stays
