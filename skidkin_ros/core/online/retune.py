@@ -29,8 +29,12 @@ KEEP = frozenset(('max_rate', 'max_gap', 'max_jump', 'max_jump_rad', 'stall', 'g
 
 
 def retune(learner, old: OnlineParams, new: OnlineParams) -> bool:
-    """Give ``learner`` the parameters ``new`` in place; False (untouched) unless only KEEP differ."""
-    changed = {f.name for f in fields(OnlineParams) if getattr(old, f.name) != getattr(new, f.name)}
+    """Give ``learner`` the parameters ``new`` in place; False (untouched) unless only KEEP differ.
+
+    ``old``: the learner's parameters until now.
+    """
+    changed = {f.name for f in fields(OnlineParams)
+               if getattr(old, f.name) != getattr(new, f.name)}
     if not changed or not changed <= KEEP or not isinstance(learner, OnlineCalibrator):
         return False
     learner.params = new
