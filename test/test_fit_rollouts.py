@@ -315,3 +315,39 @@ def test_c244_the_correction_sums_the_terms_as_the_node_does():
         assert np.stack(reference, axis=-1).tobytes() == fast.tobytes()
     sample = phi[1, 17].tolist()
     assert residual.scalar_correction(coef, sample) == tuple(fast[1, 17].tolist())
+
+
+def test_c283_the_shared_lag_rule_gives_the_diagnosis_its_old_scan_bit_for_bit(drives):
+    # the scan the diagnosis ran before its rule moved to core/calibration/lag.py (shared with
+    # the online delay check), written out here: the same lags, costs and best lag
+    from skidkin_ros.core.calibration.diagnosis.state import ModelState
+    from skidkin_ros.core.calibration.diagnosis.tracing import lag_scan
+    options = DiagnosisOptions()
+    samples = _samples(drives, options)
+    state = ModelState((), {'alpha': 0.9, 'b_hat': 0.8}, {})
+    best, (lags, curve) = lag_scan(drives, samples, state, 'edd_symmetric', GEOM, options)
+    base = state.bind('edd_symmetric', GEOM)
+    scale = np.array([1.0, 1.0, GEOM.track_width / 2])
+    rollouts = model_rollouts(drives, samples, AugmentedModel(
+        'edd_symmetric', ['time_offset']).bind(base, {'time_offset': {'offset_s': 0.0}}),
+        options)
+    scores = {}
+
+    def cost(lag):
+        lag = round(lag / 0.01) * 0.01
+        if lag not in scores:
+            source = AugmentedModel('edd_symmetric', ['time_offset']).bind(
+                base, {'time_offset': {'offset_s': float(lag)}})
+            residual_, valid = pose_residuals(drives, samples, source, options, rollouts)
+            scores[lag] = float(np.mean(((residual_[valid] * scale) ** 2).sum(axis=1)))
+        return scores[lag]
+
+    reach = round(options.lag_range_s / 0.05)
+    coarse_best = min((k * 0.05 for k in range(-reach, reach + 1)), key=cost)
+    for k in range(-4, 5):
+        if abs(coarse_best + k * 0.01) <= options.lag_range_s + 1e-9:
+            cost(coarse_best + k * 0.01)
+    old_lags = np.array(sorted(scores))
+    old_curve = np.array([scores[lag] for lag in old_lags])
+    assert np.array_equal(lags, old_lags) and np.array_equal(curve, old_curve)
+    assert best == float(old_lags[int(np.argmin(old_curve))])

@@ -114,3 +114,26 @@ def test_bad_reference_never_stops_the_odometry_and_save_calibration(tmp_path):
         assert loaded.online.enabled and 'online calibration' in target.read_text()
     finally:
         rig.close()
+
+
+def test_node_takes_a_late_references_delay_as_predict_does(tmp_path):
+    # the reference stamped 0.4 s late, online.time_offset left at 0: the node measures the
+    # delay by the offline lag rule, takes it in force, and agrees with predict bit for bit
+    sim = simulate(SimConfig(duration_s=40.0, seed=4))
+    path = write_params_file(tmp_path / 'online.yaml', FILE, {'source': 'test'})
+    config = OdometryConfig.from_file(path)
+    t = np.arange(sim.start_ns + 1_000_000_000, sim.end_ns - 1_000_000_000, 100_000_000)
+    truth = sim.truth_at(t)
+    late = PoseTrack(t + 400_000_000, truth.x, truth.y, truth.yaw)
+    wire_yaw = [quaternion_to_yaw(*yaw_to_quaternion(float(v))) for v in late.yaw]
+    odometer = online_odometer(config)
+    expected = odometer.predict(sim.wheels, reference=PoseTrack(late.t_ns, late.x, late.y,
+                                                                np.array(wire_yaw)))
+    assert odometer.counters['online_delay_corrected'] == 1
+    assert odometer.learner.summary()['measured_delay'] == pytest.approx(0.4, abs=0.1)
+    result = replay_through_node(sim.wheels, params_file=path, reference=late, timeout_s=120.0)
+    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
+    np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
+    assert np.array_equal(result.pose_cov, expected.pose_covariances)
+    for cause in ('online_delay_corrected', 'online_segments', 'reference_accepted'):
+        assert result.counters.get(cause, 0) == odometer.counters[cause]

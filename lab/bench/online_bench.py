@@ -338,6 +338,9 @@ def main(argv=None) -> int:
     parser.add_argument('--emit', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--split', action='store_true',
                         help="split online's cost with the node's default file by part")
+    parser.add_argument('--delay-check', action='store_true',
+                        help="also time online with the reference's delay not checked "
+                             '(online.delay_tolerance 0), in the same turns')
     args = parser.parse_args(argv)
     if args.augmented:
         _augmented(args)
@@ -354,17 +357,24 @@ def main(argv=None) -> int:
         return 0
     today = OdometryConfig.from_flat(FILE)
     online = OdometryConfig.from_flat({**FILE, 'online.enabled': True})
-    best = {'today': np.inf, 'online': np.inf}
+    best = {'today': np.inf, 'online': np.inf, 'unchecked': np.inf}
     counters = {}
     ratios = []
+    runs = [('today', today), ('online', online)]
+    if args.delay_check:
+        runs.append(('unchecked', OdometryConfig.from_flat(
+            {**FILE, 'online.enabled': True, 'online.delay_tolerance': 0.0})))
+    checks = []
     for _ in range(args.repeats):
         pair = {}
-        for name, config in (('today', today), ('online', online)):
+        for name, config in runs:
             cost, counts = _run(config, sim, reference)
             best[name] = min(best[name], cost)
             counters[name] = counts
             pair[name] = cost
         ratios.append(pair['online'] / pair['today'])
+        if args.delay_check:
+            checks.append(pair['online'] / pair['unchecked'])
     print(f'{len(sim.wheels)} wheel samples at 1 kHz, {len(reference)} reference poses at '
           f'10 Hz, best of {args.repeats}:')
     print(f'  today (online off): {best["today"] * 1e6:.2f} us per wheel sample')
@@ -373,6 +383,10 @@ def main(argv=None) -> int:
           f'{counters["online"].get("online_change", 0)} change(s))')
     print(f'  ratio of the best runs: {best["online"] / best["today"]:.2f}; median of the '
           f'{len(ratios)} paired runs: {float(np.median(ratios)):.2f} (CPU time of this process)')
+    if args.delay_check:
+        print(f"  delay not checked: {best['unchecked'] * 1e6:.2f} us per wheel sample; "
+              f"checked / not: best {best['online'] / best['unchecked']:.3f}, median of the "
+              f'paired runs {float(np.median(checks)):.3f}')
     return 0
 
 

@@ -91,6 +91,7 @@ from skidkin_ros.core.odometry.config import (check_model_given, default_paramet
 from skidkin_ros.core.odometry.odometer import Estimate
 from skidkin_ros.core.odometry.saved_grounds import GROUND_NAMES
 from skidkin_ros.core.online import attach_online, online_odometer
+from skidkin_ros.core.online.retune import retune
 from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 from skidkin_ros.errors import ConfigError
 from skidkin_ros.node.callbacks import guarded as _guarded, sensor_qos
@@ -229,15 +230,17 @@ class OdomNode(InputCallbacks, PoseRequests, Node):
         """Switch to a validated configuration; the pose and its covariance are kept.
 
         Online calibration goes on with what it learned when neither the model, its parameters
-        nor online.* (the remembered grounds included) changed; otherwise it restarts from the
-        parameters given.
+        nor online.* (the remembered grounds included) changed, or only online.* gates did
+        (``retune.KEEP``); otherwise it restarts from the parameters given.
         """
         old = self._config
         learner = self._odometer.learner
         self._odometer.configure(config)
-        if (learner is not None and config.online == old.online and config.model == old.model
+        if (learner is not None and config.model == old.model
                 and config.model_values == old.model_values
-                and all(config[name] == old[name] for name in GROUND_NAMES)):
+                and all(config[name] == old[name] for name in GROUND_NAMES)
+                and (config.online == old.online  # a gate changed: kept (core/online/retune.py)
+                     or retune(learner, old.online, config.online))):
             self._odometer.attach_learner(learner)
         else:
             attach_online(self._odometer, config, self._warn)

@@ -114,6 +114,14 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               lower_open=True),
     ParamSpec('max_grounds', '', 4.0, 1.0, 16.0,
               'grounds remembered at once (the least recently used is forgotten)'),
+    ParamSpec('delay_tolerance', 's', 0.06, 0.0, 1.0,
+              "the reference's delay is measured online (the offline lag rule); clearly beyond "
+              'time_offset by more than this: taken in force (delay_learn) or learning paused '
+              '(counted online_reference_delay), and the value to set said; 0: not checked'),
+    ParamSpec('delay_learn', '', 1.0, 0.0, 1.0,
+              '1: a measured delay beyond delay_tolerance becomes the time_offset in force '
+              "(learning restarts from the file's parameters with it; at most 3 times, within "
+              '-1 to 1 s); 0: learning only pauses'),
 )
 _ATTR = {spec.name: spec.name for spec in ONLINE_SPECS}
 
@@ -152,6 +160,8 @@ class OnlineParams:
     switch_window: float = 0.5
     switch_margin: float = 12.0
     max_grounds: float = 4.0
+    delay_tolerance: float = 0.06
+    delay_learn: float = 1.0
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], prefix: str = 'online.') -> 'OnlineParams':

@@ -70,6 +70,7 @@ from skidkin_ros.core.odometry.noise import NoiseModel
 from skidkin_ros.core.odometry.reference import OnlineParams
 from skidkin_ros.core.odometry.uncertainty import ParameterUncertainty
 from skidkin_ros.core.online.adapt import ChangeLearner
+from skidkin_ros.core.online.delay import DelayCheck
 from skidkin_ros.core.online.gates import (_Ref, JUMP_CONFIRM, MAX_REFERENCES,  # noqa: F401
                                            ReferenceGates)
 from skidkin_ros.core.online.grounds import CHI2_99_3DOF, Ground, GroundBank  # noqa: F401
@@ -81,7 +82,7 @@ from skidkin_ros.core.online.position import PositionLearner
 from skidkin_ros.core.online.refnoise import RefNoiseLearner
 from skidkin_ros.core.online.steps import WheelSteps
 from skidkin_ros.core.online.window import WindowSolver
-from skidkin_ros.core.timeunits import NS_PER_S
+from skidkin_ros.core.timeunits import NS_PER_S, s_to_ns
 from skidkin_ros.errors import ParameterError
 
 __all__ = ['OnlineCalibrator', 'Ground', 'MAX_STEPS', 'STATES']
@@ -134,6 +135,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
             scaled = np.asarray(prior_covariance, float) / np.outer(self.scale, self.scale)
             info = info + np.linalg.pinv(scaled)
         self.grounds = [Ground(0, self.k0.copy(), info)]
+        self._start_info = info.copy()   # a corrected delay restarts learning here (delay.py)
         self.active = self.grounds[0]
         self._next_ident = 1
         self._error = np.zeros((3, 3))
@@ -145,6 +147,9 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
         self._lo, self._hi = self._bounds()
         self._offset_ns = params.time_offset_ns
         self._min_period_ns = NS_PER_S / params.max_rate
+        self._delay = DelayCheck(params.time_offset, params.delay_tolerance,
+                                 geometry.track_width, self.counters, self._warn,
+                                 params.delay_learn > 0.5, model.rows(self.k0, geometry))
         self._restart_buffers()
 
     # ------------------------------------------------------------------ state
@@ -173,6 +178,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
         # the last stamp accepted on arrival; forgotten with the buffers, or a clock that
         # jumped back (a bag replayed in a loop) would refuse every later pose as older
         self._last_arrival_ns: int | None = None
+        self._delay.forget()
 
     def restart(self) -> None:
         """Forget the buffered wheel steps and reference poses (a reset); keep the grounds."""
@@ -210,6 +216,8 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
             return 'holding'
         if now - self.gyro_refused_ns <= self.params.max_gap * NS_PER_S:
             return 'holding'   # the gyro refused the reference lately: learning paused
+        if self._delay.pausing:
+            return 'holding'   # the reference's delay is not time_offset (delay.py)
         return 'adapting' if self.travel_m < self._adapt_until_m else 'learning'
 
     def summary(self) -> dict[str, float | str]:
@@ -224,6 +232,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
                                        'reference_heading': self.heading_state(),
                                        'hold_weight': self.hold_weight()}
         out['reference_sigma_xy'], out['reference_sigma_yaw'] = self.reference_sigmas()
+        out.update(self._delay.summary())
         sigma = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
         for name, value, sd in zip(self.model.param_names, self.active.k, sigma):
             out[f'{name}'] = float(value)
@@ -286,6 +295,25 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
         self._hold_check(t1_ns)
         return self.version != before
 
+    def _judge(self, t_ns: int, x: float, y: float, yaw: float) -> None:
+        """Judge a covered reference pose (gates.py); the delay check sees it (delay.py)."""
+        super()._judge(t_ns, x, y, yaw)
+        delay = self._delay
+        delay.seen(self._refs, self._t1, self._rows)
+        if delay.correction is not None:   # a measured delay taken in force: stamps move
+            self._offset_ns = s_to_ns(delay.correction)
+            delay.correction = None
+            self._pending.clear()          # converted with the old offset (the same deque)
+            self._restart_buffers()
+            # what was learned under the wrong stamps is dropped: the file's parameters again
+            self.grounds = [Ground(0, self.k0.copy(), self._start_info.copy())]
+            self.active = self.grounds[0]
+            self._next_ident = 1
+            self.cusum = 0.0
+            self._adapt_until_m = -1.0
+            self._blend = None
+            self.version += 1
+
     def _trim_old(self) -> None:
         keep = self._seg_start.t_ns if self._seg_start is not None else self._last_t1
         if self._refs:
@@ -297,6 +325,7 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
         """Drop the wheel steps that end before keep_ns (amortised: in halves)."""
         n = bisect.bisect_left(self._t1, keep_ns)
         if n > 256 and (n > len(self._t1) // 2 or len(self._t1) > MAX_STEPS):
+            self._delay.wheels(self._t1, self._rows)   # the delay check reads them first
             self._steps.drop(n)
 
     # ------------------------------------------------------------------ segments
@@ -323,6 +352,9 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
 
     def _learn(self, a: _Ref, b: _Ref) -> None:
         """One learning segment: gates, change detection, the update (module docstring)."""
+        if self._delay.pausing:   # the reference's delay is not time_offset (delay.py)
+            self.counters['online_reference_delay'] += 1
+            return
         if self.options.too_still(b.path_m - a.path_m, b.yaw - a.yaw):
             self.counters['online_still'] += 1
             return

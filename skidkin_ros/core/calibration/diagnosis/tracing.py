@@ -27,6 +27,8 @@ from skidkin_ros.core.calibration.diagnosis.options import DiagnosisOptions
 from skidkin_ros.core.calibration.diagnosis.residuals import (COMPONENTS, model_rollouts,
                                                               pose_residuals, PoseSamples)
 from skidkin_ros.core.calibration.diagnosis.state import ModelState
+from skidkin_ros.core.calibration.lag import (COARSE_STEPS, LAG_STEP_S,  # noqa: F401
+                                              scan, velocity_cost)
 from skidkin_ros.core.drive import Drive
 from skidkin_ros.core.kinematics.augmented import AugmentedModel
 from skidkin_ros.core.kinematics.models import BoundModel
@@ -35,8 +37,6 @@ from skidkin_ros.core.kinematics.specs import Geometry
 __all__ = ['Trace', 'ResidualLead', 'correlations', 'lag_scan', 'residual_leads',
            'UNEXPLAINED_SHARE']
 
-LAG_STEP_S = 0.01
-COARSE_STEPS = 5
 # A signal that explains at least this share of the velocity error left is reported.
 UNEXPLAINED_SHARE = 0.1
 # Signals that are the same quantity under another name: one lead per quantity.
@@ -90,37 +90,25 @@ def correlations(residual: np.ndarray, valid: np.ndarray,
 def lag_scan(drives: Sequence[Drive], samples: PoseSamples, state: ModelState,
              base_name: str, geometry: Geometry, options: DiagnosisOptions
              ) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
-    """Refit the velocity residual over offsets; return the best offset and the curve (step 2)."""
+    """Refit the velocity residual over offsets; return the best offset and the curve (step 2).
+
+    The rule (scan, cost) is :mod:`skidkin_ros.core.calibration.lag`'s, shared with the online
+    check of the reference's delay.
+    """
     base = state.bind(base_name, geometry)
     base = base if isinstance(base, BoundModel) else base.base
-    scale = np.array([1.0, 1.0, geometry.track_width / 2])
-    scores: dict[float, float] = {}
     # a time offset moves the stamps the model's poses are read at, not the poses: one rollout
     rollouts = model_rollouts(drives, samples, AugmentedModel(base_name, ['time_offset']).bind(
         base, {'time_offset': {'offset_s': 0.0}}), options)
 
     def cost(lag: float) -> float:
-        lag = round(lag / LAG_STEP_S) * LAG_STEP_S
-        if lag not in scores:
-            source = AugmentedModel(base_name, ['time_offset']).bind(
-                base, {'time_offset': {'offset_s': float(lag)}})
-            residual, valid = pose_residuals(drives, samples, source, options, rollouts)
-            scores[lag] = float(np.mean(((residual[valid] * scale) ** 2).sum(axis=1)))
-        return scores[lag]
+        source = AugmentedModel(base_name, ['time_offset']).bind(
+            base, {'time_offset': {'offset_s': lag}})
+        residual, valid = pose_residuals(drives, samples, source, options, rollouts)
+        return velocity_cost(residual[valid], geometry.track_width)
 
-    # Coarse (COARSE_STEPS x the step), then every step around the coarse minimum: the curve is
-    # smooth in the lag, and this costs a third of scanning every step.
-    coarse = LAG_STEP_S * COARSE_STEPS
-    reach = round(options.lag_range_s / coarse)
-    best = min((k * coarse for k in range(-reach, reach + 1)), key=cost)
-    for k in range(-COARSE_STEPS + 1, COARSE_STEPS):
-        lag = best + k * LAG_STEP_S
-        if abs(lag) <= options.lag_range_s + 1e-9:
-            cost(lag)
-    lags = np.array(sorted(scores))
-    cost_curve = np.array([scores[lag] for lag in lags])
-    best = int(np.argmin(cost_curve))
-    return float(lags[best]), (lags, cost_curve)
+    best, lags, curve = scan(cost, options.lag_range_s)
+    return best, (lags, curve)
 
 
 @dataclass(frozen=True)
