@@ -39,10 +39,19 @@ REFERENCE_HZ = 10.0
 MODEL = 'edd_asymmetric'
 
 
-def node_params(online: bool) -> dict[str, str]:
-    """Return the node parameters (command-line strings) of one SUT."""
+def node_params(online: bool, augmented: str = '') -> dict[str, str]:
+    """Return the node parameters (command-line strings) of one SUT.
+
+    ``augmented``: '' (the plain model), 'named' or 'residual': the augmented models of
+    ``lab.bench.online_bench`` (``AUGMENTED``, ``RESIDUAL``) on the same base parameters.
+    """
     params = {'model': MODEL, f'models.{MODEL}.noise.calibrated': 'true',
               **{f'models.{MODEL}.{k}': repr(float(v)) for k, v in DEFAULT_TRUE_PARAMS.items()}}
+    if augmented:
+        from lab.bench.online_bench import AUGMENTED, RESIDUAL
+        flat = RESIDUAL if augmented == 'residual' else AUGMENTED
+        params.update({k: v if isinstance(v, str) else repr(float(v)) for k, v in flat.items()
+                       if k == 'model' or k.startswith('augmented.')})
     if online:
         params['online.enabled'] = 'true'
     return params
@@ -152,13 +161,13 @@ class OnlineSut:
     """One node process and its driver (as node_bench.Sut, with the reference driver)."""
 
     def __init__(self, label: str, online: bool, domain_id: int, cpu: int | None,
-                 with_reference: bool = True) -> None:
+                 with_reference: bool = True, augmented: str = '') -> None:
         import subprocess
         self.label = label
         namespace = f'/online_bench_{os.getpid()}_{label.replace(",", "").replace(" ", "_")}'
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
-        self.proc = subprocess.Popen(sut_command('odom', namespace, node_params(online)),
-                                     env=env, stdout=subprocess.DEVNULL,
+        command = sut_command('odom', namespace, node_params(online, augmented))
+        self.proc = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True)
         if cpu is not None:
             pin(self.proc.pid, cpu)
@@ -221,13 +230,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--no-reference-node', action='store_true',
                         help='also run a third node, online on but sent no reference (splits '
                         'the subscription and per-sample cost from the learning)')
+    parser.add_argument('--augmented', choices=('named', 'residual'), default='',
+                        help="both nodes run an augmented model (online_bench's: named "
+                        'extensions, or a residual model with a rate term)')
     args = parser.parse_args(argv)
     cpu = pin_driver(sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity')
                      else [])
     domain = 40 + os.getpid() % 50
-    suts = [OnlineSut('off', False, domain, cpu), OnlineSut('on', True, domain, cpu)]
+    more = {'augmented': args.augmented}
+    suts = [OnlineSut('off', False, domain, cpu, **more),
+            OnlineSut('on', True, domain, cpu, **more)]
     if args.no_reference_node:
-        suts.append(OnlineSut('on, no reference', True, domain, cpu, with_reference=False))
+        suts.append(OnlineSut('on, no reference', True, domain, cpu, with_reference=False,
+                              **more))
     try:
         block_s = args.seconds / args.rounds
         for index in range(args.rounds):
