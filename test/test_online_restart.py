@@ -134,6 +134,21 @@ def test_grounds_that_do_not_fit_the_model_are_refused_with_what_to_do(case):
     OdometryConfig.from_flat(_grounds())   # the same file with sound grounds loads
 
 
+@pytest.mark.parametrize('name', ['online.grounds.covariance',
+                                  'models.edd_asymmetric.parameter_covariance'])
+def test_a_covariance_too_small_to_invert_is_refused_c288(name):
+    """1e-310 (a hand edit, a denormal): its information was inf, the learner's values NaN."""
+    tiny = (np.eye(5) * 1e-310).ravel().tolist()
+    with pytest.raises(ConfigError) as err:
+        OdometryConfig.from_flat(_grounds(**{name: tiny}))
+    assert name in str(err.value) and 'write 0 where an entry is meant to be zero' in str(err.value)
+    # 1e-30 still loads, and the learner's information stays finite
+    config = OdometryConfig.from_flat(_grounds(**{name: (np.eye(5) * 1e-30).ravel().tolist()}))
+    learner = online_odometer(config).learner
+    assert len(learner.grounds) == 2
+    assert all(np.isfinite(g.info).all() for g in learner.grounds)
+
+
 def test_predict_refuses_unfit_grounds_without_a_traceback(tmp_path, capsys):
     path = tmp_path / 'bad.yaml'
     text = write_params_file(tmp_path / 'good.yaml', _grounds(), {'source': 'test'}).read_text()
