@@ -10,7 +10,8 @@ active ground's, whose covariance may come from the offline calibrator and is he
 broad as the prior (``online.prior_sigma``, a floor of its information), a remembered
 ground's covariance is online calibration's own, the prior already in it: added again, every
 save and restart would shrink it (by 1-2 % a cycle on the study's drives) with no new data.
-Nothing else is carried: no window of segments (the new drive's segments learn it further), no history of switches (the
+Nothing else is carried: no window of segments (the new drive's segments learn it further),
+no history of switches (the
 holding blend and the dwell model of ``holding.py`` and ``dwell.py`` wait for the new drive to
 show that its grounds alternate: yesterday's alternation says nothing about today's drive).
 """
