@@ -83,15 +83,30 @@ def test_learned_at_finds_where_online_stays_within_the_offline_error():
 def test_a_step_past_a_bound_stops_half_way_to_it_c269():
     lo, hi = np.array([0.0, 1e-6]), np.array([1.0, np.inf])
     k0 = np.array([0.9, 0.6])
-    # b_hat asked to go to -0.4: half the way to 0 instead, alpha moved in proportion
+    # b_hat asked to go to -0.4: half the way to 0 instead; alpha takes its step (C289)
     k = _toward_bounds(k0, np.array([0.8, -0.4]), lo, hi)
-    t = 0.5 * (0.6 - 1e-6) / 1.0
-    np.testing.assert_allclose(k, k0 + t * np.array([-0.1, -1.0]))
+    np.testing.assert_allclose(k, [0.8, 0.6 - 0.5 * (0.6 - 1e-6)])
     # inside the range: the step as is
     np.testing.assert_array_equal(_toward_bounds(k0, np.array([0.8, 0.7]), lo, hi), [0.8, 0.7])
     # a parameter already on its bound is clipped and does not hold the others back
     np.testing.assert_array_equal(
         _toward_bounds(np.array([1.0, 0.6]), np.array([1.2, 0.7]), lo, hi), [1.0, 0.7])
+
+
+def test_a_parameter_pushed_to_its_bound_does_not_hold_the_others_back_c289():
+    """A lag whose truth is its bound (0) keeps being pushed there: the others still learn.
+
+    Cutting the whole step to half the way to the bound halved the room every update and with
+    it every other parameter's step: alpha, 0.4 off, moved 0.02 in total in 30 updates.
+    """
+    lo, hi = np.array([0.0, 0.0]), np.array([2.0, 1.0])
+    k = np.array([0.01, 0.5])        # tau_s near 0, alpha 0.4 below its truth
+    for _ in range(30):
+        target = np.array([-0.01, 0.9])     # the window's optimum: tau_s just below 0
+        step = np.clip(target - k, -0.05, 0.05)    # the step limit (prior_sigma)
+        k = _toward_bounds(k, k + step, lo, hi)
+    assert k[1] == pytest.approx(0.9)
+    assert 0.0 <= k[0] < 1e-3
 
 
 def test_online_from_the_ideal_file_never_drives_b_hat_to_its_bound_c269(husky):

@@ -134,6 +134,22 @@ def test_grounds_that_do_not_fit_the_model_are_refused_with_what_to_do(case):
     OdometryConfig.from_flat(_grounds())   # the same file with sound grounds loads
 
 
+@pytest.mark.parametrize('name', ['online.grounds.covariance',
+                                  'models.edd_asymmetric.parameter_covariance'])
+def test_a_covariance_too_small_to_invert_is_refused_c288(name):
+    """1e-310 (a hand edit, a denormal): its information was inf, the learner's values NaN."""
+    tiny = (np.eye(5) * 1e-310).ravel().tolist()
+    with pytest.raises(ConfigError) as err:
+        OdometryConfig.from_flat(_grounds(**{name: tiny}))
+    assert name in str(err.value)
+    assert 'write 0 where an entry is meant to be zero' in str(err.value)
+    # 1e-30 still loads, and the learner's information stays finite
+    config = OdometryConfig.from_flat(_grounds(**{name: (np.eye(5) * 1e-30).ravel().tolist()}))
+    learner = online_odometer(config).learner
+    assert len(learner.grounds) == 2
+    assert all(np.isfinite(g.info).all() for g in learner.grounds)
+
+
 def test_predict_refuses_unfit_grounds_without_a_traceback(tmp_path, capsys):
     path = tmp_path / 'bad.yaml'
     text = write_params_file(tmp_path / 'good.yaml', _grounds(), {'source': 'test'}).read_text()
@@ -234,3 +250,81 @@ def test_an_augmented_models_grounds_round_trip():
     # the same grounds under other extensions: refused, naming what the learner learns
     with pytest.raises(ConfigError, match='online calibration of this model learns'):
         OdometryConfig.from_flat({**values, 'augmented.extensions': 'lateral_skid'})
+
+
+def test_save_and_restart_cycles_keep_the_active_grounds_uncertainty_c290():
+    """A week of daily restarts with nothing learned: the saved covariance does not shrink.
+
+    The broad prior (online.prior_sigma) was added to the file's covariance at every start,
+    and the save wrote that back: sigma 0.5 -> 0.18 of a typical magnitude in 7 cycles.
+    """
+    config = OdometryConfig.from_flat(FILE)
+    first = online_odometer(config).learner.covariance
+    for _ in range(7):
+        config = OdometryConfig.from_flat(learned_values(config, online_odometer(config).learner))
+    np.testing.assert_allclose(online_odometer(config).learner.covariance, first, rtol=1e-9)
+    # an offline fit's covariance narrower than the prior is taken as it is; broader
+    # directions are held at the prior's width
+    scale = online_odometer(config).learner.scale
+    sigma = np.array([0.01, 0.02, 0.9, 0.01, 0.03]) * scale
+    diagonal = np.diag(sigma ** 2).ravel().tolist()
+    fitted = OdometryConfig.from_flat(
+        {**FILE, 'models.edd_asymmetric.parameter_covariance': diagonal})
+    got = np.sqrt(np.diag(online_odometer(fitted).learner.covariance)) / scale
+    np.testing.assert_allclose(got, [0.01, 0.02, 0.5, 0.01, 0.03], rtol=1e-9)
+
+
+@pytest.mark.ros
+def test_remembered_grounds_set_at_runtime_through_the_parameter_service():
+    """`ros2 param set` of online.grounds.* (a real client): unfit values refused with what to do.
+
+    One list at a time cannot stay consistent with the others: refused; the five entries set
+    together (atomically) take effect. The odometry never stops and stays finite.
+    """
+    import math
+    from node_harness import NodeRig
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    rig = NodeRig({**_grounds(), 'online.max_grounds': 3})
+    try:
+        client = AsyncParameterClient(rig.driver, rig.node.get_fully_qualified_name())
+        rig.spin_until(client.services_are_ready, timeout_s=10.0, what='parameter services')
+
+        def set_(params, atomic=False):
+            future = (client.set_parameters_atomically if atomic
+                      else client.set_parameters)(params)
+            rig.spin_until(future.done, timeout_s=10.0, what='parameters set')
+            result = future.result()
+            return [result.result] if atomic else list(result.results)
+
+        t_ns = [1_000_000_000]
+
+        def drive():
+            for _ in range(10):
+                t_ns[0] += 20_000_000
+                rig.send_joint(t_ns[0], 5.0, 4.0)
+            rig.drain()
+            position = rig.odom[-1].pose.pose.position
+            assert math.isfinite(position.x) and math.isfinite(position.y)
+            return len(rig.node._odometer.learner.grounds)
+
+        assert drive() == 2
+        refused = {'online.max_grounds': (1, 'raise online.max_grounds to 2'),
+                   'online.grounds.parameters': ([0.7, 0.6], 'n x 5 (got 2)'),
+                   'model': ('edd_symmetric', "set model back to 'edd_asymmetric'"),
+                   'online.grounds.learned_m': ([1e308], 'beyond')}
+        for name, (value, expected) in refused.items():
+            (result,) = set_([Parameter(name, value=value)])
+            assert not result.successful and expected in result.reason, (name, result.reason)
+            assert drive() == 2
+        (result,) = set_([Parameter('online.grounds.learned_m', value=[5])])   # an integer
+        assert result.successful and drive() == 2
+        empty = [Parameter('online.grounds.model', value=''),
+                 Parameter('online.grounds.parameter_names', value='')] + [
+            Parameter(name, Parameter.Type.DOUBLE_ARRAY, []) for name in
+            ('online.grounds.parameters', 'online.grounds.covariance', 'online.grounds.learned_m')]
+        (result,) = set_(empty, atomic=True)
+        assert result.successful and drive() == 1
+    finally:
+        rig.close()

@@ -80,6 +80,10 @@ INT64_MAX = 2 ** 63 - 1
 # beyond it the propagated covariance overflows and the odometry is never published again
 # (set_pose's covariance has the same bound).
 VARIANCE_LIMIT = 1e12
+# Smallest non-zero magnitude an entry of a covariance parameter may hold: online calibration
+# inverts covariances (a variance of 1e-310 has the information inf: the learner's parameters
+# turn NaN); 1e-100 is far below any uncertainty a robot parameter or a sensor has.
+VARIANCE_FLOOR = 1e-100
 # A model parameter whose range is open-ended is still a length or a coefficient of a robot:
 # beyond this magnitude its twists overflow the covariance propagation.
 MAGNITUDE_LIMIT = 1e9
@@ -151,6 +155,13 @@ def _check_magnitude(entry: SchemaEntry, value: Any) -> None:
             f'parameter {entry.name!r} holds {largest:g}, beyond {limit:g} (the largest '
             f'{what} the odometry can propagate without overflowing: it would never publish '
             f'again); give values within {limit:g}')
+    tiny = [v for v in numbers if 0.0 < abs(v) < VARIANCE_FLOOR] if variance else []
+    if tiny:
+        raise ParameterError(
+            f'parameter {entry.name!r} holds {tiny[0]:g}, a covariance entry below '
+            f'{VARIANCE_FLOOR:g} (its inverse, the information online calibration learns with, '
+            f'overflows); write 0 where an entry is meant to be zero, or a value of at least '
+            f'{VARIANCE_FLOOR:g}')
 
 
 def _check_entry(entry: SchemaEntry, value: Any) -> Any:

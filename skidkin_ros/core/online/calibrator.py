@@ -133,7 +133,11 @@ class OnlineCalibrator(HoldingBlend, GyroChoice, HeadingRule, PositionLearner, C
         info = self.prior_info.copy()
         if prior_covariance is not None and np.any(prior_covariance):
             scaled = np.asarray(prior_covariance, float) / np.outer(self.scale, self.scale)
-            info = info + np.linalg.pinv(scaled)
+            # the prior is a floor of the file's information, not added to it: a covariance
+            # ~/save_calibration wrote holds it already (added again at every restart, it
+            # shrank as 1/sqrt(n + 1) with no data: 0.5 -> 0.18 in a week of restarts; C290)
+            values, vectors = np.linalg.eigh(np.linalg.pinv(scaled))
+            info = (vectors * np.maximum(values, self.prior_info[0, 0])) @ vectors.T
         self.grounds = [Ground(0, self.k0.copy(), info)]
         self._start_info = info.copy()   # a corrected delay restarts learning here (delay.py)
         self.active = self.grounds[0]

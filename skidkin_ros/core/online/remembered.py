@@ -6,11 +6,12 @@ model's parameters and every other remembered ground as ``online.grounds.*``
 start, :func:`remember` gives the learner those grounds besides the one it starts on, each as
 the active one is seeded from ``models.<m>.*`` and its ``parameter_covariance``: its values
 are its anchor, its information (and prior) the inverse of its saved covariance. Unlike the
-active ground's, whose covariance may come from the offline calibrator and gets the broad prior
-(``online.prior_sigma``) added, a remembered ground's covariance is online calibration's own,
-the prior already in it: added again, every save and restart would shrink it (by 1-2 % a
-cycle on the study's drives) with no new data. Nothing else is carried: no
-window of segments (the new drive's segments learn it further), no history of switches (the
+active ground's, whose covariance may come from the offline calibrator and is held at least as
+broad as the prior (``online.prior_sigma``, a floor of its information), a remembered
+ground's covariance is online calibration's own, the prior already in it: added again, every
+save and restart would shrink it (by 1-2 % a cycle on the study's drives) with no new data.
+Nothing else is carried: no window of segments (the new drive's segments learn it further),
+no history of switches (the
 holding blend and the dwell model of ``holding.py`` and ``dwell.py`` wait for the new drive to
 show that its grounds alternate: yesterday's alternation says nothing about today's drive).
 """

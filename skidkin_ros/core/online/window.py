@@ -128,19 +128,22 @@ class WindowSolver:
 
 def _toward_bounds(k0: np.ndarray, k1: np.ndarray, lo: np.ndarray, hi: np.ndarray
                    ) -> np.ndarray:
-    """Return k1, or the step k0 -> k1 cut to half the way to the first bound it crosses.
+    """Return k1, each parameter that crosses a bound stopped half way to it.
 
     One Gauss-Newton step from far off (the ideal file on the real Husky: yaw rates 2x off)
     can leave the range; clipped, it landed on the bound (b_hat at 0: an infinite yaw rate,
     every later reference pose refused as a jump, nothing learned again; C269). A parameter
-    already on its bound is clipped and does not hold the others back.
+    already on its bound is clipped. Only the parameter that crosses is cut: cutting the
+    whole step held every other parameter back for good once one sat near a bound it keeps
+    being pushed to (a lag or slip of 0, the bound: room halves each update, and so does
+    every other parameter's step; C289).
     """
     d = k1 - k0
-    over = (k1 < lo) | (k1 > hi)
     room = np.where(d < 0, k0 - lo, hi - k0)
-    limit = over & (room > 0)
-    t = min(1.0, float(np.min(0.5 * room[limit] / np.abs(d[limit])))) if limit.any() else 1.0
-    return np.clip(k0 + t * d, lo, hi)
+    limit = ((k1 < lo) | (k1 > hi)) & (room > 0)
+    k = k1.copy()
+    k[limit] = k0[limit] + 0.5 * np.sign(d[limit]) * room[limit]
+    return np.clip(k, lo, hi)
 
 
 def _stack(segments: list[SegmentSet]) -> SegmentSet:
