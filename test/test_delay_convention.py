@@ -1,4 +1,4 @@
-"""The reference's delay measured exactly, online and offline, and where a half-period lead comes from.
+"""The reference's delay measured exactly, online and offline: a half-period lead explained.
 
 A noise-free reference of the simulator's truth, stamped a known delay late (or early), at 10 and
 30 Hz, against wheels at 20 and 50 Hz. The simulator's wheel speeds are sampled at the stamp, so

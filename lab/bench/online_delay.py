@@ -78,9 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--delays', type=float, nargs='+', default=list(DELAYS))
     parser.add_argument('--duration', type=float, default=120.0)
     parser.add_argument('--interval', default='midpoint', choices=('midpoint', 'ending'),
-                        help="the file's sample-interval convention: midpoint (exact for the "
-                        "simulator's speeds, sampled at the stamp; what calibrate chooses on "
-                        "them) or ending (the wheels lead by half a wheel period)")
+                        help='the sample-interval convention of the file: midpoint (exact for '
+                        'the speeds of the simulator, sampled at the stamp; what calibrate '
+                        'chooses on them) or ending (the wheels lead by half a wheel period)')
     parser.add_argument('--tolerance', type=float, help='online.delay_tolerance (s) of pause, '
                         "after and set (default: the parameter's)")
     args = parser.parse_args(argv)
