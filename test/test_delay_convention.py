@@ -28,7 +28,7 @@ MODEL = 'edd_asymmetric'
 FILE = {'model': MODEL, 'robot': 'sim_husky',
         **{f'models.{MODEL}.{k}': v for k, v in DEFAULT_TRUE_PARAMS.items()},
         f'models.{MODEL}.noise.calibrated': True, 'online.enabled': True,
-        'online.delay_learn': 0.0}
+        'online.delay_learn': 0.0, 'online.delay_tolerance': 0.06}
 WHEEL_HZ = (20.0, 50.0)
 REFERENCE_HZ = (10.0, 30.0)
 DELAYS_S = (0.1, -0.2)

@@ -120,7 +120,8 @@ def test_node_takes_a_late_references_delay_as_predict_does(tmp_path):
     # the reference stamped 0.4 s late, online.time_offset left at 0: the node measures the
     # delay by the offline lag rule, takes it in force, and agrees with predict bit for bit
     sim = simulate(SimConfig(duration_s=40.0, seed=4))
-    path = write_params_file(tmp_path / 'online.yaml', FILE, {'source': 'test'})
+    path = write_params_file(tmp_path / 'online.yaml', {**FILE, 'online.delay_tolerance': 0.06},
+                             {'source': 'test'})
     config = OdometryConfig.from_file(path)
     t = np.arange(sim.start_ns + 1_000_000_000, sim.end_ns - 1_000_000_000, 100_000_000)
     truth = sim.truth_at(t)

@@ -12,7 +12,8 @@ from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
 
 FILE = {'model': 'edd_asymmetric', 'robot': 'sim_husky',
         **{f'models.edd_asymmetric.{k}': v for k, v in DEFAULT_TRUE_PARAMS.items()},
-        'models.edd_asymmetric.noise.calibrated': True, 'online.enabled': True}
+        'models.edd_asymmetric.noise.calibrated': True, 'online.enabled': True,
+        'online.delay_tolerance': 0.06}   # the check is off by default
 
 
 def test_scan_finds_the_minimum_and_its_sigma():

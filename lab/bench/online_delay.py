@@ -81,8 +81,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='the sample-interval convention of the file: midpoint (exact for '
                         'the speeds of the simulator, sampled at the stamp; what calibrate '
                         'chooses on them) or ending (the wheels lead by half a wheel period)')
-    parser.add_argument('--tolerance', type=float, help='online.delay_tolerance (s) of pause, '
-                        "after and set (default: the parameter's)")
+    parser.add_argument('--tolerance', type=float, default=0.06,
+                        help='online.delay_tolerance (s) of pause, after and set (the check is '
+                        'off by default in a file: 0)')
     args = parser.parse_args(argv)
     tic = time.perf_counter()
     fixed = calibrated_file(interval=args.interval)

@@ -262,11 +262,12 @@ def run_case(case: str, seed: int, fixed: OdometryConfig, duration_s: float = 24
                       float(sim.truth.path_length()[-1]))
 
 
-def run_study(seeds: dict | None = None, duration_s: float = 240.0) -> list[CaseResult]:
-    """Run every case on its seeds with one calibrated file."""
+def run_study(seeds: dict | None = None, duration_s: float = 240.0,
+              interval: str | None = None) -> list[CaseResult]:
+    """Run every case on its seeds with one calibrated file (``interval``: its convention)."""
     seeds = seeds or {'long stretches': (1, 2), 'alternating': (3, 4),
                       'effect-free': (5, 6, 7)}
-    fixed = calibrated_file()
+    fixed = calibrated_file(interval=interval)
     return [run_case(case, seed, fixed, duration_s) for case in CASES
             for seed in seeds[case]]
 

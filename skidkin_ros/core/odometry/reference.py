@@ -114,10 +114,11 @@ ONLINE_SPECS: tuple[ParamSpec, ...] = (
               lower_open=True),
     ParamSpec('max_grounds', '', 4.0, 1.0, 16.0,
               'grounds remembered at once (the least recently used is forgotten)'),
-    ParamSpec('delay_tolerance', 's', 0.06, 0.0, 1.0,
-              "the reference's delay is measured online (the offline lag rule); clearly beyond "
-              'time_offset by more than this: taken in force (delay_learn) or learning paused '
-              '(counted online_reference_delay), and the value to set said; 0: not checked'),
+    ParamSpec('delay_tolerance', 's', 0.0, 0.0, 1.0,
+              "> 0: the reference's delay is measured online (the offline lag rule); clearly "
+              'beyond time_offset by more than this: taken in force (delay_learn) or learning '
+              'paused (counted online_reference_delay), and the value to set said; 0 (default): '
+              'not checked (0.06 s suggested where time_offset is unknown)'),
     ParamSpec('delay_learn', '', 1.0, 0.0, 1.0,
               '1: a measured delay beyond delay_tolerance becomes the time_offset in force '
               "(learning restarts from the file's parameters with it; at most 3 times, within "
@@ -160,7 +161,7 @@ class OnlineParams:
     switch_window: float = 0.5
     switch_margin: float = 12.0
     max_grounds: float = 4.0
-    delay_tolerance: float = 0.06
+    delay_tolerance: float = 0.0
     delay_learn: float = 1.0
 
     @classmethod
