@@ -143,6 +143,18 @@ def best_effort_publisher(rig: NodeRig) -> Any:
     return rig.driver.create_publisher(JointState, 'joint_states', qos_profile_sensor_data)
 
 
+def assert_online_replay_matches(result: Any, expected: Any, samples: Any) -> None:
+    """Assert a replay through the node equals ``skidkin predict``'s, pose and covariance.
+
+    One message per wheel sample; x and y bit for bit, the yaw to the rounding of the published
+    quaternion (1e-12), the published pose covariance bit for bit.
+    """
+    assert len(result) == len(samples)
+    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
+    np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
+    assert np.array_equal(result.pose_cov, expected.pose_covariances)
+
+
 def assert_replay_matches(result: Any, expected: Any) -> None:
     """Assert a replay through the node equals ``skidkin predict``'s prediction.
 

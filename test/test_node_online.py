@@ -3,7 +3,7 @@
 import math
 
 from nav_msgs.msg import Odometry
-from node_harness import NodeRig, RELIABLE, wall_ns
+from node_harness import assert_online_replay_matches, NodeRig, RELIABLE, wall_ns
 import numpy as np
 import pytest
 from skidkin_ros.core.drive import PoseTrack
@@ -37,10 +37,7 @@ def test_node_learning_online_reproduces_predict(tmp_path):
     assert odometer.counters['online_segments'] >= 8
     result = replay_through_node(sim.wheels, params_file=path, reference=reference,
                                  timeout_s=120.0)
-    assert len(result) == len(sim.wheels)
-    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
-    np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
-    assert np.array_equal(result.pose_cov, expected.pose_covariances)
+    assert_online_replay_matches(result, expected, sim.wheels)
     # and the parameters learned moved the odometry away from the file's
     fixed = online_odometer(OdometryConfig.from_flat({**config.values, 'online.enabled': False}))
     assert np.abs(fixed.predict(sim.wheels).poses[-1, :2] - result.poses[-1, :2]).max() > 0.05

@@ -165,6 +165,7 @@ def test_predict_refuses_unfit_grounds_without_a_traceback(tmp_path, capsys):
 @pytest.mark.ros
 def test_node_and_predict_agree_with_a_file_carrying_grounds(tmp_path, learned_drive):
     from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
+    from node_harness import assert_online_replay_matches
     from skidkin_ros.node.replay import replay_through_node
 
     config, learner = learned_drive
@@ -181,10 +182,7 @@ def test_node_and_predict_agree_with_a_file_carrying_grounds(tmp_path, learned_d
     assert odometer.counters['online_grounds_remembered'] == 1
     result = replay_through_node(sim.wheels, params_file=path, reference=reference,
                                  timeout_s=120.0)
-    assert len(result) == len(sim.wheels)
-    assert np.array_equal(result.poses[:, :2], expected.poses[:, :2])
-    np.testing.assert_allclose(result.poses[:, 2], expected.poses[:, 2], rtol=0, atol=1e-12)
-    assert np.array_equal(result.pose_cov, expected.pose_covariances)
+    assert_online_replay_matches(result, expected, sim.wheels)
     for cause in ('online_segments', 'online_change', 'online_switch',
                   'online_grounds_remembered'):
         assert result.counters.get(cause, 0) == odometer.counters[cause], cause
