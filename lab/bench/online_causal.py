@@ -64,6 +64,7 @@ from skidkin_ros.core.kinematics.models import BoundModel, get_model
 from skidkin_ros.core.kinematics.specs import Geometry
 from skidkin_ros.core.odometry.config import OdometryConfig
 from skidkin_ros.core.odometry.integrator import StreamingIntegrator
+from skidkin_ros.core.odometry.interval import DEFAULT_INTERVAL, INTERVALS
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.core.online.adapt import PROBE_M, PROBE_RAD
 from skidkin_ros.core.online.window import _stack
@@ -75,10 +76,13 @@ __all__ = ['causal_fits', 'causal_poses', 'causal_floor', 'increment_parts']
 PARTS = ('before', 'straddle', 'change', 'after')
 
 
-TRAINING = HorizonOptions().train_segments()   # the calibrator's training segments
+def training(interval: str = DEFAULT_INTERVAL) -> HorizonOptions:
+    """Return the calibrator's training segments under a sample-interval convention."""
+    return HorizonOptions(interval=interval).train_segments()
 
 
-def _ground_segments(wheels: WheelSamples, reference: PoseTrack, t0_ns: int, t1_ns: int):
+def _ground_segments(wheels: WheelSamples, reference: PoseTrack, t0_ns: int, t1_ns: int,
+                     interval: str = DEFAULT_INTERVAL):
     """Return one ground's reference track, its drive and its training segments, or None.
 
     The ground is [t0_ns, t1_ns) of the wheels and the reference.
@@ -91,13 +95,14 @@ def _ground_segments(wheels: WheelSamples, reference: PoseTrack, t0_ns: int, t1_
     drive = Drive('ground', WheelSamples(wheels.t_ns[keep], wheels.omega_l[keep],
                                          wheels.omega_r[keep]), track)
     try:
-        return track, drive, usable_segments([drive], TRAINING, 'training')
+        return track, drive, usable_segments([drive], training(interval), 'training')
     except DataError:
         return None
 
 
 def causal_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t0_ns: int,
-                t1_ns: int, model: str = study.MODEL) -> list[tuple[int, dict, float]]:
+                t1_ns: int, model: str = study.MODEL, interval: str = DEFAULT_INTERVAL
+                ) -> list[tuple[int, dict, float]]:
     """Return the causal refits of one ground, [t0_ns, t1_ns): (time seen, values, path m).
 
     The ground's data are cut once into the calibrator's training segments; the segments cut
@@ -106,7 +111,7 @@ def causal_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, 
     the i-th fit uses the first i segments and is usable from its last end pose on. Only the
     calibrator's valid fits are returned; ``path m``: the ground's reference path at that pose.
     """
-    cut = _ground_segments(wheels, reference, t0_ns, t1_ns)
+    cut = _ground_segments(wheels, reference, t0_ns, t1_ns, interval)
     if cut is None:
         return []
     track, drive, segments = cut
@@ -130,7 +135,8 @@ def causal_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, 
 
 def prior_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t0_ns: int,
                t1_ns: int, start: dict, noise, prior_sigma: float, model: str = study.MODEL,
-               iterations: int = 3, probes: bool = True) -> list[tuple[int, dict, float]]:
+               iterations: int = 3, probes: bool = True, interval: str = DEFAULT_INTERVAL
+               ) -> list[tuple[int, dict, float]]:
     """Return the causal MAP refits of one ground: the same segments, with a prior.
 
     Each new segment refits all the ground's segments so far (Gauss-Newton, ``iterations``
@@ -142,7 +148,7 @@ def prior_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t
     (from the last segment's end to the current pose) as one more segment, as the online learner
     probes (:mod:`skidkin_ros.core.online.adapt`).
     """
-    cut = _ground_segments(wheels, reference, t0_ns, t1_ns)
+    cut = _ground_segments(wheels, reference, t0_ns, t1_ns, interval)
     if cut is None:
         return []
     track, drive, segments = cut
@@ -176,11 +182,11 @@ def prior_fits(wheels: WheelSamples, reference: PoseTrack, geometry: Geometry, t
                 continue
             a = (0 if done == 0 else
                  int(np.searchsorted(track.t_ns, int(segments.t_b_ns[done - 1]))))
-            if TRAINING.too_still(path[c] - path[a], track.yaw[c] - track.yaw[a]):
+            if training(interval).too_still(path[c] - path[a], track.yaw[c] - track.yaw[a]):
                 continue
             part = Drive('part', drive.wheels, PoseTrack(track.t_ns[[a, c]], track.x[[a, c]],
                                                          track.y[[a, c]], track.yaw[[a, c]]))
-            partial = cut_segments([part], TRAINING)
+            partial = cut_segments([part], training(interval))
             if len(partial) == 0:
                 continue
             batch = batch + [partial]
@@ -278,13 +284,16 @@ def causal_floor(seed: int, fixed: OdometryConfig, duration_s: float = 240.0,
     model, geometry = get_model(study.MODEL), sim.config.geometry
     mask = sim.trace.masks['terrain_regime']
     on_new = np.interp(sim.wheels.t_ns, sim.trace.t_ns, mask.astype(float)) > 0.5
-    fits = [causal_fits(sim.wheels, reference, geometry, sim.start_ns, switch),
-            causal_fits(sim.wheels, reference, geometry, switch, sim.end_ns + 1)]
+    interval = fixed['interval']
+    fits = [causal_fits(sim.wheels, reference, geometry, sim.start_ns, switch,
+                        interval=interval),
+            causal_fits(sim.wheels, reference, geometry, switch, sim.end_ns + 1,
+                        interval=interval)]
     schedules = [[(t, model.bind(v, geometry)) for t, v, _ in f] for f in fits]
     file_values = {k: fixed[f'models.{study.MODEL}.{k}'] for k in model.param_names}
     file_model = model.bind(file_values, geometry)
     with_prior = prior_fits(sim.wheels, reference, geometry, switch, sim.end_ns + 1,
-                            file_values, noise, prior_sigma)
+                            file_values, noise, prior_sigma, interval=interval)
     previous = schedules[0][-1][1] if schedules[0] else file_model
     true_models = _true_models(sim)
     # the last causal fit of a ground uses all its segments: the non-causal floor's fit
@@ -363,8 +372,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
     parser.add_argument('--learn-m', type=float, default=10.0)
     parser.add_argument('--jobs', type=int, default=1)
+    parser.add_argument('--interval', choices=INTERVALS,
+                        help="the file's sample-interval convention (default: the study's)")
     args = parser.parse_args(argv)
-    fixed = study.calibrated_file()
+    fixed = study.calibrated_file(interval=args.interval)
     print(HEADER, flush=True)
     work = [(seed, fixed, args.learn_m) for seed in args.seeds]
     results = []
