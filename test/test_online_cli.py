@@ -3,13 +3,13 @@
 import csv
 
 import numpy as np
+from reference_bag import write_reference_bag
 from skidkin_ros.adapters.bag_reader import open_recording
-from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.cli.main import main
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
 from skidkin_ros.core.online import online_odometer
 from skidkin_ros.sim.effects import make_effect
-from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, JOINT_NAMES, SimConfig, simulate
+from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
 
 FILE = {'model': 'edd_asymmetric', 'robot': 'sim',
         **{f'models.edd_asymmetric.{k}': v for k, v in DEFAULT_TRUE_PARAMS.items()},
@@ -17,19 +17,9 @@ FILE = {'model': 'edd_asymmetric', 'robot': 'sim',
 
 
 def _bag(tmp_path, sim):
-    path = tmp_path / 'drive'
-    with BagWriter(path) as writer:
-        reference = sim.truth_at(np.arange(sim.start_ns, sim.end_ns, 100_000_000))
-        j = 0
-        for i, t in enumerate(sim.wheels.t_ns.tolist()):
-            while j < len(reference) and reference.t_ns[j] <= t:
-                writer.write_odometry('/kiss/odometry', int(reference.t_ns[j]), 'odom_lidar',
-                                      'base_link', reference.x[j], reference.y[j],
-                                      reference.yaw[j])
-                j += 1
-            writer.write_joint_state('/joint_states', t, JOINT_NAMES,
-                                     [sim.wheels.omega_l[i]] * 2 + [sim.wheels.omega_r[i]] * 2)
-    return path
+    reference = sim.truth_at(np.arange(sim.start_ns, sim.end_ns, 100_000_000))
+    return write_reference_bag(tmp_path / 'drive', sim.wheels, '/kiss/odometry', reference,
+                               'odom_lidar', 'base_link')
 
 
 def test_predict_with_a_reference_learns_as_the_odometer_does(tmp_path, capsys):

@@ -12,8 +12,8 @@ from nav_msgs.msg import Odometry
 from node_harness import assert_replay_matches, NodeRig, RELIABLE, wall_ns
 import numpy as np
 import pytest
+from reference_bag import write_reference_bag
 from skidkin_ros.adapters.bag_reader import open_recording
-from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.cli.main import main
 from skidkin_ros.core.calibration.fitting import parameter_scales
 from skidkin_ros.core.drive import PoseTrack
@@ -27,7 +27,7 @@ from skidkin_ros.errors import ConfigError
 from skidkin_ros.node.conversions import ns_to_stamp
 from skidkin_ros.node.replay import replay_through_node
 from skidkin_ros.sim.effects import make_effect
-from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, JOINT_NAMES, SimConfig, simulate
+from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
 
 FILE = {'model': 'edd_asymmetric', 'robot': 'sim',
         **{f'models.edd_asymmetric.{k}': v for k, v in DEFAULT_TRUE_PARAMS.items()},
@@ -311,17 +311,8 @@ def test_c272_predict_reads_the_yaw_variance_of_a_bags_gnss_odometry(tmp_path, c
     effect = make_effect('terrain_regime', 0.25, mode='time', switch_frac=0.0, yaw=0.1)
     sim = simulate(SimConfig(duration_s=40.0, seed=22, effects=(effect,)))
     gnss = _gnss(sim, rate_hz=5.0)
-    bag = tmp_path / 'gnss'
-    with BagWriter(bag) as writer:
-        j = 0
-        for i, t in enumerate(sim.wheels.t_ns.tolist()):
-            while j < len(gnss) and gnss.t_ns[j] <= t:
-                writer.write_odometry('/odometry/gps', int(gnss.t_ns[j]), 'utm', 'gps',
-                                      gnss.x[j], gnss.y[j], 0.0,
-                                      pose_covariance=GNSS_COVARIANCE)
-                j += 1
-            writer.write_joint_state('/joint_states', t, JOINT_NAMES,
-                                     [sim.wheels.omega_l[i]] * 2 + [sim.wheels.omega_r[i]] * 2)
+    bag = write_reference_bag(tmp_path / 'gnss', sim.wheels, '/odometry/gps', gnss, 'utm', 'gps',
+                              lambda j: GNSS_COVARIANCE)   # _gnss: heading 0 throughout
     with open_recording(bag) as recording:
         track = recording.read_pose_track('/odometry/gps')
     assert np.array_equal(track.yaw_variance, np.full(len(track), 99999.0))

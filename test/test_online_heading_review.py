@@ -12,8 +12,8 @@ import math
 from node_harness import assert_replay_matches
 import numpy as np
 import pytest
+from reference_bag import write_reference_bag
 from skidkin_ros.adapters.bag_reader import open_recording
-from skidkin_ros.adapters.bag_writer import BagWriter
 from skidkin_ros.cli.main import main
 from skidkin_ros.core.drive import PoseTrack
 from skidkin_ros.core.odometry.config import OdometryConfig, write_params_file
@@ -21,7 +21,7 @@ from skidkin_ros.core.online import online_odometer
 from skidkin_ros.core.rotation import quaternion_to_yaw, yaw_to_quaternion
 from skidkin_ros.node.replay import replay_through_node
 from skidkin_ros.sim.effects import make_effect
-from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, JOINT_NAMES, SimConfig, simulate
+from skidkin_ros.sim.simulate import DEFAULT_TRUE_PARAMS, SimConfig, simulate
 from test_online_heading import _final_error, _fixed, _gnss, _run, FILE
 
 
@@ -97,19 +97,14 @@ def test_n189_the_node_and_predict_agree_when_the_heading_comes_back(tmp_path, d
                                                                      position_only):
     """A real bag (rosbags) of AMCL-style odometry: `skidkin predict` and the node, bit for bit."""
     reference = _lost_then_found(drive)
-    bag = tmp_path / 'amcl'
-    with BagWriter(bag) as writer:
-        j = 0
-        for i, t in enumerate(drive.wheels.t_ns.tolist()):
-            while j < len(reference) and reference.t_ns[j] <= t:
-                covariance = np.zeros(36)
-                covariance[35] = reference.yaw_variance[j]
-                writer.write_odometry('/amcl/odom', int(reference.t_ns[j]), 'map', 'base_link',
-                                      reference.x[j], reference.y[j], reference.yaw[j],
-                                      pose_covariance=covariance)
-                j += 1
-            writer.write_joint_state('/joint_states', t, JOINT_NAMES,
-                                     [drive.wheels.omega_l[i]] * 2 + [drive.wheels.omega_r[i]] * 2)
+
+    def covariance(j):
+        values = np.zeros(36)
+        values[35] = reference.yaw_variance[j]
+        return values
+
+    bag = write_reference_bag(tmp_path / 'amcl', drive.wheels, '/amcl/odom', reference, 'map',
+                              'base_link', covariance)
     with open_recording(bag) as recording:
         track = recording.read_pose_track('/amcl/odom')
     assert np.array_equal(track.yaw_variance, reference.yaw_variance)
